@@ -1,0 +1,42 @@
+# crossmodal: `make run` starts the simulated workcell, `make test` runs the tests.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEPLOYMENT ?= deploy/sim.toml
+
+.PHONY: run test test-fast bench lint clean help
+
+help:
+	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
+	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
+	@echo "make bench  - benchmarks, results in .bench/*.json"
+	@echo "make lint   - ruff"
+
+$(STAMP): pyproject.toml
+	test -d $(VENV) || $(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	# torch first and pinned: the CPU wheel lies on disk; any other spec downloads gigabytes.
+	$(BIN)/pip install -q torch==2.13.0
+	$(BIN)/pip install -q -e '.[dev,baselines]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/xm up $(DEPLOYMENT) --open
+
+test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q -ra
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -ra -m "not slow and not browser and not hdl"
+
+bench: $(STAMP)
+	mkdir -p .bench
+	for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache sim_build

@@ -1,0 +1,1 @@
+"""crossmodal common library: runtime, messages, keys, robot models, protocols."""

@@ -1,0 +1,300 @@
+"""The node: one service instance's window onto Zenoh, bridged into asyncio.
+
+Zenoh callbacks run on Zenoh threads; they only copy the payload and hand it to the event loop
+with ``call_soon_threadsafe``. Each subscription owns a bounded queue with an explicit policy:
+``latest(n)`` keeps the newest n samples (control loops), ``fifo(n)`` keeps all up to n and
+counts overflow (the recorder). Decoding and handlers run on the loop, so a slow handler never
+blocks Zenoh and a malformed payload is counted and dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import inspect
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from shared import keys as keyreg
+from shared import msgs
+from shared.runtime.clock import Clock
+from shared.runtime.logs import fields
+
+RATE_WINDOW_S = 5.0
+
+
+@dataclass(frozen=True)
+class QueuePolicy:
+    kind: str  # "latest" or "fifo"
+    depth: int
+
+
+def latest(depth: int = 1) -> QueuePolicy:
+    return QueuePolicy("latest", depth)
+
+
+def fifo(depth: int = 100_000) -> QueuePolicy:
+    return QueuePolicy("fifo", depth)
+
+
+class RateMeter:
+    """Message rate over the last few seconds, from arrival times."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._times: collections.deque[float] = collections.deque()
+
+    def tick(self, now: float) -> None:
+        self.count += 1
+        self._times.append(now)
+        while self._times and self._times[0] < now - RATE_WINDOW_S:
+            self._times.popleft()
+
+    def rate(self, now: float) -> float:
+        while self._times and self._times[0] < now - RATE_WINDOW_S:
+            self._times.popleft()
+        if len(self._times) < 2:
+            return 0.0
+        span = max(now - self._times[0], 1e-6)
+        return (len(self._times) - 1) / span if span < RATE_WINDOW_S * 0.5 else len(self._times) / RATE_WINDOW_S
+
+
+class Publisher:
+    def __init__(self, node: Node, key: str, msgtype: str) -> None:
+        self.key = key
+        self.msgtype = msgtype
+        self._node = node
+        self._pub = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self.meter = node.stats.published.setdefault(key, RateMeter())
+
+    def put(self, msg: Any) -> None:
+        self.put_bytes(msgs.serialize(msg, self.msgtype))
+
+    def put_bytes(self, payload: bytes) -> None:
+        self._pub.put(payload)
+        self.meter.tick(time.monotonic())
+
+
+class Subscription:
+    def __init__(self, node: Node, key_expr: str, msgtype: str | None,
+                 handler: Callable[..., Any], policy: QueuePolicy) -> None:
+        self.key_expr = key_expr
+        self.msgtype = msgtype
+        self.policy = policy
+        self._node = node
+        self._handler = handler
+        self._queue: collections.deque = collections.deque(
+            maxlen=policy.depth if policy.kind == "latest" else None)
+        self._lock = threading.Lock()
+        self._scheduled = False
+        self._wake = asyncio.Event()
+        self._loop = node.loop
+        self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}")
+        self._sub = node.session.declare_subscriber(key_expr, self._on_sample)
+
+    # Zenoh thread: copy and hand over, nothing else.
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
+        with self._lock:
+            if self.policy.kind == "fifo" and len(self._queue) >= self.policy.depth:
+                self._node.stats.count("queue_overflow")
+                return
+            self._queue.append(item)
+            if self._scheduled:
+                return
+            self._scheduled = True
+        try:
+            self._loop.call_soon_threadsafe(self._wake.set)
+        except RuntimeError:  # loop closed during shutdown
+            pass
+
+    async def _dispatch(self) -> None:
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            with self._lock:
+                self._scheduled = False
+            while True:
+                with self._lock:
+                    if not self._queue:
+                        break
+                    key, payload, t_recv = self._queue.popleft()
+                await self._deliver(key, payload, t_recv)
+
+    async def _deliver(self, key: str, payload: bytes, t_recv: float) -> None:
+        stats = self._node.stats
+        stats.received.setdefault(key, RateMeter()).tick(t_recv)
+        msgtype = self.msgtype or keyreg.msgtype_of(key)
+        try:
+            msg = payload if msgtype == "raw" else msgs.deserialize(payload, msgtype or "")
+        except msgs.MessageError as exc:
+            stats.count("malformed", key)
+            self._node.log.warning("dropped malformed payload", extra=fields(key=key, error=str(exc)[:200]))
+            return
+        try:
+            result = self._handler(msg, key) if self._wants_key else self._handler(msg)
+            if inspect.isawaitable(result):
+                await result
+        except Exception as exc:  # a handler bug must not kill the subscription
+            stats.count("handler_error", key)
+            self._node.log.exception("handler failed", extra=fields(key=key, error=repr(exc)))
+
+    @property
+    def _wants_key(self) -> bool:
+        try:
+            return len(inspect.signature(self._handler).parameters) >= 2
+        except (TypeError, ValueError):
+            return False
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self._task.cancel()
+
+
+class Stats:
+    def __init__(self) -> None:
+        self.published: dict[str, RateMeter] = {}
+        self.received: dict[str, RateMeter] = {}
+        self.errors: collections.Counter[str] = collections.Counter()
+
+    def count(self, name: str, key: str | None = None, n: int = 1) -> None:
+        self.errors[name if key is None else f"{name}:{key}"] += n
+
+
+class Node:
+    """One service instance: typed pub/sub, queryables, liveliness, health and the clock."""
+
+    def __init__(self, service: str, instance: str, session: zenoh.Session, clock_mode: str = "wall",
+                 log: logging.Logger | None = None) -> None:
+        self.service = service
+        self.instance = instance
+        self.session = session
+        self.loop = asyncio.get_running_loop()
+        self.log = log or logging.getLogger("xm")
+        self.clock = Clock(clock_mode)
+        self.stats = Stats()
+        self.started = time.monotonic()
+        self.status = "starting"
+        self.message = ""
+        self.health_extra: Callable[[], dict] | None = None
+        self._tasks: set[asyncio.Task] = set()
+        self._closers: list[Callable[[], None]] = []
+        self.stopping = asyncio.Event()
+        self._token = session.liveliness().declare_token(self.key("@alive"))
+        self.queryable("@health", lambda _req: self.health(), raw_key=True)
+        if clock_mode == "sim":
+            self.subscribe("xm/clock", self._on_clock, latest(1), msgtype="rosgraph_msgs/msg/Clock")
+
+    def key(self, topic: str) -> str:
+        return keyreg.service_key(self.service, self.instance, topic)
+
+    def _on_clock(self, msg: Any) -> None:
+        self.clock.advance(msgs.stamp_seconds(msg.clock))
+
+    def spawn(self, coro: Awaitable, name: str | None = None) -> asyncio.Task:
+        task = asyncio.ensure_future(coro)
+        if name:
+            task.set_name(name)
+        self._tasks.add(task)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            self.log.error("task %s crashed: %r", task.get_name(), task.exception(), exc_info=task.exception())
+            self.stats.count("task_crash")
+            self.set_status("error", f"task {task.get_name()} crashed: {task.exception()!r}")
+
+    def publisher(self, topic_or_key: str, msgtype: str | None = None) -> Publisher:
+        key = topic_or_key if topic_or_key.startswith("xm/") else self.key(topic_or_key)
+        msgtype = msgtype or keyreg.msgtype_of(key)
+        if msgtype is None:
+            raise ValueError(f"key {key} is not in shared/keys.py; register it or pass msgtype")
+        return Publisher(self, key, msgtype)
+
+    def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
+                  msgtype: str | None = None) -> Subscription:
+        """Handler gets ``(msg)`` or ``(msg, key)``; msgtype defaults to the registry's; "raw" gives bytes."""
+        sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1))
+        self._closers.append(sub.close)
+        return sub
+
+    def queryable(self, name: str, handler: Callable[[dict], Any], raw_key: bool = False) -> None:
+        """``xm/<service>/<instance>/<name>``; JSON in (may be empty), JSON out. Handler may be async."""
+        key = self.key(name if raw_key or name.startswith("@") else f"@cmd/{name}")
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            self.loop.call_soon_threadsafe(lambda: self.spawn(self._answer(query, key, payload, handler)))
+
+        q = self.session.declare_queryable(key, on_query)
+        self._closers.append(q.undeclare)
+
+    async def _answer(self, query: zenoh.Query, key: str, payload: bytes, handler: Callable) -> None:
+        try:
+            request = json.loads(payload) if payload else {}
+            if not isinstance(request, dict):
+                raise ValueError("request must be a JSON object")
+            reply = handler(request)
+            if inspect.isawaitable(reply):
+                reply = await reply
+        except Exception as exc:
+            self.stats.count("bad_request", key)
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        try:
+            query.reply(key, json.dumps(reply, default=_json_default))
+        finally:
+            query.drop()
+
+    def set_status(self, status: str, message: str = "") -> None:
+        if (status, message) != (self.status, self.message):
+            self.log.info("status %s", status, extra=fields(message=message) if message else None)
+        self.status, self.message = status, message
+
+    def health(self) -> dict:
+        now = time.monotonic()
+        report = {
+            "service": self.service,
+            "instance": self.instance,
+            "pid": os.getpid(),
+            "status": self.status,
+            "message": self.message,
+            "uptime_s": round(now - self.started, 3),
+            "clock": self.clock.now(),
+            "published_hz": {k: round(m.rate(now), 2) for k, m in self.stats.published.items()},
+            "published": {k: m.count for k, m in self.stats.published.items()},
+            "received_hz": {k: round(m.rate(now), 2) for k, m in self.stats.received.items()},
+            "errors": dict(self.stats.errors),
+        }
+        if self.health_extra is not None:
+            report.update(self.health_extra())
+        return report
+
+    async def close(self) -> None:
+        for close in reversed(self._closers):
+            try:
+                close()
+            except Exception:  # undeclare after the session died is harmless
+                pass
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        try:
+            self._token.undeclare()
+        except Exception:
+            pass
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return str(obj)

@@ -1,0 +1,73 @@
+"""Entry point shared by every service: arguments, deployment, node, signals, clean shutdown.
+
+A service module provides a class with a nested ``Params`` dataclass and::
+
+    def __init__(self, node: Node, params: Params): ...   # declare pubs/subs here
+    async def run(self) -> None: ...                        # main loop; may just await forever
+    async def close(self) -> None: ...                      # optional: release devices
+
+and its ``__main__.py`` calls ``service_main("glove", GloveService)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+from typing import Any
+
+from shared.config import ConfigError, load_deployment, parse_params
+from shared.runtime.logs import setup_logging
+from shared.runtime.node import Node
+from shared.runtime.zsession import EndpointError, open_client
+
+
+def parse_args(service: str, argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
+                                     description=f"crossmodal {service} service")
+    parser.add_argument("--deployment", default="deploy/sim.toml", help="deployment TOML file")
+    parser.add_argument("--instance", required=True, help="instance name within the deployment")
+    return parser.parse_args(argv)
+
+
+async def run_node(service: str, cls: type, deployment_path: str, instance: str,
+                   stop: asyncio.Event | None = None) -> None:
+    deployment = load_deployment(deployment_path)
+    params = parse_params(cls.Params, deployment.params(service, instance),
+                          f"{deployment.path}: services.{service}.{instance}")
+    log = setup_logging(f"{service}/{instance}")
+    session = open_client(deployment.router)
+    node = Node(service, instance, session, deployment.clock, log)
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    impl: Any = None
+    try:
+        impl = cls(node, params)
+        node.set_status("ok")
+        main = node.spawn(impl.run(), name="run")
+        stopper = asyncio.ensure_future(stop.wait())
+        await asyncio.wait({main, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        stopper.cancel()
+        if main.done() and not main.cancelled() and main.exception() is not None:
+            raise main.exception()
+    finally:
+        log.info("shutting down")
+        if impl is not None and hasattr(impl, "close"):
+            try:
+                await asyncio.wait_for(impl.close(), 3.0)
+            except Exception as exc:
+                log.warning("close failed: %r", exc)
+        await node.close()
+        session.close()
+
+
+def service_main(service: str, cls: type, argv: list[str] | None = None) -> None:
+    args = parse_args(service, argv)
+    try:
+        asyncio.run(run_node(service, cls, args.deployment, args.instance))
+    except (ConfigError, EndpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)

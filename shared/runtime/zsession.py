@@ -1,0 +1,53 @@
+"""Opening Zenoh sessions with the project's rules: explicit endpoints, no multicast scouting."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import zenoh
+
+
+class EndpointError(RuntimeError):
+    """The router endpoint is unusable (bad syntax or the port is taken)."""
+
+
+def _config(mode: str, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false" if mode == "client" else "true")
+    conf.insert_json5("listen/endpoints", json.dumps(listen or []))
+    conf.insert_json5("connect/endpoints", json.dumps(connect or []))
+    return conf
+
+
+def parse_tcp(endpoint: str) -> tuple[str, int]:
+    if not endpoint.startswith("tcp/") or ":" not in endpoint:
+        raise EndpointError(f"endpoint {endpoint!r}: expected tcp/<host>:<port>, e.g. tcp/127.0.0.1:7447")
+    host, _, port = endpoint[4:].rpartition(":")
+    try:
+        return host.strip("[]"), int(port)
+    except ValueError:
+        raise EndpointError(f"endpoint {endpoint!r}: port {port!r} is not a number") from None
+
+
+def check_port_free(endpoint: str) -> None:
+    host, port = parse_tcp(endpoint)
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind((host, port))
+        except OSError as exc:
+            raise EndpointError(
+                f"cannot listen on {endpoint}: {exc.strerror} (another workcell or zenohd is running? "
+                f"stop it, or set [deployment] router to a free port)") from None
+
+
+def open_router(endpoint: str) -> zenoh.Session:
+    check_port_free(endpoint)
+    return zenoh.open(_config("router", listen=[endpoint]))
+
+
+def open_client(endpoint: str) -> zenoh.Session:
+    parse_tcp(endpoint)
+    return zenoh.open(_config("client", connect=[endpoint]))
