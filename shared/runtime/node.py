@@ -91,13 +91,16 @@ class Subscription:
         self.policy = policy
         self._node = node
         self._handler = handler
+        self._wants_key = _arity(handler) >= 2
         self._queue: collections.deque = collections.deque(
             maxlen=policy.depth if policy.kind == "latest" else None)
         self._lock = threading.Lock()
         self._scheduled = False
-        self._wake = asyncio.Event()
         self._loop = node.loop
-        self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}")
+        # Plain functions run straight from the loop callback (one hop); coroutines get a task.
+        self._is_async = inspect.iscoroutinefunction(handler)
+        self._wake = asyncio.Event()
+        self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}") if self._is_async else None
         self._sub = node.session.declare_subscriber(key_expr, self._on_sample)
 
     # Zenoh thread: copy and hand over, nothing else.
@@ -112,9 +115,42 @@ class Subscription:
                 return
             self._scheduled = True
         try:
-            self._loop.call_soon_threadsafe(self._wake.set)
+            self._loop.call_soon_threadsafe(self._wake.set if self._is_async else self._drain)
         except RuntimeError:  # loop closed during shutdown
             pass
+
+    def _next(self) -> tuple | None:
+        with self._lock:
+            if not self._queue:
+                self._scheduled = False
+                return None
+            return self._queue.popleft()
+
+    def _drain(self) -> None:
+        while (item := self._next()) is not None:
+            msg = self._decode(*item)
+            if msg is not None:
+                try:
+                    self._handler(msg, item[0]) if self._wants_key else self._handler(msg)
+                except Exception as exc:  # a handler bug must not kill the subscription
+                    self._node.stats.count("handler_error", item[0])
+                    self._node.log.exception("handler failed", extra=fields(key=item[0], error=repr(exc)))
+
+    def _decode(self, key: str, payload: bytes, t_recv: float) -> Any:
+        stats = self._node.stats
+        meter = stats.received.get(key)
+        if meter is None:
+            meter = stats.received[key] = RateMeter()
+        meter.tick(t_recv)
+        msgtype = self.msgtype or keyreg.msgtype_of(key)
+        if msgtype == "raw":
+            return payload
+        try:
+            return msgs.deserialize(payload, msgtype or "")
+        except msgs.MessageError as exc:
+            stats.count("malformed", key)
+            self._node.log.warning("dropped malformed payload", extra=fields(key=key, error=str(exc)[:200]))
+            return None
 
     async def _dispatch(self) -> None:
         while True:
@@ -130,33 +166,19 @@ class Subscription:
                 await self._deliver(key, payload, t_recv)
 
     async def _deliver(self, key: str, payload: bytes, t_recv: float) -> None:
-        stats = self._node.stats
-        stats.received.setdefault(key, RateMeter()).tick(t_recv)
-        msgtype = self.msgtype or keyreg.msgtype_of(key)
-        try:
-            msg = payload if msgtype == "raw" else msgs.deserialize(payload, msgtype or "")
-        except msgs.MessageError as exc:
-            stats.count("malformed", key)
-            self._node.log.warning("dropped malformed payload", extra=fields(key=key, error=str(exc)[:200]))
+        msg = self._decode(key, payload, t_recv)
+        if msg is None:
             return
         try:
-            result = self._handler(msg, key) if self._wants_key else self._handler(msg)
-            if inspect.isawaitable(result):
-                await result
+            await (self._handler(msg, key) if self._wants_key else self._handler(msg))
         except Exception as exc:  # a handler bug must not kill the subscription
-            stats.count("handler_error", key)
+            self._node.stats.count("handler_error", key)
             self._node.log.exception("handler failed", extra=fields(key=key, error=repr(exc)))
-
-    @property
-    def _wants_key(self) -> bool:
-        try:
-            return len(inspect.signature(self._handler).parameters) >= 2
-        except (TypeError, ValueError):
-            return False
 
     def close(self) -> None:
         self._sub.undeclare()
-        self._task.cancel()
+        if self._task is not None:
+            self._task.cancel()
 
 
 class Stats:
@@ -292,6 +314,13 @@ class Node:
             self._token.undeclare()
         except Exception:
             pass
+
+
+def _arity(func: Callable) -> int:
+    try:
+        return len(inspect.signature(func).parameters)
+    except (TypeError, ValueError):
+        return 1
 
 
 def _json_default(obj: Any) -> Any:

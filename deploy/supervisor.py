@@ -1,0 +1,265 @@
+"""The supervisor behind ``xm up``: Zenoh router, one process per service, logs, restarts.
+
+Every service instance of the deployment runs as ``python -m services.<name>``; its output is
+prefixed and collected (console + ``<run_dir>/logs/<name>-<instance>.log``). A process that
+dies is restarted with exponential backoff; liveliness tokens tell who is up. Ctrl-C stops
+everything: SIGTERM, a grace period, then SIGKILL.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import importlib.util
+import json
+import os
+import signal
+import sys
+import time
+import webbrowser
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from shared.config import ConfigError, Deployment, load_deployment
+from shared.runtime import EndpointError, Node, open_client, open_router
+from shared.runtime.logs import fields, setup_logging
+
+BACKOFF_START_S = 0.5
+BACKOFF_MAX_S = 20.0
+HEALTHY_AFTER_S = 30.0  # a run this long resets the backoff
+STOP_GRACE_S = 5.0
+# Start order: the world first, it creates the simulated devices the drivers open.
+START_ORDER = ("world", "recorder", "glove", "robot", "camhub", "recon", "trajopt", "policy", "panel")
+
+
+def backoff_delay(consecutive_failures: int) -> float:
+    return min(BACKOFF_MAX_S, BACKOFF_START_S * 2 ** max(0, consecutive_failures - 1))
+
+
+@dataclass
+class Child:
+    service: str
+    instance: str
+    proc: asyncio.subprocess.Process | None = None
+    started_at: float = 0.0
+    restarts: int = 0
+    failures: int = 0
+    last_exit: int | None = None
+    alive: bool = False
+    log_tasks: list[asyncio.Task] = field(default_factory=list)
+
+    @property
+    def name(self) -> str:
+        return f"{self.service}/{self.instance}"
+
+
+class Supervisor:
+    def __init__(self, deployment: Deployment, only: list[str] | None = None, quiet: bool = False) -> None:
+        self.deployment = deployment
+        self.quiet = quiet
+        wanted = deployment.instances()
+        if only:
+            unknown = sorted(set(only) - {s for s, _ in wanted})
+            if unknown:
+                have = ", ".join(sorted({s for s, _ in wanted}))
+                raise ConfigError(f"--only: unknown service(s) {', '.join(unknown)} (this deployment has: {have})")
+            wanted = [(s, i) for s, i in wanted if s in only]
+        for svc, _ in wanted:
+            if importlib.util.find_spec(f"services.{svc}.__main__") is None:
+                raise ConfigError(f"service {svc!r} has no services/{svc}/__main__.py in this build")
+        wanted.sort(key=lambda si: START_ORDER.index(si[0]) if si[0] in START_ORDER else len(START_ORDER))
+        self.children = [Child(s, i) for s, i in wanted]
+        self.log_dir = deployment.run_dir / "logs"
+        self.log = setup_logging("supervisor")
+        self._stopping = False
+
+    async def run(self, stop: asyncio.Event, open_browser: bool = False) -> None:
+        self.deployment.run_dir.mkdir(parents=True, exist_ok=True)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        router = open_router(self.deployment.router)
+        node = Node("deploy", "supervisor", router, "wall", self.log)
+        node.health_extra = self.children_report
+        node.set_status("ok")
+        router.liveliness().declare_subscriber("xm/*/*/@alive", self._on_alive, history=True)
+        self.log.info("router listening", extra=fields(endpoint=self.deployment.router,
+                                                      deployment=str(self.deployment.path)))
+        watchers = [asyncio.ensure_future(self._keep_running(child)) for child in self.children]
+        panel = self.deployment.services.get("panel", {})
+        if panel:
+            port = next(iter(panel.values())).get("port", 8080)
+            url = f"http://127.0.0.1:{port}"
+            self.log.info(f"dashboard: {url}")
+            if open_browser and (os.environ.get("DISPLAY") or sys.platform == "darwin"):
+                asyncio.get_running_loop().call_later(3.0, webbrowser.open, url)
+        try:
+            await stop.wait()
+        finally:
+            self._stopping = True
+            self.log.info("stopping all services")
+            await asyncio.gather(*(self._stop_child(c) for c in self.children))
+            for w in watchers:
+                w.cancel()
+            await asyncio.gather(*watchers, return_exceptions=True)
+            await node.close()
+            router.close()
+            self.log.info("stopped")
+
+    def _on_alive(self, sample) -> None:  # Zenoh thread: only flips a flag
+        parts = str(sample.key_expr).split("/")
+        for child in self.children:
+            if parts[1:3] == [child.service, child.instance]:
+                child.alive = sample.kind.name == "PUT"
+
+    async def _keep_running(self, child: Child) -> None:
+        while not self._stopping:
+            await self._start_child(child)
+            code = await child.proc.wait()
+            for task in child.log_tasks:
+                await asyncio.gather(task, return_exceptions=True)
+            child.last_exit = code
+            child.alive = False
+            if self._stopping:
+                return
+            ran = time.monotonic() - child.started_at
+            child.failures = 1 if ran > HEALTHY_AFTER_S else child.failures + 1
+            delay = backoff_delay(child.failures)
+            self.log.warning(f"{child.name} exited", extra=fields(code=code, ran_s=round(ran, 1),
+                                                                   restart_in_s=delay))
+            await asyncio.sleep(delay)
+            child.restarts += 1
+
+    async def _start_child(self, child: Child) -> None:
+        cmd = [sys.executable, "-m", f"services.{child.service}",
+               "--deployment", str(self.deployment.path), "--instance", child.instance]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        child.proc = await asyncio.create_subprocess_exec(
+            *cmd, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT, env=env,
+            start_new_session=True)
+        child.started_at = time.monotonic()
+        self.log.info(f"started {child.name}", extra=fields(pid=child.proc.pid))
+        logfile = (self.log_dir / f"{child.service}-{child.instance}.log").open("a")
+        child.log_tasks = [asyncio.ensure_future(self._pump(child, child.proc.stdout, logfile))]
+
+    async def _pump(self, child: Child, stream: asyncio.StreamReader, logfile) -> None:
+        prefix = f"{child.name:<16}| "
+        try:
+            while line := await stream.readline():
+                text = line.decode(errors="replace").rstrip()
+                logfile.write(text + "\n")
+                logfile.flush()
+                if not self.quiet:
+                    print(prefix + text, flush=True)
+        finally:
+            logfile.close()
+
+    async def _stop_child(self, child: Child) -> None:
+        proc = child.proc
+        if proc is None or proc.returncode is not None:
+            return
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            await asyncio.wait_for(proc.wait(), STOP_GRACE_S)
+        except (TimeoutError, asyncio.TimeoutError):
+            self.log.warning(f"{child.name} ignored SIGTERM; killing")
+            os.killpg(proc.pid, signal.SIGKILL)
+            await proc.wait()
+        except ProcessLookupError:
+            pass
+
+    def children_report(self) -> dict:
+        now = time.monotonic()
+        return {"children": [{
+            "service": c.service, "instance": c.instance,
+            "pid": c.proc.pid if c.proc and c.proc.returncode is None else None,
+            "uptime_s": round(now - c.started_at, 1) if c.proc and c.proc.returncode is None else 0.0,
+            "restarts": c.restarts, "alive": c.alive, "last_exit": c.last_exit,
+        } for c in self.children]}
+
+
+def up_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="xm up", description="Run a deployment: the Zenoh router and "
+                                     "every service as its own process, restarted when it dies.")
+    parser.add_argument("deployment", nargs="?", default="deploy/sim.toml", help="deployment TOML file")
+    parser.add_argument("--only", help="comma-separated services to run (default: all of the deployment)")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument("--open", action="store_true", help="open the dashboard in a browser if there is a screen")
+    parser.add_argument("--quiet", action="store_true", help="logs only to files, not the console")
+    args = parser.parse_args(argv)
+    try:
+        deployment = load_deployment(args.deployment)
+        sup = Supervisor(deployment, args.only.split(",") if args.only else None, args.quiet)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    async def go() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        if args.duration:
+            loop.call_later(args.duration, stop.set)
+        await sup.run(stop, open_browser=args.open)
+
+    try:
+        asyncio.run(go())
+    except EndpointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def query_json(session, selector: str, timeout: float = 2.0) -> list[dict]:
+    out = []
+    for reply in session.get(selector, timeout=timeout):
+        if reply.ok is not None:
+            try:
+                out.append(json.loads(reply.ok.payload.to_bytes()))
+            except ValueError:
+                pass
+    return out
+
+
+def status_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="xm status", description="List the services of a running deployment.")
+    parser.add_argument("deployment", nargs="?", default="deploy/sim.toml")
+    parser.add_argument("--json", action="store_true", help="print the raw health reports")
+    args = parser.parse_args(argv)
+    try:
+        deployment = load_deployment(args.deployment)
+        session = open_client(deployment.router)
+    except (ConfigError, EndpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        print(f"error: no router at {deployment.router} ({exc}); is `xm up` running?", file=sys.stderr)
+        return 2
+    try:
+        reports = query_json(session, "xm/**/@health")
+    finally:
+        session.close()
+    sup = next((r for r in reports if r.get("service") == "deploy"), None)
+    if sup is None:
+        print(f"no supervisor answered at {deployment.router}; is `xm up {args.deployment}` running?",
+              file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(reports, indent=2))
+        return 0
+    health = {(r["service"], r["instance"]): r for r in reports}
+    print(f"{'service':<18}{'pid':>8}{'uptime':>9}{'restarts':>9}  {'status':<8} rates (Hz) / errors")
+    for child in sup["children"]:
+        h = health.get((child["service"], child["instance"]), {})
+        rates = ", ".join(f"{k.split('/')[-1]}={v:g}" for k, v in h.get("published_hz", {}).items())
+        errors = ", ".join(f"{k}={v}" for k, v in h.get("errors", {}).items())
+        status = h.get("status", "down" if not child["pid"] else "silent")
+        name = f"{child['service']}/{child['instance']}"
+        print(f"{name:<18}{child['pid'] or '-':>8}{child['uptime_s']:>8.0f}s{child['restarts']:>9}  "
+              f"{status:<8} {rates}{'  ! ' + errors if errors else ''}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(up_main())

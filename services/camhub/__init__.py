@@ -1,0 +1,1 @@
+"""Camera hub: frames triggered together at a set rate, JPEG CompressedImage + CameraInfo per camera."""

@@ -1,0 +1,4 @@
+from services.recon.service import ReconService
+from shared.runtime import service_main
+
+service_main("recon", ReconService)

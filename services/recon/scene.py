@@ -1,0 +1,27 @@
+"""Assemble a Scene observation from triangulated points and glove data (pure)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS
+
+
+def split_points(points: np.ndarray, mask: np.ndarray, n_hands: int) -> tuple[np.ndarray, np.ndarray,
+                                                                             np.ndarray, np.ndarray]:
+    """The stacked point list is hands first (n_hands*21), then object points."""
+    nh = n_hands * KEYPOINTS_PER_HAND
+    hands = np.nan_to_num(points[:nh]).reshape(n_hands, KEYPOINTS_PER_HAND, 3)
+    objects = np.nan_to_num(points[nh:])
+    return hands, mask[:nh].reshape(n_hands, KEYPOINTS_PER_HAND), objects, mask[nh:]
+
+
+def tactile_matrix(hand_names: list[str], latest: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per-hand region pressures (H,R) and mask from the newest region means per glove."""
+    tactile = np.zeros((len(hand_names), len(TACTILE_REGIONS)), np.float32)
+    mask = np.zeros_like(tactile, dtype=np.uint8)
+    for i, hand in enumerate(hand_names):
+        if hand in latest:
+            tactile[i] = latest[hand]
+            mask[i] = 1
+    return tactile, mask

@@ -1,0 +1,46 @@
+"""``xm``: the one command of the workcell. Subcommands live next to what they drive."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# subcommand -> (module:function taking argv, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "up": ("deploy.supervisor:up_main", "run a deployment: router + every service, restarts, logs"),
+    "status": ("deploy.supervisor:status_main", "list running services: pid, uptime, restarts, rates"),
+    "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
+    "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
+    "train": ("services.policy.train:main", "train the policy from recordings or teacher demos"),
+    "simulate": ("services.policy.simulate:main", "neural simulation of a trained policy"),
+    "eval": ("services.policy.evaluate:main", "Table 7.1 evaluation against the baselines"),
+    "glove": ("services.glove.cli:main", "glove tools: calibrate"),
+    "robot": ("services.robot.cli:main", "robot tools: repeatability"),
+}
+
+
+def usage() -> str:
+    lines = ["usage: xm <command> [options]", "", "commands:"]
+    lines += [f"  {name:<10} {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "xm <command> --help for the options of one command."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"xm: unknown command {name!r}\n\n{usage()}", file=sys.stderr)
+        sys.exit(2)
+    module, func = COMMANDS[name][0].split(":")
+    try:
+        entry = getattr(importlib.import_module(module), func)
+    except (ImportError, AttributeError) as exc:
+        print(f"xm {name}: not available in this build ({exc})", file=sys.stderr)
+        sys.exit(2)
+    result = entry(rest)
+    if isinstance(result, int) and result:
+        sys.exit(result)

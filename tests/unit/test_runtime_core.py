@@ -1,0 +1,106 @@
+"""Pure parts of the runtime: key registry, deployment parsing, messages, clock."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from shared import keys, msgs
+from shared.config import ConfigError, load_deployment, parse_params
+from shared.runtime.clock import Clock
+from shared.runtime.node import RateMeter
+
+
+def test_every_registered_type_exists_and_round_trips():
+    for spec in keys.REGISTRY:
+        cls = msgs.msg_class(spec.msgtype)
+        assert cls.__msgtype__ == spec.msgtype
+        assert "MSG:" in msgs.schema_text(spec.msgtype) or spec.msgtype.startswith("rosgraph")
+
+
+def test_tactile_round_trip_and_garbage_rejected():
+    m = msgs.make("xm_msgs/msg/Tactile", header=msgs.header(12.25, "glove"), hand="right", rows=16, cols=16,
+                  pressure=np.arange(256, dtype=np.float32), mask=np.ones(256, np.uint8), sequence=7)
+    back = msgs.deserialize(msgs.serialize(m), "xm_msgs/msg/Tactile")
+    assert back.hand == "right" and back.sequence == 7
+    assert msgs.stamp_seconds(back.header.stamp) == pytest.approx(12.25)
+    np.testing.assert_array_equal(back.pressure, m.pressure)
+    with pytest.raises(msgs.MessageError):
+        msgs.deserialize(b"\x00\x01\x00\x00garbage", "xm_msgs/msg/Tactile")
+
+
+def test_key_patterns():
+    assert keys.key_matches("xm/**", "xm/glove/left/tactile")
+    assert keys.key_matches("xm/*/left/*", "xm/glove/left/tactile")
+    assert not keys.key_matches("xm/camhub/*/image", "xm/camhub/cam0/info")
+    assert len(keys.matching("xm/camhub/*/image")) == len(keys.CAMERAS)
+    assert keys.msgtype_of("xm/glove/left/raw") == "xm_msgs/msg/TactileRaw"
+    assert keys.msgtype_of("xm/nothing/here") is None
+
+
+def test_sim_deployment_loads_and_covers_every_publishing_service():
+    dep = load_deployment("deploy/sim.toml")
+    publishing = {spec.service for spec in keys.REGISTRY}
+    assert publishing <= set(dep.services)
+    assert dep.params("glove", "left")["port"] == "/tmp/xm-sim/glove-left"
+
+
+def test_bad_deployments_name_file_key_and_type(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[deployment]\nname = 3\n')
+    with pytest.raises(ConfigError, match=r"bad.toml: deployment.name: expected str, got int"):
+        load_deployment(bad)
+    bad.write_text('[deployment]\n[services.teleporter.main]\n')
+    with pytest.raises(ConfigError, match="unknown service.*known: world"):
+        load_deployment(bad)
+    bad.write_text('[deployment\n')
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_deployment(bad)
+    with pytest.raises(ConfigError, match="not found"):
+        load_deployment(tmp_path / "missing.toml")
+
+
+def test_parse_params_checks_types_and_unknown_keys():
+    @dataclass
+    class P:
+        rate_hz: float = 1.0
+        port: str = ""
+        names: tuple[str, ...] = ()
+
+    p = parse_params(P, {"rate_hz": 5, "names": ["a", "b"]}, "f: services.x.y")
+    assert p.rate_hz == 5 and p.names == ("a", "b")
+    with pytest.raises(ConfigError, match=r"services.x.y.rate_hz: expected float, got str"):
+        parse_params(P, {"rate_hz": "fast"}, "f: services.x.y")
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        parse_params(P, {"speed": 1}, "f: services.x.y")
+
+
+def test_sim_clock_releases_sleepers_in_order():
+    async def go() -> list[float]:
+        clock = Clock("sim")
+        woke: list[float] = []
+
+        async def sleeper(t: float) -> None:
+            await clock.sleep_until(t)
+            woke.append(clock.now())
+
+        tasks = [asyncio.ensure_future(sleeper(t)) for t in (0.3, 0.1)]
+        await asyncio.sleep(0)
+        for t in (0.05, 0.1, 0.2, 0.3):
+            clock.advance(t)
+            await asyncio.sleep(0)
+        await asyncio.gather(*tasks)
+        return woke
+
+    assert asyncio.run(go()) == [0.1, 0.3]
+
+
+def test_rate_meter():
+    meter = RateMeter()
+    for i in range(101):
+        meter.tick(i * 0.01)
+    assert meter.rate(1.0) == pytest.approx(100.0, rel=0.02)
+    assert meter.rate(100.0) == 0.0
