@@ -20,6 +20,8 @@ import webbrowser
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import zenoh
+
 from shared.config import ConfigError, Deployment, load_deployment
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
@@ -108,7 +110,7 @@ class Supervisor:
         parts = str(sample.key_expr).split("/")
         for child in self.children:
             if parts[1:3] == [child.service, child.instance]:
-                child.alive = sample.kind.name == "PUT"
+                child.alive = sample.kind == zenoh.SampleKind.PUT
 
     async def _keep_running(self, child: Child) -> None:
         while not self._stopping:
@@ -161,7 +163,7 @@ class Supervisor:
         try:
             os.killpg(proc.pid, signal.SIGTERM)
             await asyncio.wait_for(proc.wait(), STOP_GRACE_S)
-        except (TimeoutError, asyncio.TimeoutError):
+        except TimeoutError:
             self.log.warning(f"{child.name} ignored SIGTERM; killing")
             os.killpg(proc.pid, signal.SIGKILL)
             await proc.wait()

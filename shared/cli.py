@@ -44,3 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     result = entry(rest)
     if isinstance(result, int) and result:
         sys.exit(result)
+
+
+if __name__ == "__main__":
+    main()

@@ -44,14 +44,17 @@ class CamhubService:
                 await asyncio.sleep(0.5)
                 continue
             self.node.set_status("ok")
-            encoded = await asyncio.to_thread(lambda: [encode_jpeg(f.image, self.params.jpeg_quality)
-                                                       for f in frames])
+            encoded = await asyncio.to_thread(encode_all, frames, self.params.jpeg_quality)
             for frame, jpeg in zip(frames, encoded, strict=True):
                 image_pub, info_pub = self._publishers(frame.name)
                 header = msgs.header(stamp, frame.name)
                 image_pub.put(msgs.make("sensor_msgs/msg/CompressedImage", header=header, format="jpeg",
                                         data=np.frombuffer(jpeg, np.uint8)))
                 info_pub.put(camera_info(header, frame))
+
+
+def encode_all(frames: list, quality: int) -> list[bytes]:
+    return [encode_jpeg(f.image, quality) for f in frames]
 
 
 def camera_info(header, frame) -> object:
