@@ -1,0 +1,169 @@
+"""world node: the simulated workcell in real time.
+
+Steps MuJoCo with the scripted teacher, hosts the simulated devices (two glove readout modules
+and the robot control board as ptys speaking the real protocols), publishes simulated time,
+ground truth (evaluation only) and the session label, and renders the camera rig on request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.world.devices import BoardDevice, GloveDevice
+from services.world.render import RenderWorker, snapshot
+from services.world.sim import WorldSim
+from shared import msgs
+from shared.demo import HAND_NAMES
+from shared.protocols import camera_frames
+from shared.runtime import Node
+
+RENDER_KEY = "xm/world/sim/@render"
+
+
+class WorldService:
+    @dataclass
+    class Params:
+        task: str = "assembly"
+        seed: int = 0
+        realtime_factor: float = 1.0
+        glove_ports: tuple[str, ...] = ()
+        robot_port: str = ""
+        glove_rate_hz: float = 100.0
+        truth_rate_hz: float = 50.0
+        clock_rate_hz: float = 100.0
+        tick_s: float = 0.005
+        render_width: int = 320
+        render_height: int = 240
+
+    def __init__(self, node: Node, params: Params) -> None:
+        self.node = node
+        self.p = params
+        self.sim = WorldSim(task=params.task, seed=params.seed)
+        self.physics_dt = float(self.sim.model.opt.timestep)
+        self.substeps = max(1, round(params.tick_s / self.physics_dt))
+        self.gloves = [GloveDevice(port, hand, seed=params.seed + i)
+                       for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
+        self.board = BoardDevice(params.robot_port, self.sim.joint_names) if params.robot_port else None
+        self.clock_pub = node.publisher("xm/clock")
+        self.truth_pub = node.publisher("xm/world/sim/truth")
+        self.session_pub = node.publisher("xm/world/sim/session")
+        self.cameras = self.sim.camera_specs()
+        self.renderer = RenderWorker(self.sim.model, [c.name for c in self.cameras],
+                                     params.render_width, params.render_height)
+        self._render_q = node.session.declare_queryable(RENDER_KEY, self._on_render)
+        self._last_session: tuple | None = None
+        self._due = {"clock": 0.0, "truth": 0.0, "glove": 0.0, "session": 0.0}
+        node.queryable("reset", self.cmd_reset)
+        node.queryable("mode", self.cmd_mode)
+        node.health_extra = self._health
+
+    # --- control queryables -------------------------------------------------------------
+    def cmd_reset(self, req: dict) -> dict:
+        seed = int(req.get("seed", self.p.seed))
+        self.sim.reset(seed)
+        return {"ok": True, "seed": seed}
+
+    def cmd_mode(self, req: dict) -> dict:
+        mode = req.get("mode")
+        if mode not in ("teacher", "robot"):
+            return {"ok": False, "error": f"mode must be 'teacher' or 'robot', got {mode!r}"}
+        self.sim.robot_mode = mode
+        return {"ok": True, "mode": mode}
+
+    def _health(self) -> dict:
+        return {"sim_time": self.sim.time, "realtime_ratio": round(self._rt_ratio, 3),
+                "render_busy_drops": self.renderer.busy_drops,
+                "devices": {**{f"glove/{g.hand}": g.stats() for g in self.gloves},
+                            **({"robot": self.board.stats()} if self.board else {})}}
+
+    # --- rendering ----------------------------------------------------------------------
+    def _on_render(self, query) -> None:  # Zenoh thread: hand over to the loop for a snapshot
+        self.node.loop.call_soon_threadsafe(self._start_render, query)
+
+    def _start_render(self, query) -> None:
+        def done(t: float, images, error: str | None) -> None:  # render thread
+            try:
+                if error is not None:
+                    query.reply_err(error)
+                else:
+                    frames = [camera_frames.CameraFrame(c.name, c.K, c.world_T_cam, img)
+                              for c, img in zip(self.cameras, images, strict=True)]
+                    query.reply(RENDER_KEY, camera_frames.pack(t, frames))
+            finally:
+                query.drop()
+
+        self.renderer.submit(snapshot(self.sim.data), done)
+
+    # --- main loop ----------------------------------------------------------------------
+    async def run(self) -> None:
+        self._rt_ratio = 0.0
+        wall0, sim0 = time.monotonic(), self.sim.time
+        tick = self.p.tick_s
+        while True:
+            for _ in range(self.substeps):
+                if self.board is not None:
+                    self.board.step(self.sim)
+                self.sim.step(1)
+            self._publish_due()
+            # Pace to real time (scaled); if we fall behind, run flat out and report the ratio.
+            sim_elapsed = self.sim.time - sim0
+            wall_target = wall0 + sim_elapsed / self.p.realtime_factor
+            now = time.monotonic()
+            self._rt_ratio = sim_elapsed / max(now - wall0, 1e-9)
+            if wall_target > now:
+                await asyncio.sleep(wall_target - now)
+            else:
+                await asyncio.sleep(0)
+                if now - wall_target > 1.0:  # far behind: stop trying to catch up
+                    wall0, sim0 = now, self.sim.time
+            del tick
+
+    def _publish_due(self) -> None:
+        t = self.sim.time
+        due = self._due
+        if t >= due["clock"]:
+            due["clock"] = t + 1.0 / self.p.clock_rate_hz - 1e-9
+            self.clock_pub.put(msgs.make("rosgraph_msgs/msg/Clock", clock=msgs.stamp(t)))
+        if t >= due["glove"] and self.gloves:
+            due["glove"] = t + 1.0 / self.p.glove_rate_hz - 1e-9
+            forces = self.sim.region_forces()
+            for i, glove in enumerate(self.gloves):
+                glove.emit(t, forces[i])
+        if t >= due["truth"]:
+            due["truth"] = t + 1.0 / self.p.truth_rate_hz - 1e-9
+            self.truth_pub.put(self._truth(t))
+        session = self.sim.session()
+        key = (session["demo"], session["phase"])
+        if t >= due["session"] or key != self._last_session:
+            due["session"] = t + 1.0 - 1e-9
+            self._last_session = key
+            self.session_pub.put(msgs.make(
+                "xm_msgs/msg/Session", header=msgs.header(t, "world"), task=session["task"],
+                demo=int(session["demo"]), phase=session["phase"], tactile_hand=session["tactile_hand"],
+                seed_layout=json.dumps(session.get("layout", {}), default=float)))
+
+    def _truth(self, t: float):
+        hands = np.asarray(self.sim.hand_keypoints(), np.float32)
+        names, objects = self.sim.object_keypoints()
+        hand_vis, obj_vis = self.sim.visibility()
+        bodies = self.sim.body_poses()
+        return msgs.make(
+            "xm_msgs/msg/GroundTruth", header=msgs.header(t, "world"), hand_names=list(HAND_NAMES),
+            hand_keypoints=hands.ravel(), hand_visible=np.asarray(hand_vis, np.uint8).ravel(),
+            object_names=list(names), object_keypoints=np.asarray(objects, np.float32).ravel(),
+            object_visible=np.asarray(obj_vis, np.uint8).ravel(), body_names=list(bodies),
+            body_poses=np.asarray(list(bodies.values()), np.float32).ravel(),
+            contact_forces=np.asarray(self.sim.region_forces(), np.float32).ravel())
+
+    async def close(self) -> None:
+        self.renderer.close()
+        self._render_q.undeclare()
+        for glove in self.gloves:
+            glove.close()
+        if self.board is not None:
+            self.board.close()
