@@ -1,0 +1,106 @@
+"""The MuJoCo model of the simulated workcell, built with MjSpec from the robot's URDF.
+
+Table top at z=0, the gantry from shared/robots/workcell.urdf with a motor per actuated joint
+(the control-board simulator computes the efforts), task objects as free bodies, the teacher's
+hand keypoints as mocap spheres (visual only), and 7 cameras on the top of an 80 cm cube frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from shared.kinematics import ROBOTS_DIR
+
+FRAME_SIZE = 0.8
+CAMERA_HEIGHT = 0.8
+CAMERA_FOVY_DEG = 60.0
+PHYSICS_DT = 0.001
+
+# (x, y) of the 7 cameras on the top beams; the front beam is set back (thesis 5.4).
+CAMERA_XY = [(-0.4, -0.4), (-0.4, 0.0), (-0.4, 0.4), (0.4, -0.4), (0.4, 0.4), (0.15, -0.4), (0.15, 0.4)]
+LOOK_AT = np.array([0.03, 0.0, 0.02])
+
+OBJECTS = {  # name -> list of (geom type, size (half extents), offset, rgba, mass)
+    "assembly": {
+        "board": [("box", (0.020, 0.015, 0.0008), (0.0, 0.0, 0.0008), (0.1, 0.5, 0.2, 1), 0.005),
+                  ("box", (0.003, 0.003, 0.0007), (0.010, 0.0, 0.0023), (0.8, 0.8, 0.8, 1), 0.0005)],
+        "camera": [("box", (0.003, 0.003, 0.002), (0.0, 0.0, 0.002), (0.05, 0.05, 0.05, 1), 0.002),
+                   ("box", (0.016, 0.0025, 0.0002), (0.018, 0.0, 0.0005), (0.8, 0.5, 0.1, 1), 0.0005),
+                   ("box", (0.003, 0.002, 0.0007), (0.036, 0.0, 0.0012), (0.7, 0.7, 0.7, 1), 0.0005)],
+    },
+    "pick_place": {
+        "box": [("box", (0.025, 0.025, 0.025), (0.0, 0.0, 0.025), (0.8, 0.3, 0.1, 1), 0.05)],
+        "plate": [("box", (0.06, 0.06, 0.0025), (0.0, 0.0, 0.0025), (0.3, 0.3, 0.8, 1), 0.2)],
+    },
+}
+
+
+@dataclass
+class CameraSpec:
+    name: str
+    width: int
+    height: int
+    K: np.ndarray  # (3,3)
+    world_T_cam: np.ndarray  # (4,4), OpenCV axes: x right, y down, z forward
+
+
+def camera_specs(width: int = 320, height: int = 240) -> list[CameraSpec]:
+    fy = (height / 2) / np.tan(np.radians(CAMERA_FOVY_DEG) / 2)
+    K = np.array([[fy, 0, width / 2], [0, fy, height / 2], [0, 0, 1.0]])
+    specs = []
+    for i, (x, y) in enumerate(CAMERA_XY):
+        eye = np.array([x, y, CAMERA_HEIGHT])
+        z = LOOK_AT - eye
+        z /= np.linalg.norm(z)
+        xaxis = np.cross(z, [0.0, 0.0, 1.0])
+        xaxis /= np.linalg.norm(xaxis)
+        yaxis = np.cross(z, xaxis)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([xaxis, yaxis, z], axis=1)
+        T[:3, 3] = eye
+        specs.append(CameraSpec(f"cam{i}", width, height, K, T))
+    return specs
+
+
+def build_model(task: str = "assembly", width: int = 320, height: int = 240) -> mujoco.MjModel:
+    spec = mujoco.MjSpec.from_file(str(ROBOTS_DIR / "workcell.urdf"))
+    spec.option.timestep = PHYSICS_DT
+    spec.visual.quality.shadowsize = 0  # software GL: shadows cost more than they show
+    spec.visual.global_.offwidth = max(width, 640)
+    spec.visual.global_.offheight = max(height, 480)
+    world = spec.worldbody
+    world.add_light(pos=[0, 0, 1.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8], castshadow=False)
+    world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[FRAME_SIZE / 2, FRAME_SIZE / 2, 0.01],
+                   rgba=[0.85, 0.85, 0.8, 1])
+    for x in (-0.4, 0.4):  # frame posts and top beams: visual only
+        for y in (-0.4, 0.4):
+            world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
+                           rgba=[0.3, 0.3, 0.3, 1], contype=0, conaffinity=0)
+    for joint in spec.joints:  # damping and friction of belts and carriages
+        joint.damping = [2.0 if joint.name.endswith(("_x", "_y", "_z")) else 0.05, 0, 0]
+        joint.armature = 0.01
+    for name in ("left_y", "left_x", "left_z", "left_wrist", "left_finger_a", "right_y", "right_x", "right_z",
+                 "right_wrist"):
+        effort = 5.0 if name.endswith("wrist") else (40.0 if "finger" in name else 200.0)
+        spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT, ctrlrange=[-effort, effort],
+                          ctrllimited=True, gear=[1, 0, 0, 0, 0, 0])
+    for name, geoms in OBJECTS[task].items():
+        body = world.add_body(name=name, pos=[0, 0, 0])
+        body.add_freejoint(name=f"{name}_free")
+        for gtype, size, offset, rgba, mass in geoms:
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX if gtype == "box" else mujoco.mjtGeom.mjGEOM_SPHERE,
+                          size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001])
+    for h, hand in enumerate(("left", "right")):
+        rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
+        for k in range(21):
+            body = world.add_body(name=f"{hand}_kp{k}", mocap=True, pos=[0, 0, -1])
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.007 if k % 4 else 0.009, 0, 0], rgba=rgba,
+                          contype=0, conaffinity=0)
+    for cam in camera_specs(width, height):
+        R = cam.world_T_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> MuJoCo camera axes
+        world.add_camera(name=cam.name, pos=list(cam.world_T_cam[:3, 3]), fovy=CAMERA_FOVY_DEG,
+                         xyaxes=list(R[:, 0]) + list(R[:, 1]))
+    return spec.compile()

@@ -1,0 +1,168 @@
+"""WorldSim: MuJoCo physics + the scripted teacher, without any I/O (the service wraps it).
+
+Two modes. "teacher": the teacher's hands demonstrate, the objects follow the teacher's grasp
+constraint (their free joints are set from the script every step), demonstrations follow one
+another with new layouts. "robot": the hands leave, objects are physical, the robot acts.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from services.world.model import PHYSICS_DT, build_model, camera_specs
+from services.world.teacher import Teacher, occlusion
+from shared.demo import HAND_NAMES, TACTILE_REGIONS
+from shared.kinematics import load_robot
+
+PAUSE_BETWEEN_DEMOS_S = 1.0
+TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 1 kHz
+
+
+class WorldSim:
+    def __init__(self, task: str = "assembly", seed: int = 0, width: int = 320, height: int = 240) -> None:
+        self.task = task
+        self.base_seed = seed
+        self.width, self.height = width, height
+        self.model = build_model(task, width, height)
+        self.model.opt.timestep = PHYSICS_DT
+        self.data = mujoco.MjData(self.model)
+        self.robot = load_robot("workcell")
+        self.joint_names = self.robot.joint_names
+        m = self.model
+        self._qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in self.joint_names])
+        self._dadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in self.joint_names])
+        self._act = {m.actuator(i).name: i for i in range(m.nu)}
+        self._act_index = [self._act.get(n, -1) for n in self.joint_names]
+        self._bodies = [name for name in ("board", "camera", "box", "plate") if _has_body(m, name)]
+        self._free = {b: m.jnt_qposadr[m.joint(f"{b}_free").id] for b in self._bodies}
+        self._free_dof = {b: m.jnt_dofadr[m.joint(f"{b}_free").id] for b in self._bodies}
+        self._mocap = np.array([[m.body_mocapid[m.body(f"{h}_kp{k}").id] for k in range(21)] for h in HAND_NAMES])
+        self.robot_mode = "teacher"
+        self.demo = 0
+        self.reset(seed)
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> None:
+        if seed is not None:
+            self.base_seed = seed
+        mujoco.mj_resetData(self.model, self.data)
+        self.demo = 0
+        self._start_demo()
+        mujoco.mj_forward(self.model, self.data)
+
+    def _start_demo(self) -> None:
+        grasp = "left" if self.demo % 2 == 0 else "right"
+        tactile = grasp if self.demo % 3 != 2 else ("right" if grasp == "left" else "left")
+        self.teacher = Teacher(self.task, self.base_seed * 1000 + self.demo, grasp_hand=grasp, tactile_hand=tactile)
+        self.demo_start = float(self.data.time)
+        self._applied_at = 0.0
+        self._apply_teacher(0.0)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    def demo_time(self) -> float:
+        return self.time - self.demo_start
+
+    # --- stepping -----------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            if self.robot_mode == "teacher":
+                t = self.demo_time()
+                if t > self.teacher.duration + PAUSE_BETWEEN_DEMOS_S:
+                    self.demo += 1
+                    self._start_demo()
+                    t = 0.0
+                if t - self._applied_at >= TEACHER_DT - 1e-9 or t < self._applied_at:
+                    self._apply_teacher(min(t, self.teacher.duration))
+                    self._applied_at = t
+                else:
+                    self._hold_objects()
+            mujoco.mj_step(self.model, self.data)
+
+    def _apply_teacher(self, t: float) -> None:
+        state = self.teacher.state(t)
+        self._teacher_state = state
+        self.data.mocap_pos[self._mocap.ravel()] = state.hands.reshape(-1, 3)
+        self._hold_objects()
+
+    def _hold_objects(self) -> None:
+        """The grasp constraint: objects sit where the script puts them."""
+        for body, (pos, quat) in self._teacher_state.objects.items():
+            adr, dof = self._free[body], self._free_dof[body]
+            self.data.qpos[adr:adr + 3] = pos
+            self.data.qpos[adr + 3:adr + 7] = quat
+            self.data.qvel[dof:dof + 6] = 0.0
+
+    def set_robot_mode(self, mode: str) -> None:
+        if mode not in ("teacher", "robot"):
+            raise ValueError(f"mode must be 'teacher' or 'robot', got {mode!r}")
+        self.robot_mode = mode
+        if mode == "robot":
+            self.data.mocap_pos[self._mocap.ravel()] = [0.0, 0.0, -1.0]  # hands leave the cell
+
+    # --- robot I/O ----------------------------------------------------------------------
+    def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.data.qpos[self._qadr].copy(), self.data.qvel[self._dadr].copy()
+
+    def set_efforts(self, efforts: np.ndarray) -> None:
+        for i, a in enumerate(self._act_index):
+            if a >= 0:
+                self.data.ctrl[a] = efforts[i]
+
+    # --- observations (truth) -----------------------------------------------------------
+    def hand_keypoints(self) -> np.ndarray:
+        if self.robot_mode == "robot":
+            return np.zeros((2, 21, 3))
+        return self._teacher_state.hands.copy()
+
+    def object_keypoints(self) -> tuple[list[str], np.ndarray]:
+        names, points = [], []
+        for body in self._bodies:
+            bid = self.model.body(body).id
+            R = self.data.xmat[bid].reshape(3, 3)
+            points.append(self.teacher._local[body] @ R.T + self.data.xpos[bid])
+            names += [n for n in self.teacher.names if n.startswith(body + "/")]
+        return names, np.concatenate(points)
+
+    def visibility(self) -> tuple[np.ndarray, np.ndarray]:
+        _, objects = self.object_keypoints()
+        return occlusion(self.hand_keypoints(), objects)
+
+    def body_poses(self) -> dict[str, np.ndarray]:
+        return {b: np.concatenate([self.data.xpos[self.model.body(b).id], self.data.xquat[self.model.body(b).id]])
+                for b in self._bodies}
+
+    def region_forces(self) -> np.ndarray:
+        if self.robot_mode == "robot":
+            return np.zeros((2, len(TACTILE_REGIONS)))
+        return self._teacher_state.forces.copy()
+
+    def session(self) -> dict:
+        phase = self._teacher_state.phase if self.demo_time() <= self.teacher.duration else "done"
+        return {"task": self.task, "demo": self.demo, "phase": phase if self.robot_mode == "teacher" else "robot",
+                "tactile_hand": self.teacher.tactile_hand, "grasp_hand": self.teacher.grasp_hand,
+                "layout": self.teacher.layout}
+
+    def camera_specs(self):
+        return camera_specs(self.width, self.height)
+
+    def assembly_success(self) -> bool:
+        """Camera module seated on the board's connector and the board lifted off the table."""
+        if self.task != "assembly":
+            return False
+        names, pts = self.object_keypoints()
+        cam_conn, board_conn = pts[names.index("camera/connector")], pts[names.index("board/connector")]
+        board_z = min(pts[names.index(f"board/c{i}")][2] for i in range(4))
+        return bool(np.linalg.norm(cam_conn - board_conn) < 0.003 and board_z > 0.02)
+
+
+def _has_body(model: mujoco.MjModel, name: str) -> bool:
+    try:
+        model.body(name)
+        return True
+    except KeyError:
+        return False
+
