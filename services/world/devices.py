@@ -48,9 +48,9 @@ class BoardDevice:
         data = self.pty.read()
         if data:
             for msg in self.decoder.feed(data):
-                self.board.receive(msg)
+                self.board.receive(msg, sim.time)
         q, qd = sim.joint_state()
-        efforts, feedback = self.board.step(sim.time, q, qd)
+        efforts, feedback = self.board.step(sim.time, q, qd, sim.physics_dt)
         sim.set_efforts(efforts)
         if feedback is not None:
             self.pty.write(robot_board.encode_feedback(feedback))

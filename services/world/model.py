@@ -71,10 +71,14 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240) -> 
     spec.visual.quality.shadowsize = 0  # software GL: shadows cost more than they show
     spec.visual.global_.offwidth = max(width, 640)
     spec.visual.global_.offheight = max(height, 480)
+    # Robot links do not collide with each other in physics (link boxes overlap at the joints; the
+    # trajectory optimizer keeps the arms apart); they do collide with the table and objects.
+    for geom in spec.geoms:
+        geom.contype, geom.conaffinity = 2, 1
     world = spec.worldbody
     world.add_light(pos=[0, 0, 1.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8], castshadow=False)
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[FRAME_SIZE / 2, FRAME_SIZE / 2, 0.01],
-                   rgba=[0.85, 0.85, 0.8, 1])
+                   rgba=[0.85, 0.85, 0.8, 1], contype=1, conaffinity=3)
     for x in (-0.4, 0.4):  # frame posts and top beams: visual only
         for y in (-0.4, 0.4):
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
@@ -92,7 +96,8 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240) -> 
         body.add_freejoint(name=f"{name}_free")
         for gtype, size, offset, rgba, mass in geoms:
             body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX if gtype == "box" else mujoco.mjtGeom.mjGEOM_SPHERE,
-                          size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001])
+                          size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001],
+                          contype=1, conaffinity=3)
     for h, hand in enumerate(("left", "right")):
         rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
         for k in range(21):

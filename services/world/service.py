@@ -46,7 +46,7 @@ class WorldService:
         self.sim = WorldSim(task=params.task, seed=params.seed)
         self.physics_dt = float(self.sim.model.opt.timestep)
         self.substeps = max(1, round(params.tick_s / self.physics_dt))
-        self.gloves = [GloveDevice(port, hand, seed=params.seed + i)
+        self.gloves = [GloveDevice(port, hand, seed=i)  # glove i: seed i, matching its factory calibration
                        for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
         self.board = BoardDevice(params.robot_port, self.sim.joint_names) if params.robot_port else None
         self.clock_pub = node.publisher("xm/clock")

@@ -60,6 +60,10 @@ class WorldSim:
         self._apply_teacher(0.0)
 
     @property
+    def physics_dt(self) -> float:
+        return float(self.model.opt.timestep)
+
+    @property
     def time(self) -> float:
         return float(self.data.time)
 

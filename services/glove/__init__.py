@@ -1,0 +1,1 @@
+"""Tactile glove: readout protocol decoding, calibration, crosstalk compensation, publication."""

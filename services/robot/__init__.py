@@ -1,0 +1,1 @@
+"""Robot bridge: trajectories in, control-board commands out, joint state back; limits and watchdog."""
