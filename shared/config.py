@@ -51,7 +51,16 @@ class Deployment:
         except KeyError:
             known = ", ".join(f"{s}/{i}" for s, i in self.instances()) or "none"
             raise ConfigError(f"{self.path}: no instance {service}/{instance} (deployment has: {known})") from None
-        return {k: v.format(run_dir=self.run_dir) if isinstance(v, str) else v for k, v in raw.items()}
+        return {k: _expand(v, self.run_dir) for k, v in raw.items()}
+
+
+def _expand(value: Any, run_dir: Path) -> Any:
+    """``{run_dir}`` in string parameters (also inside lists) becomes the deployment's run_dir."""
+    if isinstance(value, str):
+        return value.replace("{run_dir}", str(run_dir))
+    if isinstance(value, list):
+        return [_expand(v, run_dir) for v in value]
+    return value
 
 
 def _expect(value: Any, kind: type, where: str) -> Any:

@@ -51,7 +51,8 @@ class BoardSim:
         elif isinstance(msg, ConfigFrame):
             self.watchdog.timeout_s = msg.watchdog_timeout_us * 1e-6
 
-    def step(self, t: float, q: np.ndarray, qd: np.ndarray, dt: float = 0.001) -> tuple[np.ndarray, FeedbackFrame | None]:
+    def step(self, t: float, q: np.ndarray, qd: np.ndarray,
+             dt: float = 0.001) -> tuple[np.ndarray, FeedbackFrame | None]:
         expired = self.watchdog.expired(t)
         if expired and not self._braking:
             self.brake_events += 1

@@ -21,14 +21,14 @@ class Limits:
         return cls(model.lower.copy(), model.upper.copy(), model.max_velocity.copy(), model.max_effort.copy())
 
 
-class CommandRejected(ValueError):
+class CommandRejectedError(ValueError):
     """A command that must not reach the motors; the message says why."""
 
 
 def check_finite(values: np.ndarray, what: str) -> None:
     bad = ~np.isfinite(np.asarray(values, float))
     if bad.any():
-        raise CommandRejected(f"{what} has non-finite values at joints {np.flatnonzero(bad).tolist()}")
+        raise CommandRejectedError(f"{what} has non-finite values at joints {np.flatnonzero(bad).tolist()}")
 
 
 def limit_step(target: np.ndarray, previous: np.ndarray, limits: Limits, dt: float) -> tuple[np.ndarray, list[str]]:

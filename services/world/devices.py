@@ -9,9 +9,9 @@ motor efforts to MuJoCo, watchdog braking on host silence.
 from __future__ import annotations
 
 import numpy as np
+
 from services.glove.sensor_model import GloveSensorModel
 from services.robot.board_sim import BoardSim
-
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
 

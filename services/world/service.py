@@ -103,7 +103,6 @@ class WorldService:
     async def run(self) -> None:
         self._rt_ratio = 0.0
         wall0, sim0 = time.monotonic(), self.sim.time
-        tick = self.p.tick_s
         while True:
             for _ in range(self.substeps):
                 if self.board is not None:
@@ -121,7 +120,6 @@ class WorldService:
                 await asyncio.sleep(0)
                 if now - wall_target > 1.0:  # far behind: stop trying to catch up
                     wall0, sim0 = now, self.sim.time
-            del tick
 
     def _publish_due(self) -> None:
         t = self.sim.time

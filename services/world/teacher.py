@@ -138,7 +138,8 @@ class Teacher:
             bx, by, byaw = self.layout["board"]
             cx, cy, cyaw = self.layout["camera"]
             lens0 = np.array([cx, cy, 0.0])
-            board_conn = np.array([bx, by, 0.0]) + rot_z(byaw) @ np.array(OBJECT_POINTS["assembly"]["board"]["connector"])
+            conn_local = np.array(OBJECT_POINTS["assembly"]["board"]["connector"])
+            board_conn = np.array([bx, by, 0.0]) + rot_z(byaw) @ conn_local
             place_yaw = byaw + np.pi  # module lies across the board, connectors aligned
             lens_place = board_conn - rot_z(place_yaw) @ np.array([CAMERA_LEN, 0, 0]) + [0, 0, 0.0025]
             grasp_z = 0.004
@@ -259,7 +260,8 @@ class Teacher:
             hands = self._hands(self.insert_time - 1e-6)
             gi = HAND_NAMES.index(self.grasp_hand)
             pinch = 0.5 * (hands[gi, 4] + hands[gi, 8])
-            yaw = float(self.pinch_yaw(self.insert_time)[0]) - float(self.pinch_yaw(self.grasp_window[0])[0]) + self.cyaw
+            turn = float(self.pinch_yaw(self.insert_time)[0]) - float(self.pinch_yaw(self.grasp_window[0])[0])
+            yaw = turn + self.cyaw
             self._insert_ref = (pinch - [0, 0, 0.004], yaw)
         return self._insert_ref
 

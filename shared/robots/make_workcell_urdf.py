@@ -9,9 +9,10 @@ Run: python shared/robots/make_workcell_urdf.py > shared/robots/workcell.urdf
 from __future__ import annotations
 
 RAIL_Z = 0.62  # Y rail height
-Z_TRAVEL = 0.36  # finger tips reach 1 cm above the table
+Z_TRAVEL = 0.368  # finger tips reach 2 mm above the table
 LINK = """  <link name="{name}">
-    <inertial><origin xyz="0 0 0"/><mass value="{mass}"/><inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/></inertial>
+    <inertial><origin xyz="0 0 0"/><mass value="{mass}"/>
+      <inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/></inertial>
 {geoms}  </link>
 """
 BOX = """    <{kind}><origin xyz="{xyz}"/><geometry><box size="{size}"/></geometry>{mat}</{kind}>
@@ -80,7 +81,8 @@ def arm(side: str) -> str:
 
 
 def urdf() -> str:
-    body = '<?xml version="1.0"?>\n<robot name="workcell">\n  <material name="alu"><color rgba="0.7 0.72 0.75 1"/></material>\n'
+    body = '<?xml version="1.0"?>\n<robot name="workcell">\n'
+    body += '  <material name="alu"><color rgba="0.7 0.72 0.75 1"/></material>\n'
     body += '  <link name="base"/>\n'
     body += link("y_rail", 2.0, [("box", f"0 0 {RAIL_Z + 0.04}", "0.04 0.8 0.03")])
     body += joint("y_rail_mount", "fixed", "base", "y_rail", "0 0 0")

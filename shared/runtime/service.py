@@ -3,7 +3,7 @@
 A service module provides a class with a nested ``Params`` dataclass and::
 
     def __init__(self, node: Node, params: Params): ...   # declare pubs/subs here
-    async def run(self) -> None: ...                        # main loop; may just await forever
+    async def run(self) -> None: ...                        # optional main loop (default: serve forever)
     async def close(self) -> None: ...                      # optional: release devices
 
 and its ``__main__.py`` calls ``service_main("glove", GloveService)``.
@@ -47,12 +47,14 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
     try:
         impl = cls(node, params)
         node.set_status("ok")
-        main = node.spawn(impl.run(), name="run")
+        main = node.spawn(impl.run() if hasattr(impl, "run") else stop.wait(), name="run")
         stopper = asyncio.ensure_future(stop.wait())
         await asyncio.wait({main, stopper}, return_when=asyncio.FIRST_COMPLETED)
         stopper.cancel()
         if main.done() and not main.cancelled() and main.exception() is not None:
             raise main.exception()
+        main.cancel()  # stop the loop before its devices are closed under it
+        await asyncio.gather(main, return_exceptions=True)
     finally:
         log.info("shutting down")
         if impl is not None and hasattr(impl, "close"):

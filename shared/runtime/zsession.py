@@ -35,6 +35,7 @@ def parse_tcp(endpoint: str) -> tuple[str, int]:
 def check_port_free(endpoint: str) -> None:
     host, port = parse_tcp(endpoint)
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the router does: TIME_WAIT is fine
         try:
             sock.bind((host, port))
         except OSError as exc:

@@ -1,0 +1,54 @@
+"""The control board's hardware path: the serial link, command encoding and feedback decoding."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from shared.protocols import robot_board as rb
+from shared.serial_link import SerialLink
+
+
+class BoardDriver:
+    def __init__(self, port: str, baudrate: int, joint_names: list[str], log: logging.Logger) -> None:
+        if not port:
+            raise ValueError("robot: no serial port configured (set port = \"/dev/ttyUSB0\" in the deployment)")
+        self.joint_names = joint_names
+        self.log = log
+        self.decoder = rb.StreamDecoder()
+        self.feedback: rb.FeedbackFrame | None = None
+        self.sequence = 0
+        self.link = SerialLink(port, self._on_bytes, baudrate, on_state=self._on_state)
+
+    @property
+    def watchdog_state(self) -> str:
+        if self.feedback is None:
+            return "unknown"
+        return "braking" if self.feedback.watchdog_expired else "ok"
+
+    def _on_state(self, connected: bool, gap: float) -> None:
+        if not connected:
+            self.feedback = None  # stale: never command from a state we cannot see
+
+    def _on_bytes(self, data: bytes) -> None:
+        for msg in self.decoder.feed(data):
+            if isinstance(msg, rb.FeedbackFrame) and len(msg.position) == len(self.joint_names):
+                self.feedback = msg
+
+    def send(self, mode: np.ndarray, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> bool:
+        n = len(self.joint_names)
+        zeros = np.zeros(n)
+        frame = rb.CommandFrame(self.sequence, mode.astype(np.uint8), position, velocity, effort, zeros, zeros)
+        self.sequence += 1
+        return self.link.write(rb.encode_command(frame))
+
+    def link_stats(self) -> dict:
+        return {"connected": self.link.connected, "connects": self.link.connects,
+                "disconnects": self.link.disconnects, "last_gap_s": round(self.link.last_gap_s, 4)}
+
+    async def run(self) -> None:
+        await self.link.run()
+
+    def close(self) -> None:
+        self.link.close()

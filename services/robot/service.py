@@ -1,0 +1,102 @@
+"""robot node: follow the latest JointTrajectory through the control board at the command rate,
+enforcing joint, velocity and effort limits whatever arrives, and publish the measured state."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.robot.driver import BoardDriver
+from services.robot.safety import CommandRejectedError, Limits, check_finite, limit_step
+from services.robot.tracking import TrajectoryFollower
+from shared import msgs
+from shared.kinematics import load_robot
+from shared.protocols.robot_board import Mode
+from shared.runtime import Node, latest
+
+
+class RobotService:
+    @dataclass
+    class Params:
+        port: str = ""
+        baudrate: int = 3_000_000
+        robot: str = "workcell"
+        command_rate_hz: float = 250.0
+        state_rate_hz: float = 100.0
+
+    def __init__(self, node: Node, params: Params) -> None:
+        self.node = node
+        self.p = params
+        model = load_robot(params.robot)
+        self.joint_names = model.joint_names
+        self.limits = Limits.from_model(model)
+        self.follower = TrajectoryFollower(self.joint_names)
+        self.driver = BoardDriver(params.port, params.baudrate, self.joint_names, node.log)
+        self.state_pub = node.publisher("xm/robot/workcell/state")
+        self.rejections: dict[str, int] = {}
+        self.target: np.ndarray | None = None
+        node.subscribe("xm/trajopt/main/trajectory", self.on_trajectory, latest(1))
+        node.queryable("hold", self.cmd_hold)
+        node.health_extra = lambda: {"link": self.driver.link_stats(), "decoder": dict(self.driver.decoder.stats),
+                                     "rejections": self.rejections, "watchdog": self.driver.watchdog_state}
+
+    def _reject(self, reason: str) -> None:
+        self.rejections[reason] = self.rejections.get(reason, 0) + 1
+        self.node.stats.count("command_rejected")
+        self.node.log.warning("rejected: %s", reason)
+
+    def on_trajectory(self, msg) -> None:
+        reason = self.follower.load(msg, self.node.clock.now())
+        if reason:
+            self._reject(reason)
+
+    def cmd_hold(self, _req: dict) -> dict:
+        self.follower = TrajectoryFollower(self.joint_names)
+        return {"ok": True}
+
+    async def run(self) -> None:
+        self.node.spawn(self.driver.run(), name="serial")
+        self.node.spawn(self._publish_state(), name="state")
+        period = 1.0 / self.p.command_rate_hz
+        # Commands go out on wall time: the board's watchdog must be fed even if the sim clock stalls.
+        while True:
+            await asyncio.sleep(period)
+            self._command_tick(period)
+
+    def _command_tick(self, dt: float) -> None:
+        fb = self.driver.feedback
+        if fb is None:
+            return  # no state, no commands: the board's watchdog keeps the robot braked
+        if self.target is None:
+            self.target = fb.position.copy()  # start by holding where the robot is
+        sample = self.follower.sample(self.node.clock.now())
+        goal, velocity = sample if sample is not None else (self.target, np.zeros(len(self.target)))
+        try:
+            check_finite(goal, "trajectory sample")
+        except CommandRejectedError as exc:
+            self._reject(str(exc))
+            goal, velocity = self.target, np.zeros(len(self.target))
+        self.target, reasons = limit_step(goal, self.target, self.limits, dt)
+        for r in reasons:
+            self.node.stats.count(f"clamped_{r}")
+        velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)
+        mode = np.full(len(self.joint_names), Mode.POSITION, np.uint8)
+        self.driver.send(mode, self.target, velocity, np.zeros(len(self.target)))
+
+    async def _publish_state(self) -> None:
+        async for t in self.node.clock.ticks(self.p.state_rate_hz):
+            fb = self.driver.feedback
+            if fb is None:
+                self.node.set_status("degraded", "no feedback from the control board")
+                continue
+            self.node.set_status("ok" if not fb.watchdog_expired else "degraded",
+                                 "" if not fb.watchdog_expired else "board watchdog braking")
+            self.state_pub.put(msgs.make(
+                "sensor_msgs/msg/JointState", header=msgs.header(t, "world"), name=list(self.joint_names),
+                position=fb.position.astype(float), velocity=fb.velocity.astype(float),
+                effort=fb.current.astype(float)))
+
+    async def close(self) -> None:
+        self.driver.close()
