@@ -1,0 +1,1 @@
+"""Receding-horizon trajectory optimization (thesis 7.4): keypoint plans -> joint trajectories."""

@@ -1,0 +1,54 @@
+"""From a Plan message to the optimizer's goal array (pure)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared import msgs
+
+
+@dataclass
+class PlanArrays:
+    stamp: float
+    dt: float
+    names: list[str]
+    positions: np.ndarray  # (steps, points, 3)
+    mask: np.ndarray  # (steps, points) bool
+
+
+def plan_arrays(msg) -> PlanArrays:
+    names = list(msg.point_names)
+    steps, points = int(msg.steps), len(names)
+    pos = np.asarray(msg.positions, float)
+    if pos.size != steps * points * 3 or msg.dt <= 0:
+        raise ValueError(f"plan of {steps} steps x {points} points has {pos.size} position values, dt {msg.dt}")
+    mask = np.asarray(msg.mask, bool).reshape(steps, points) if len(msg.mask) else np.ones((steps, points), bool)
+    return PlanArrays(msgs.stamp_seconds(msg.header.stamp), float(msg.dt), names, pos.reshape(steps, points, 3), mask)
+
+
+def goals_for_horizon(plan: PlanArrays, wanted: list[str], t0: float, dt: float, knots: int) -> tuple[np.ndarray,
+                                                                                                     np.ndarray]:
+    """Goals (knots, len(wanted), 3) at times t0 + k*dt, interpolated in the plan; mask False where
+    the plan lacks a point, masks it, or the time lies outside the plan."""
+    goals = np.zeros((knots, len(wanted), 3))
+    mask = np.zeros((knots, len(wanted)), bool)
+    index = {n: i for i, n in enumerate(plan.names)}
+    times = plan.stamp + plan.dt * np.arange(len(plan.positions))
+    for j, name in enumerate(wanted):
+        i = index.get(name)
+        if i is None:
+            continue
+        for k in range(knots):
+            t = t0 + k * dt
+            if t < times[0] - plan.dt or t > times[-1]:
+                continue
+            s = np.clip((t - times[0]) / plan.dt, 0, len(times) - 1)
+            a = int(np.floor(s))
+            b = min(a + 1, len(times) - 1)
+            w = s - a
+            if plan.mask[a, i] and plan.mask[b, i]:
+                goals[k, j] = (1 - w) * plan.positions[a, i] + w * plan.positions[b, i]
+                mask[k, j] = np.isfinite(goals[k, j]).all()
+    return goals, mask

@@ -1,0 +1,100 @@
+"""trajopt node: receding-horizon control (thesis 7.4) from the latest plan and robot state to a
+JointTrajectory, at a fixed rate. The maths is in optimizer.py; this file only moves messages."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.trajopt.mapping import goals_for_horizon, plan_arrays
+from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
+from shared import msgs
+from shared.kinematics import load_robot
+from shared.runtime import Node, latest
+
+
+class TrajoptService:
+    @dataclass
+    class Params:
+        robot: str = "workcell"
+        rate_hz: float = 10.0
+        knots: int = 20
+        horizon_s: float = 1.0
+        fixed_knots: int = 2
+
+    def __init__(self, node: Node, params: Params) -> None:
+        self.node = node
+        self.p = params
+        self.model = load_robot(params.robot)
+        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(knots=params.knots, fixed_knots=params.fixed_knots))
+        self.dt = params.horizon_s / params.knots
+        self.plan = None
+        self.state: np.ndarray | None = None
+        self.current: np.ndarray | None = None  # the trajectory being executed, (knots, n)
+        self.t_current = 0.0  # time of its first knot
+        self.last_result = None
+        self.pub = node.publisher("xm/trajopt/main/trajectory")
+        node.subscribe("xm/policy/main/plan", self.on_plan, latest(1))
+        node.subscribe("xm/robot/workcell/state", self.on_state, latest(1))
+        node.health_extra = self._health
+
+    def on_plan(self, msg) -> None:
+        try:
+            self.plan = plan_arrays(msg)
+        except ValueError as exc:
+            self.node.stats.count("bad_plan")
+            self.node.set_status("degraded", f"plan rejected: {exc}")
+
+    def on_state(self, msg) -> None:
+        order = {n: i for i, n in enumerate(msg.name)}
+        try:
+            self.state = np.array([msg.position[order[j]] for j in self.model.joint_names])
+        except KeyError as exc:
+            self.node.stats.count("state_missing_joint")
+            self.node.set_status("degraded", f"robot state lacks joint {exc}")
+
+    def _health(self) -> dict:
+        r = self.last_result
+        if r is None:
+            return {}
+        return {"solve_time_ms": round(r.solve_time_s * 1e3, 3), "iterations": r.iterations,
+                "max_violation": r.max_violation, "last_status": r.status, "reason": r.reason}
+
+    async def run(self) -> None:
+        async for t in self.node.clock.ticks(self.p.rate_hz):
+            if self.state is None:
+                continue
+            if self.current is None:
+                self.current = np.repeat(self.state[None], self.p.knots, axis=0)
+            if self.plan is None:
+                goals, mask = np.zeros((self.p.knots, 0, 3)), np.zeros((self.p.knots, 0), bool)
+            else:
+                goals, mask = goals_for_horizon(self.plan, self.opt.point_names, t, self.dt, self.p.knots)
+            # Shift the executing trajectory by the elapsed knots: its first knots stay fixed (continuity).
+            shift = max(0, min(self.p.knots - 1, round((t - self.t_current) / self.dt))) if self.t_current else 0
+            if shift:
+                self.current = np.concatenate([self.current[shift:], np.repeat(self.current[-1:], shift, 0)])
+            self.t_current = t
+            result = await asyncio.to_thread(self.opt.solve, self.current, goals, mask, self.dt)
+            self.last_result = result
+            if result.ok:
+                self.current = result.q
+                self.node.set_status("ok")
+            else:
+                self.node.stats.count("solve_rejected")
+                self.node.set_status("degraded", f"kept last safe trajectory: {result.reason}")
+            self.pub.put(self._trajectory_msg(t, self.current))
+
+    def _trajectory_msg(self, t: float, q: np.ndarray):
+        points = []
+        for k in range(q.shape[0]):
+            vel = (q[min(k + 1, len(q) - 1)] - q[max(k - 1, 0)]) / (self.dt * (2 if 0 < k < len(q) - 1 else 1))
+            d = msgs.make("builtin_interfaces/msg/Duration", sec=int(k * self.dt),
+                          nanosec=int(round((k * self.dt % 1) * 1e9)) % 1_000_000_000)
+            points.append(msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=q[k].astype(float),
+                                    velocities=vel.astype(float), accelerations=np.zeros(0), effort=np.zeros(0),
+                                    time_from_start=d))
+        return msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(t, "world"),
+                         joint_names=list(self.model.joint_names), points=points)
