@@ -132,7 +132,7 @@ class TrajectoryOptimizer:
         """current: (K,n) executing trajectory; goals: (K,P,3) in point_names order; goal_mask: (K,P)."""
         t0 = time.perf_counter()
         cfg, n, K, F = self.cfg, self.n, self.cfg.knots, self.cfg.fixed_knots
-        current = np.asarray(current, float)  # noqa: F841 (K used below)
+        current = np.asarray(current, float)
         if current.shape != (K, n) or not np.isfinite(current).all():
             return self._fail(current, "current trajectory has the wrong shape or non-finite values", t0)
         goals = np.asarray(goals, float)
