@@ -28,7 +28,7 @@ def _specs() -> list[KeySpec]:
         KeySpec("xm/world/sim/truth", "xm_msgs/msg/GroundTruth", "world", 50.0,
                 "simulator truth, for evaluation only"),
         KeySpec("xm/world/sim/session", "xm_msgs/msg/Session", "world", 1.0, "task/demo/phase label"),
-        KeySpec("xm/recon/main/scene", "xm_msgs/msg/Scene", "recon", 10.0, "reconstructed keypoints"),
+        KeySpec("xm/recon/main/scene", "xm_msgs/msg/Scene", "recon", 5.0, "reconstructed keypoints"),
         KeySpec("xm/policy/main/plan", "xm_msgs/msg/Plan", "policy", 10.0, "keypoint plan over a horizon"),
         KeySpec("xm/trajopt/main/trajectory", "trajectory_msgs/msg/JointTrajectory", "trajopt", 10.0,
                 "joint trajectory for the robot"),
@@ -39,9 +39,9 @@ def _specs() -> list[KeySpec]:
         specs.append(KeySpec(f"xm/glove/{hand}/tactile", "xm_msgs/msg/Tactile", "glove", 100.0,
                              "calibrated 16x16 pressure"))
     for cam in CAMERAS:
-        specs.append(KeySpec(f"xm/camhub/{cam}/image", "sensor_msgs/msg/CompressedImage", "camhub", 10.0,
+        specs.append(KeySpec(f"xm/camhub/{cam}/image", "sensor_msgs/msg/CompressedImage", "camhub", 5.0,
                              "JPEG frame, triggered together"))
-        specs.append(KeySpec(f"xm/camhub/{cam}/info", "sensor_msgs/msg/CameraInfo", "camhub", 10.0,
+        specs.append(KeySpec(f"xm/camhub/{cam}/info", "sensor_msgs/msg/CameraInfo", "camhub", 5.0,
                              "intrinsics of the frame"))
     return specs
 

@@ -1,16 +1,23 @@
-"""Camera rigs. ``SimRig`` asks the world to render a synchronized frame set over Zenoh (the
-simulated hub); ``V4L2Rig`` grabs from video devices on the workcell (untested here: no cameras)."""
+"""Camera rigs. ``SimRig``: the simulated hub; it fetches a state snapshot from the world and
+renders every camera from it (MuJoCo, software OpenGL). ``V4L2Rig``: video devices on the
+workcell (written for the hardware, untested here: no cameras on this machine)."""
 
 from __future__ import annotations
 
-import json
+import time
+from dataclasses import dataclass
 
 import numpy as np
 
-from shared.protocols import camera_frames
-from shared.protocols.camera_frames import CameraFrame
+SNAPSHOT_KEY = "xm/world/sim/@snapshot"
 
-RENDER_KEY = "xm/world/sim/@render"
+
+@dataclass
+class CameraFrame:
+    name: str
+    K: np.ndarray  # (3,3) OpenCV intrinsics
+    world_T_cam: np.ndarray  # (4,4) camera pose, OpenCV axes (x right, y down, z forward)
+    image: np.ndarray  # (H,W,3) uint8 RGB
 
 
 class RigError(RuntimeError):
@@ -18,17 +25,31 @@ class RigError(RuntimeError):
 
 
 class SimRig:
-    def __init__(self, session, timeout_s: float = 1.0) -> None:
+    """Call ``trigger`` from one and the same worker thread (the GL context lives there)."""
+
+    def __init__(self, session, width: int = 320, height: int = 240, timeout_s: float = 1.0) -> None:
         self._session = session
         self._timeout = timeout_s
+        self._size = (width, height)
+        self._renderer = None
 
     def trigger(self) -> tuple[float, list[CameraFrame]]:
-        """Blocking: call from a worker thread."""
-        for reply in self._session.get(RENDER_KEY, payload=json.dumps({}), timeout=self._timeout):
-            if reply.ok is not None:
-                return camera_frames.unpack(reply.ok.payload.to_bytes())
-            raise RigError(f"world refused to render: {reply.err.payload.to_bytes().decode(errors='replace')}")
-        raise RigError(f"no answer from {RENDER_KEY} within {self._timeout}s (is the world running?)")
+        from services.world.render import SceneRenderer, Snapshot
+
+        replies = [r for r in self._session.get(SNAPSHOT_KEY, timeout=self._timeout)]
+        ok = [r.ok for r in replies if r.ok is not None]
+        if not ok:
+            raise RigError(f"no answer from {SNAPSHOT_KEY} within {self._timeout}s (is the world running?)")
+        snap = Snapshot.from_json(ok[0].payload.to_bytes())
+        if self._renderer is None or self._renderer.task != snap.task:
+            self._renderer = SceneRenderer(snap.task, *self._size)
+        images = self._renderer.render(snap)
+        return snap.time, [CameraFrame(c.name, c.K, c.world_T_cam, img)
+                           for c, img in zip(self._renderer.cameras, images, strict=True)]
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
 
 
 class V4L2Rig:
@@ -44,8 +65,6 @@ class V4L2Rig:
             raise RigError(f"cannot open camera device(s) {missing}")
 
     def trigger(self) -> tuple[float, list[CameraFrame]]:
-        import time
-
         import cv2
 
         for cap in self._caps:  # grab all first: the frames are as close in time as the USB allows
@@ -60,3 +79,7 @@ class V4L2Rig:
             frames.append(CameraFrame(cal["name"], np.array(cal["K"]), np.array(cal["world_T_cam"]),
                                       cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)))
         return stamp, frames
+
+    def close(self) -> None:
+        for cap in self._caps:
+            cap.release()

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 WATCHDOG_TIMEOUT_S = 0.010
+CLAMP_TOLERANCE = 1e-4  # m or rad: smaller corrections are rounding, not limit events
 
 
 @dataclass
@@ -35,10 +36,10 @@ def limit_step(target: np.ndarray, previous: np.ndarray, limits: Limits, dt: flo
     """Clamp a position target into the joint range and the velocity limit from the previous target."""
     reasons = []
     clamped = np.clip(target, limits.lower, limits.upper)
-    if np.any(clamped != target):
+    if np.any(np.abs(clamped - target) > CLAMP_TOLERANCE):
         reasons.append("position_limit")
     step = np.clip(clamped - previous, -limits.velocity * dt, limits.velocity * dt)
-    if np.any(np.abs(previous + step - clamped) > 1e-12):
+    if np.any(np.abs(previous + step - clamped) > CLAMP_TOLERANCE):
         reasons.append("velocity_limit")
     return previous + step, reasons
 

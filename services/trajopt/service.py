@@ -68,8 +68,9 @@ class TrajoptService:
                 continue
             if self.current is None:
                 self.current = np.repeat(self.state[None], self.p.knots, axis=0)
-            if self.plan is None:
-                goals, mask = np.zeros((self.p.knots, 0, 3)), np.zeros((self.p.knots, 0), bool)
+            if self.plan is None:  # no plan yet: hold (every goal masked)
+                points = len(self.opt.point_names)
+                goals, mask = np.zeros((self.p.knots, points, 3)), np.zeros((self.p.knots, points), bool)
             else:
                 goals, mask = goals_for_horizon(self.plan, self.opt.point_names, t, self.dt, self.p.knots)
             # Shift the executing trajectory by the elapsed knots: its first knots stay fixed (continuity).

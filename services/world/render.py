@@ -1,86 +1,75 @@
-"""Rendering of the camera rig on its own thread, from snapshots of the simulation state.
+"""Rendering the simulated camera rig from a snapshot of the world's state.
 
-The physics loop never waits for OpenGL: a render request takes a snapshot of the state on the
-loop (microseconds), and a worker thread with its own MjData and GL context renders all cameras
-and answers the query. Software GL (OSMesa/EGL on llvmpipe) is slow, so one request at a time.
+The world answers ``xm/world/sim/@snapshot`` with its joint positions and mocap poses (a few
+hundred bytes); the simulated camera hub renders all cameras from that snapshot in its own
+process, so the physics loop never waits for software OpenGL. A renderer belongs to the thread
+that created it (GL contexts are per thread).
 """
 
 from __future__ import annotations
 
+import json
 import os
-import queue
-import threading
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("LP_NUM_THREADS", "1")  # llvmpipe: one thread; its extra threads only fight the services
 import mujoco  # noqa: E402  (MUJOCO_GL must be set first)
+
+from services.world.model import build_model, camera_specs  # noqa: E402
 
 
 @dataclass
 class Snapshot:
+    task: str
     time: float
     qpos: np.ndarray
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
 
+    def to_json(self) -> str:
+        return json.dumps({"task": self.task, "time": self.time, "qpos": self.qpos.tolist(),
+                           "mocap_pos": self.mocap_pos.tolist(), "mocap_quat": self.mocap_quat.tolist()})
 
-def snapshot(data: mujoco.MjData) -> Snapshot:
-    return Snapshot(float(data.time), data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy())
+    @classmethod
+    def from_json(cls, text: str | bytes) -> Snapshot:
+        d = json.loads(text)
+        return cls(d["task"], float(d["time"]), np.array(d["qpos"]), np.array(d["mocap_pos"]),
+                   np.array(d["mocap_quat"]))
 
 
-class RenderWorker:
-    def __init__(self, model: mujoco.MjModel, cameras: list[str], width: int, height: int) -> None:
-        self.model = model
-        self.cameras = cameras
-        self.width, self.height = width, height
-        self._jobs: queue.Queue = queue.Queue(maxsize=1)
-        self._thread = threading.Thread(target=self._work, name="render", daemon=True)
-        self.error: str | None = None
-        self.busy_drops = 0
-        self._thread.start()
+def snapshot(task: str, data: mujoco.MjData) -> Snapshot:
+    return Snapshot(task, float(data.time), data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy())
 
-    def submit(self, snap: Snapshot, done: Callable[[float, list[np.ndarray] | None, str | None], None]) -> None:
+
+class SceneRenderer:
+    """All cameras of the rig for one task; create and use it on one thread."""
+
+    def __init__(self, task: str, width: int = 320, height: int = 240) -> None:
+        self.task = task
+        self.model = build_model(task, width, height)
+        self.data = mujoco.MjData(self.model)
+        self.cameras = camera_specs(width, height)
         try:
-            self._jobs.put_nowait((snap, done))
-        except queue.Full:
-            self.busy_drops += 1
-            done(snap.time, None, "renderer busy with the previous trigger")
+            self.renderer = mujoco.Renderer(self.model, height, width)
+        except Exception as exc:
+            raise RuntimeError(f"offscreen rendering unavailable ({exc}); install libegl1 (or libosmesa6 and "
+                               f"set MUJOCO_GL=osmesa)") from exc
 
-    def _work(self) -> None:
-        try:
-            renderer = mujoco.Renderer(self.model, self.height, self.width)
-            data = mujoco.MjData(self.model)
-        except Exception as exc:  # no GL: report on every request instead of dying
-            self.error = (f"offscreen rendering unavailable ({exc}); install libegl1 or libosmesa6 "
-                          f"and set MUJOCO_GL=egl or osmesa")
-            renderer = None
-        while True:
-            job = self._jobs.get()
-            if job is None:
-                break
-            snap, done = job
-            if renderer is None:
-                done(snap.time, None, self.error)
-                continue
-            data.qpos[:] = snap.qpos
-            data.mocap_pos[:] = snap.mocap_pos
-            data.mocap_quat[:] = snap.mocap_quat
-            data.time = snap.time
-            mujoco.mj_forward(self.model, data)
-            images = []
-            for cam in self.cameras:
-                renderer.update_scene(data, cam)
-                images.append(renderer.render().copy())
-            done(snap.time, images, None)
-        if renderer is not None:
-            renderer.close()
+    def render(self, snap: Snapshot) -> list[np.ndarray]:
+        d = self.data
+        d.qpos[:] = snap.qpos
+        d.mocap_pos[:] = snap.mocap_pos
+        d.mocap_quat[:] = snap.mocap_quat
+        d.time = snap.time
+        mujoco.mj_forward(self.model, d)
+        images = []
+        for cam in self.cameras:
+            self.renderer.update_scene(d, cam.name)
+            images.append(self.renderer.render().copy())
+        return images
 
     def close(self) -> None:
-        try:
-            self._jobs.put_nowait(None)
-        except queue.Full:
-            pass
-        self._thread.join(timeout=2.0)
+        self.renderer.close()

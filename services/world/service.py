@@ -15,14 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.world.devices import BoardDevice, GloveDevice
-from services.world.render import RenderWorker, snapshot
+from services.world.render import snapshot
 from services.world.sim import WorldSim
 from shared import msgs
 from shared.demo import HAND_NAMES
-from shared.protocols import camera_frames
 from shared.runtime import Node
 
-RENDER_KEY = "xm/world/sim/@render"
+SNAPSHOT_KEY = "xm/world/sim/@snapshot"
 
 
 class WorldService:
@@ -37,8 +36,6 @@ class WorldService:
         truth_rate_hz: float = 50.0
         clock_rate_hz: float = 100.0
         tick_s: float = 0.005
-        render_width: int = 320
-        render_height: int = 240
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -52,10 +49,7 @@ class WorldService:
         self.clock_pub = node.publisher("xm/clock")
         self.truth_pub = node.publisher("xm/world/sim/truth")
         self.session_pub = node.publisher("xm/world/sim/session")
-        self.cameras = self.sim.camera_specs()
-        self.renderer = RenderWorker(self.sim.model, [c.name for c in self.cameras],
-                                     params.render_width, params.render_height)
-        self._render_q = node.session.declare_queryable(RENDER_KEY, self._on_render)
+        self._snapshot_q = node.session.declare_queryable(SNAPSHOT_KEY, self._on_snapshot)
         self._last_session: tuple | None = None
         self._due = {"clock": 0.0, "truth": 0.0, "glove": 0.0, "session": 0.0}
         node.queryable("reset", self.cmd_reset)
@@ -77,27 +71,18 @@ class WorldService:
 
     def _health(self) -> dict:
         return {"sim_time": self.sim.time, "realtime_ratio": round(self._rt_ratio, 3),
-                "render_busy_drops": self.renderer.busy_drops,
                 "devices": {**{f"glove/{g.hand}": g.stats() for g in self.gloves},
                             **({"robot": self.board.stats()} if self.board else {})}}
 
-    # --- rendering ----------------------------------------------------------------------
-    def _on_render(self, query) -> None:  # Zenoh thread: hand over to the loop for a snapshot
-        self.node.loop.call_soon_threadsafe(self._start_render, query)
+    # --- camera rig ---------------------------------------------------------------------
+    def _on_snapshot(self, query) -> None:  # Zenoh thread: the loop takes the snapshot between steps
+        self.node.loop.call_soon_threadsafe(self._answer_snapshot, query)
 
-    def _start_render(self, query) -> None:
-        def done(t: float, images, error: str | None) -> None:  # render thread
-            try:
-                if error is not None:
-                    query.reply_err(error)
-                else:
-                    frames = [camera_frames.CameraFrame(c.name, c.K, c.world_T_cam, img)
-                              for c, img in zip(self.cameras, images, strict=True)]
-                    query.reply(RENDER_KEY, camera_frames.pack(t, frames))
-            finally:
-                query.drop()
-
-        self.renderer.submit(snapshot(self.sim.data), done)
+    def _answer_snapshot(self, query) -> None:
+        try:
+            query.reply(SNAPSHOT_KEY, snapshot(self.sim.task, self.sim.data).to_json())
+        finally:
+            query.drop()
 
     # --- main loop ----------------------------------------------------------------------
     async def run(self) -> None:
@@ -159,8 +144,7 @@ class WorldService:
             contact_forces=np.asarray(self.sim.region_forces(), np.float32).ravel())
 
     async def close(self) -> None:
-        self.renderer.close()
-        self._render_q.undeclare()
+        self._snapshot_q.undeclare()
         for glove in self.gloves:
             glove.close()
         if self.board is not None:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.camhub.camera_info import pose_from_projection, projection
 from services.recon.detector import CameraModel, SimulatedDetector
 from services.recon.triangulation import reprojection_error, triangulate
+from shared.geometry import pose_from_projection, projection
 
 
 def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:

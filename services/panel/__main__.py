@@ -1,0 +1,4 @@
+from services.panel.service import PanelService
+from shared.runtime import service_main
+
+service_main("panel", PanelService)

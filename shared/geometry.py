@@ -1,0 +1,27 @@
+"""Small geometry helpers shared by services (pure)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def projection(K: np.ndarray, world_T_cam: np.ndarray) -> np.ndarray:
+    """P = K [R | t] mapping world points to pixels (CameraInfo.p carries the pose this way)."""
+    return K @ np.linalg.inv(world_T_cam)[:3, :]
+
+
+def pose_from_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of ``projection``: (K, world_T_cam) from a 3x4 P (RQ decomposition)."""
+    K, R, c_h = cv2.decomposeProjectionMatrix(np.asarray(P, float).reshape(3, 4))[:3]
+    K = K / K[2, 2]
+    world_T_cam = np.eye(4)
+    world_T_cam[:3, :3] = R.T
+    world_T_cam[:3, 3] = (c_h[:3] / c_h[3]).ravel()
+    return K, world_T_cam
+
+
+def wxyz(R: np.ndarray) -> np.ndarray:
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
