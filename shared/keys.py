@@ -18,8 +18,9 @@ class KeySpec:
     key: str  # a concrete key; the registry enumerates instances
     msgtype: str
     service: str
-    rate_hz: float  # nominal rate in the simulated deployment; 0 = on change
+    rate_hz: float  # nominal rate in the simulated deployment
     description: str
+    on_change: bool = False  # also published whenever the value changes: rate_hz is a minimum
 
 
 def _specs() -> list[KeySpec]:
@@ -27,7 +28,8 @@ def _specs() -> list[KeySpec]:
         KeySpec("xm/clock", "rosgraph_msgs/msg/Clock", "world", 100.0, "simulated time"),
         KeySpec("xm/world/sim/truth", "xm_msgs/msg/GroundTruth", "world", 50.0,
                 "simulator truth, for evaluation only"),
-        KeySpec("xm/world/sim/session", "xm_msgs/msg/Session", "world", 1.0, "task/demo/phase label"),
+        KeySpec("xm/world/sim/session", "xm_msgs/msg/Session", "world", 1.0, "task/demo/phase label",
+                on_change=True),
         KeySpec("xm/recon/main/scene", "xm_msgs/msg/Scene", "recon", 5.0, "reconstructed keypoints"),
         KeySpec("xm/policy/main/plan", "xm_msgs/msg/Plan", "policy", 10.0, "keypoint plan over a horizon"),
         KeySpec("xm/trajopt/main/trajectory", "trajectory_msgs/msg/JointTrajectory", "trajopt", 10.0,

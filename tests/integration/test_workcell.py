@@ -14,6 +14,7 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from shared import keys
@@ -29,9 +30,14 @@ def free_port() -> int:
 
 
 def query(router: str, selector: str, timeout: float = 3.0) -> list[dict]:
+    import zenoh
+
     from shared.runtime import open_client
 
-    session = open_client(router)
+    try:
+        session = open_client(router)
+    except zenoh.ZError:  # router not up yet
+        return []
     try:
         return [json.loads(r.ok.payload.to_bytes()) for r in session.get(selector, timeout=timeout) if r.ok]
     finally:
@@ -103,7 +109,8 @@ def test_recording_decodes_with_stock_readers_at_nominal_rates(workcell):
             problems.append(f"{spec.key}: only {len(ts)} messages")
             continue
         rate = (len(ts) - 1) / (ts[-1] - ts[0])  # in the deployment's time base (sim time)
-        if abs(rate - spec.rate_hz) > 0.2 * spec.rate_hz:
+        low, high = 0.8 * spec.rate_hz, (np.inf if spec.on_change else 1.2 * spec.rate_hz)
+        if not low <= rate <= high:
             problems.append(f"{spec.key}: {rate:.1f} Hz, nominal {spec.rate_hz} Hz")
     assert not problems, "\n".join(problems)
 
