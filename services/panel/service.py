@@ -43,6 +43,8 @@ class PanelService:
         self.latest: dict[str, object] = {}
         self.camera_choice = params.camera
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
+        self.server.initial_camera.position = (0.75, -0.75, 0.7)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.1)
         self._build_scene()
         self._build_gui()
         for key in ("xm/robot/workcell/state", "xm/recon/main/scene", "xm/policy/main/plan",

@@ -1,0 +1,127 @@
+"""Contract tests of the device services: each runs as its own process and is seen only through
+Zenoh; the test plays the device on a pty, speaking the real byte protocol."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from services.world.pty_device import PtyDevice
+from shared import msgs
+from shared.kinematics import load_robot
+from shared.protocols import robot_board as rb
+from shared.protocols import tactile
+from tests.conftest import ServiceProcess, query_json, wait_for, write_deployment
+
+
+def subscribe(session, key, msgtype, out: list):
+    return session.declare_subscriber(key, lambda s: out.append(msgs.deserialize(s.payload.to_bytes(), msgtype)))
+
+
+def test_glove_publishes_calibrated_pressure_counts_garbage_and_reconnects(router, tmp_path):
+    endpoint, session = router
+    port = tmp_path / "glove-left"
+    dev = PtyDevice(port)
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"glove": {"left": {"port": str(port)}}})
+    svc = ServiceProcess("glove", dep, "left", tmp_path / "glove.log")
+    got: list = []
+    _sub = subscribe(session, "xm/glove/left/tactile", "xm_msgs/msg/Tactile", got)
+    try:
+        from services.glove.layout import region_means, region_pressure_kpa
+        from services.glove.sensor_model import GloveSensorModel
+
+        model = GloveSensorModel(0)  # the factory calibration of glove 0 (left)
+        forces = np.array([2.0, 6.0, 0.0, 0.0, 0.0, 0.0])
+        assert wait_for(lambda: query_json(session, "xm/glove/left/@health"), 20), svc.output()
+
+        def send(seq: int) -> None:
+            dev.write(tactile.encode_frame(tactile.TactileFrame(seq, seq * 1000, model.impedance(forces, seq * 1e-3))))
+
+        assert wait_for(lambda: (send(0), got)[1], 10), svc.output()
+        dev.write(b"\x00garbage\xa5\x5a\x01\xff\xff noise")
+        for seq in range(1, 20):
+            send(seq)
+            time.sleep(0.005)
+        assert wait_for(lambda: len(got) >= 15, 5)
+        means = region_means(np.asarray(got[-1].pressure).reshape(16, 16))
+        np.testing.assert_allclose(means[:2], region_pressure_kpa(forces)[:2], rtol=0.1)
+        health = query_json(session, "xm/glove/left/@health")[0]
+        assert health["decoder"]["bytes_discarded"] > 0 and health["decoder"]["resyncs"] >= 1
+        # The port disappears and comes back: reconnect within 1 s, the gap is reported.
+        dev.close()
+        time.sleep(0.3)
+        dev = PtyDevice(port)
+        t0 = time.time()
+        assert wait_for(lambda: query_json(session, "xm/glove/left/@health")[0]["link"]["connects"] >= 2, 3)
+        assert time.time() - t0 < 1.5
+        link = query_json(session, "xm/glove/left/@health")[0]["link"]
+        assert link["disconnects"] == 1 and link["last_gap_s"] > 0.2
+        n = len(got)
+        send(100)
+        assert wait_for(lambda: len(got) > n, 5)
+        assert query_json(session, "xm/glove/left/@health")[0]["decoder"]["sequence_gaps"] >= 1
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
+        dev.close()
+
+
+def test_robot_follows_trajectories_rejects_nan_and_stops_commanding_without_feedback(router, tmp_path):
+    endpoint, session = router
+    port = tmp_path / "board"
+    dev = PtyDevice(port)
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"robot": {"workcell": {"port": str(port)}}})
+    svc = ServiceProcess("robot", dep, "workcell", tmp_path / "robot.log")
+    names = load_robot("workcell").joint_names
+    n = len(names)
+    decoder = rb.StreamDecoder()
+    commands: list = []
+    states: list = []
+    _sub = subscribe(session, "xm/robot/workcell/state", "sensor_msgs/msg/JointState", states)
+    q = np.zeros(n)
+
+    def board_tick(seq: int) -> None:  # the test is the control board
+        commands.extend(m for m in decoder.feed(dev.read()) if isinstance(m, rb.CommandFrame))
+        dev.write(rb.encode_feedback(rb.FeedbackFrame(seq, seq * 4000, 0, q, np.zeros(n), np.zeros(n))))
+
+    try:
+        assert wait_for(lambda: query_json(session, "xm/robot/workcell/@health"), 20), svc.output()
+        for seq in range(100):
+            board_tick(seq)
+            time.sleep(0.004)
+        assert states and commands, svc.output()
+        assert all(np.allclose(c.position, 0.0) for c in commands[:5])  # holds where it is
+        pub = session.declare_publisher("xm/trajopt/main/trajectory")
+
+        def trajectory(value: float):
+            now = time.time()
+            points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=np.full(n, value),
+                                velocities=np.zeros(0), accelerations=np.zeros(0), effort=np.zeros(0),
+                                time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=k, nanosec=0))
+                      for k in range(3)]
+            return msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(now), joint_names=names,
+                             points=points)
+
+        for payload in (msgs.serialize(trajectory(float("nan"))), b"not cdr at all",
+                        msgs.serialize(trajectory(5.0))):  # the last one lies far outside the joint ranges
+            pub.put(payload)
+            time.sleep(0.1)  # the subscription keeps only the latest: give each one its turn
+        for seq in range(100, 400):
+            board_tick(seq)
+            time.sleep(0.004)
+        model = load_robot("workcell")
+        last = commands[-1].position
+        assert np.isfinite(last).all()
+        assert np.all(last <= model.upper + 1e-6), "position limits enforced"
+        steps = np.abs(np.diff([c.position for c in commands[-50:]], axis=0))
+        assert np.all(steps <= model.max_velocity * 0.0045 + 1e-6), "velocity limits enforced"
+        health = query_json(session, "xm/robot/workcell/@health")[0]
+        assert health["rejections"].get("trajectory contains NaN or infinite values") == 1
+        assert any(k.startswith("malformed") for k in health["errors"])
+        # The board vanishes: the host stops commanding (the board's own watchdog brakes).
+        dev.close()
+        time.sleep(0.3)
+        assert not query_json(session, "xm/robot/workcell/@health")[0]["link"]["connected"]
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
+        dev.close()

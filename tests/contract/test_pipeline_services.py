@@ -1,0 +1,190 @@
+"""Contract tests of the pipeline services, each a process seen only through Zenoh."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from services.world.model import camera_specs
+from shared import msgs
+from shared.geometry import projection
+from shared.kinematics import load_robot
+from tests.conftest import ServiceProcess, query_json, wait_for, write_deployment
+
+pytestmark = pytest.mark.slow
+
+
+def collect(session, key: str, msgtype: str) -> tuple[list, object]:
+    out: list = []
+    sub = session.declare_subscriber(key, lambda s: out.append(msgs.deserialize(s.payload.to_bytes(), msgtype)))
+    return out, sub
+
+
+def world_params(tmp_path: Path) -> dict:
+    run = tmp_path / "run"
+    return {"glove_ports": [str(run / "glove-left"), str(run / "glove-right")], "robot_port": str(run / "board")}
+
+
+def test_world_publishes_clock_truth_session_and_hosts_devices(router, tmp_path):
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"world": {"sim": world_params(tmp_path)}}, clock="sim")
+    svc = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    try:
+        clocks, _a = collect(session, "xm/clock", "rosgraph_msgs/msg/Clock")
+        truths, _b = collect(session, "xm/world/sim/truth", "xm_msgs/msg/GroundTruth")
+        assert wait_for(lambda: len(truths) > 20, 30), svc.output()
+        times = [msgs.stamp_seconds(c.clock) for c in clocks]
+        assert np.all(np.diff(times) > 0)
+        t = truths[-1]
+        assert len(t.hand_keypoints) == 2 * 21 * 3 and "camera/connector" in t.object_names
+        for name in ("glove-left", "glove-right", "board"):
+            assert (tmp_path / "run" / name).is_symlink()
+        bad = query_json(session, "xm/world/sim/@cmd/mode", {"mode": "dance"})
+        assert bad and not bad[0]["ok"] and "teacher" in bad[0]["error"]
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
+
+
+def test_camhub_publishes_synchronized_jpeg_and_camera_info(router, tmp_path):
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"world": {"sim": world_params(tmp_path)},
+                                                           "camhub": {"main": {"rate_hz": 5.0}}}, clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    cam = ServiceProcess("camhub", dep, "main", tmp_path / "camhub.log")
+    try:
+        images, _a = collect(session, "xm/camhub/*/image", "sensor_msgs/msg/CompressedImage")
+        infos, _b = collect(session, "xm/camhub/*/info", "sensor_msgs/msg/CameraInfo")
+        assert wait_for(lambda: len(images) >= 14, 60), cam.output()
+        stamps = {}
+        for m in images[:14]:
+            stamps.setdefault(msgs.stamp_seconds(m.header.stamp), set()).add(m.header.frame_id)
+        assert any(len(v) == 7 for v in stamps.values()), "seven cameras share one trigger stamp"
+        rgb = cv2.imdecode(np.frombuffer(bytes(images[0].data), np.uint8), cv2.IMREAD_COLOR)
+        assert rgb.shape == (240, 320, 3) and rgb.std() > 5
+        info = infos[0]
+        P = np.asarray(info.p).reshape(3, 4)
+        u, v, w = P @ [0.0, 0.0, 0.0, 1.0]
+        assert 0 < u / w < info.width and 0 < v / w < info.height
+    finally:
+        cam.stop()
+        world.stop()
+
+
+def test_recon_triangulates_the_scene_from_cameras_and_detections(router, tmp_path):
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"recon": {"main": {"dropout": 0.0}}})
+    svc = ServiceProcess("recon", dep, "main", tmp_path / "recon.log")
+    try:
+        scenes, _a = collect(session, "xm/recon/main/scene", "xm_msgs/msg/Scene")
+        assert wait_for(lambda: query_json(session, "xm/recon/main/@health"), 20), svc.output()
+        rng = np.random.default_rng(0)
+        hands = rng.uniform([-0.1, -0.1, 0.02], [0.1, 0.1, 0.15], (42, 3)).astype(np.float32)
+        objects = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.01], (3, 3)).astype(np.float32)
+        now = time.time()
+        header = msgs.header(now)
+        for _ in range(3):
+            for spec in camera_specs():
+                session.put(f"xm/camhub/{spec.name}/info", msgs.serialize(msgs.make(
+                    "sensor_msgs/msg/CameraInfo", header=msgs.header(now, spec.name), height=240, width=320,
+                    distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
+                    p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
+                    roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
+                                  do_rectify=False))))
+            session.put("xm/world/sim/truth", msgs.serialize(msgs.make(
+                "xm_msgs/msg/GroundTruth", header=header, hand_names=["left", "right"],
+                hand_keypoints=hands.ravel(), hand_visible=np.ones(42, np.uint8),
+                object_names=["a/0", "a/1", "b/0"], object_keypoints=objects.ravel(),
+                object_visible=np.array([1, 1, 0], np.uint8), body_names=[], body_poses=np.zeros(0, np.float32),
+                contact_forces=np.zeros(12, np.float32))))
+            time.sleep(0.2)
+        session.put("xm/camhub/cam0/image", b"\x00\x01garbage")  # malformed: counted, not fatal
+        session.put("xm/camhub/cam0/image", msgs.serialize(msgs.make(
+            "sensor_msgs/msg/CompressedImage", header=header, format="jpeg", data=np.zeros(4, np.uint8))))
+        assert wait_for(lambda: scenes, 10), svc.output()
+        s = scenes[-1]
+        est = np.asarray(s.hand_keypoints).reshape(42, 3)
+        assert np.median(np.linalg.norm(est - hands, axis=1)) < 0.005
+        assert list(s.object_mask) == [1, 1, 0], "truth-occluded point comes back masked"
+        health = query_json(session, "xm/recon/main/@health")[0]
+        assert any(k.startswith("malformed") for k in health["errors"])
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
+
+
+def test_policy_and_trajopt_turn_a_scene_into_a_plan_and_a_joint_trajectory(router, tmp_path):
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {"main": {}}, "trajopt": {"main": {}}})
+    policy = ServiceProcess("policy", dep, "main", tmp_path / "policy.log")
+    trajopt = ServiceProcess("trajopt", dep, "main", tmp_path / "trajopt.log")
+    try:
+        plans, _a = collect(session, "xm/policy/main/plan", "xm_msgs/msg/Plan")
+        trajs, _b = collect(session, "xm/trajopt/main/trajectory", "trajectory_msgs/msg/JointTrajectory")
+        from services.world.teacher import generate_demo
+
+        demo = generate_demo("assembly", 5)
+        names = load_robot("workcell").joint_names
+        q = np.zeros(len(names))
+        q[[2, 8]] = 0.2
+        assert wait_for(lambda: query_json(session, "xm/policy/main/@health") and
+                        query_json(session, "xm/trajopt/main/@health"), 60), policy.output() + trajopt.output()
+        deadline = time.time() + 30
+        while time.time() < deadline and not trajs:
+            now = time.time()
+            session.put("xm/world/sim/session", msgs.serialize(msgs.make(
+                "xm_msgs/msg/Session", header=msgs.header(now), task="assembly", demo=0, phase="approach",
+                tactile_hand="left", seed_layout="{}")))
+            session.put("xm/recon/main/scene", msgs.serialize(msgs.make(
+                "xm_msgs/msg/Scene", header=msgs.header(now), hand_names=["left", "right"],
+                hand_keypoints=demo.hands[0].ravel(), hand_mask=np.ones(42, np.uint8),
+                object_names=demo.object_names, object_keypoints=demo.objects[0].ravel(),
+                object_mask=np.ones(len(demo.object_names), np.uint8), tactile_regions=[],
+                tactile=np.zeros(0, np.float32), tactile_mask=np.zeros(0, np.uint8))))
+            session.put("xm/robot/workcell/state", msgs.serialize(msgs.make(
+                "sensor_msgs/msg/JointState", header=msgs.header(now), name=names, position=q,
+                velocity=np.zeros(len(q)), effort=np.zeros(len(q)))))
+            session.put("xm/policy/main/plan", b"broken plan")  # counted by trajopt
+            time.sleep(0.2)
+        assert plans, policy.output()
+        p = plans[-1]
+        assert p.steps == 11 and len(p.point_names) == 42 and np.isfinite(p.positions).all()
+        assert trajs, trajopt.output()
+        t = trajs[-1]
+        assert list(t.joint_names) == names and len(t.points) == 20
+        model = load_robot("workcell")
+        for point in t.points:
+            assert np.all(np.asarray(point.positions) >= model.lower - 1e-6)
+            assert np.all(np.asarray(point.positions) <= model.upper + 1e-6)
+        health = query_json(session, "xm/trajopt/main/@health")[0]
+        assert "solve_time_ms" in health and any(k.startswith("malformed") for k in health["errors"])
+    finally:
+        policy.stop()
+        trajopt.stop()
+
+
+def test_recorder_records_on_command_and_skips_unregistered_keys(router, tmp_path):
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"recorder": {"main": {"directory": str(tmp_path)}}})
+    svc = ServiceProcess("recorder", dep, "main", tmp_path / "recorder.log")
+    try:
+        assert wait_for(lambda: query_json(session, "xm/recorder/main/@health"), 20), svc.output()
+        out = tmp_path / "rec.mcap"
+        started = query_json(session, "xm/recorder/main/@cmd/start", {"path": str(out)})
+        assert started[0]["ok"], started
+        assert not query_json(session, "xm/recorder/main/@cmd/start", {})[0]["ok"]  # already recording
+        time.sleep(0.5)
+        for i in range(20):
+            session.put("xm/clock", msgs.serialize(msgs.make("rosgraph_msgs/msg/Clock", clock=msgs.stamp(i))))
+            session.put("xm/not/registered/key", b"x")
+        time.sleep(0.5)
+        stopped = query_json(session, "xm/recorder/main/@cmd/stop", {})[0]
+        assert stopped["ok"] and stopped["messages"]["xm/clock"] == 20
+        assert stopped["unknown_keys"]["xm/not/registered/key"] == 20
+        from mcap_ros2.reader import read_ros2_messages
+
+        assert [msgs.stamp_seconds(m.ros_msg.clock) for m in read_ros2_messages(str(out))] == list(range(20))
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
