@@ -31,7 +31,7 @@ class FrameDecoder:
         self.kinds = kinds
         self.buffer = bytearray()
         self.stats = {"frames": 0, "crc_errors": 0, "resyncs": 0, "bytes_discarded": 0, "oversize": 0,
-                      "unknown_type": 0}
+                      "unknown_type": 0, "frame_bytes": 0}
         self._in_sync = True
 
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
@@ -65,6 +65,7 @@ class FrameDecoder:
             del buf[:end]
             self._in_sync = True
             self.stats["frames"] += 1
+            self.stats["frame_bytes"] += end
             out.append((kind, payload))
         return out
 
