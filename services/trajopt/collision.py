@@ -69,15 +69,18 @@ class ArmSeparation:
             out += [*normal, offset]
         return np.array(out if out else [0.0, 0.0, 1.0, -1.0])
 
-    def constraint(self, q, sep) -> ca.SX:
+    def constraint(self, q, sep):
+        """n.(o_R(q) - o_L(q)) - offset per pair; works on SX and MX arguments."""
         if not self.pairs:
             return ca.SX.zeros(0)
-        fk = self.model.fk_casadi(q)
-        rows = []
-        for i, (a, b) in enumerate(self.pairs):
-            n = sep[4 * i:4 * i + 3]
-            rows.append(ca.dot(n, fk[b.link][1] - fk[a.link][1]) - sep[4 * i + 3])
-        return ca.vertcat(*rows)
+        if not hasattr(self, "_fn"):
+            q_s = ca.SX.sym("q", len(self.model.joint_names))
+            sep_s = ca.SX.sym("sep", self.n_params)
+            fk = self.model.fk_casadi(q_s)
+            rows = [ca.dot(sep_s[4 * i:4 * i + 3], fk[b.link][1] - fk[a.link][1]) - sep_s[4 * i + 3]
+                    for i, (a, b) in enumerate(self.pairs)]
+            self._fn = ca.Function("separation", [q_s, sep_s], [ca.vertcat(*rows)])
+        return self._fn(q, sep)
 
 
 def _transform(T: np.ndarray):
