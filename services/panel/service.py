@@ -126,6 +126,9 @@ class PanelService:
         period = 1.0 / self.p.fps
         while True:
             t0 = time.monotonic()
+            if not self.server.get_clients():  # nobody watching: keep only the latest state
+                await asyncio.sleep(period)
+                continue
             try:
                 self._draw()
             except Exception as exc:  # a bad message must not stop the dashboard
@@ -186,6 +189,9 @@ class PanelService:
 
     async def _status_loop(self) -> None:
         while True:
+            if not self.server.get_clients():
+                await asyncio.sleep(HEALTH_PERIOD_S)
+                continue
             reports = await asyncio.to_thread(self._query_health)
             rows = ["| service | status | pid | up (s) | Hz | errors |", "|---|---|---|---|---|---|"]
             for r in sorted(reports, key=lambda r: (r.get("service", ""), r.get("instance", ""))):

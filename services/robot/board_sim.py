@@ -21,7 +21,7 @@ def _gains(name: str) -> tuple[float, float, float, float, float, float]:
     if name.endswith("wrist"):
         return 30.0, 1.0, 5.0, 0.5, 2.0, 0.08
     if name.endswith("_z"):
-        return 3000.0, 200.0, 8000.0, 40.0, 1200.0, 4.0  # brake: ~1 cm/s descent under ~13 N
+        return 3000.0, 200.0, 8000.0, 40.0, 600.0, 4.0  # brake: ~2 cm/s descent under ~13 N
     return 2000.0, 150.0, 1000.0, 20.0, 1500.0, 4.0
 
 

@@ -23,12 +23,14 @@ class TrajoptService:
         knots: int = 20
         horizon_s: float = 1.0
         fixed_knots: int = 2
+        max_iterations: int = 3
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
         self.model = load_robot(params.robot)
-        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(knots=params.knots, fixed_knots=params.fixed_knots))
+        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(knots=params.knots, fixed_knots=params.fixed_knots,
+                                                                 max_iterations=params.max_iterations))
         self.dt = params.horizon_s / params.knots
         self.plan = None
         self.state: np.ndarray | None = None

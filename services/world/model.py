@@ -17,7 +17,7 @@ from shared.kinematics import ROBOTS_DIR
 FRAME_SIZE = 0.8
 CAMERA_HEIGHT = 0.8
 CAMERA_FOVY_DEG = 60.0
-PHYSICS_DT = 0.001
+PHYSICS_DT = 0.002
 
 # (x, y) of the 7 cameras on the top beams; the front beam is set back (thesis 5.4).
 CAMERA_XY = [(-0.4, -0.4), (-0.4, 0.0), (-0.4, 0.4), (0.4, -0.4), (0.4, 0.4), (0.15, -0.4), (0.15, 0.4)]

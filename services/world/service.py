@@ -35,7 +35,7 @@ class WorldService:
         glove_rate_hz: float = 100.0
         truth_rate_hz: float = 50.0
         clock_rate_hz: float = 100.0
-        tick_s: float = 0.005
+        tick_s: float = 0.006
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
