@@ -14,6 +14,18 @@ from services.robot.safety import WATCHDOG_TIMEOUT_S, Watchdog
 from shared.protocols.robot_board import WATCHDOG_EXPIRED, CommandFrame, ConfigFrame, FeedbackFrame, Mode
 
 
+def encoder_lsb(name: str) -> float:
+    """Resolution of the 15-bit absolute encoder on the motor shaft, at the joint (thesis 6.2):
+    linear axes 40 mm of belt per motor turn (Z axes geared 2:1), wrist and gripper 5:1."""
+    if name.endswith("_z"):
+        return 0.020 / 2 ** 15
+    if name.endswith(("_x", "_y")):
+        return 0.040 / 2 ** 15
+    if "finger" in name:
+        return 0.020 / 2 ** 15
+    return 2 * np.pi / 5 / 2 ** 15
+
+
 def _gains(name: str) -> tuple[float, float, float, float, float, float]:
     """kp, kd, ki, integral clamp, brake damping, torque constant for an axis by its kind."""
     if "finger" in name:
@@ -41,6 +53,12 @@ class BoardSim:
         self.rng = np.random.default_rng(seed)
         self.brake_events = 0
         self._braking = True
+        self.lsb = np.array([encoder_lsb(n) for n in self.joint_names])
+
+    def measure(self, q: np.ndarray) -> np.ndarray:
+        """What the encoders report: quantized, with one LSB of noise."""
+        counts = np.round(q / self.lsb) + self.rng.integers(-1, 2, len(q))
+        return counts * self.lsb
 
     def receive(self, msg, t: float) -> None:
         if isinstance(msg, CommandFrame):
@@ -53,6 +71,7 @@ class BoardSim:
 
     def step(self, t: float, q: np.ndarray, qd: np.ndarray,
              dt: float = 0.001) -> tuple[np.ndarray, FeedbackFrame | None]:
+        q = self.measure(q)
         expired = self.watchdog.expired(t)
         if expired and not self._braking:
             self.brake_events += 1

@@ -1,0 +1,124 @@
+"""P2: two gloves at 1 kHz each, pty bytes to published Zenoh message, through the real glove
+service processes. Reports loss, latency p50/p99 (send -> subscriber callback) and the glove
+processes' CPU share, next to the raw pty transfer latency measured in the same run.
+Writes .bench/glove.json. Target: 0 loss, p99 <= 2 ms."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from services.glove.sensor_model import GloveSensorModel
+from services.world.pty_device import PtyDevice
+from shared import msgs
+from shared.protocols import tactile
+from shared.runtime import open_client, open_router
+from tests.conftest import free_port, write_deployment
+
+RATE_HZ = 1000
+SECONDS = 5.0
+HANDS = ("left", "right")
+
+
+def raw_pty_latency(n: int = 2000) -> np.ndarray:
+    """Baseline: the same bytes through a pty to a plain blocking reader."""
+    import serial
+
+    with tempfile.TemporaryDirectory() as tmp:
+        dev = PtyDevice(Path(tmp) / "raw")
+        ser = serial.Serial(str(Path(tmp) / "raw"), timeout=1)
+        frame = tactile.encode_frame(tactile.TactileFrame(0, 0, np.zeros((16, 16), np.complex64)))
+        out = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            dev.write(frame)
+            ser.read(len(frame))
+            out.append(time.perf_counter() - t0)
+        ser.close()
+        dev.close()
+    return np.array(out)
+
+
+def main() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router(endpoint)
+    tmp = Path(tempfile.mkdtemp())
+    devices = {h: PtyDevice(tmp / f"glove-{h}") for h in HANDS}
+    dep = write_deployment(tmp / "bench.toml", endpoint, {"glove": {h: {"port": str(tmp / f"glove-{h}")}
+                                                                    for h in HANDS}})
+    procs = {h: subprocess.Popen([sys.executable, "-m", "services.glove", "--deployment", str(dep), "--instance", h],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+             for h in HANDS}
+    session = open_client(endpoint)
+    n = int(RATE_HZ * SECONDS)
+    sent: dict[str, np.ndarray] = {h: np.zeros(n) for h in HANDS}
+    received: dict[str, dict[int, float]] = {h: {} for h in HANDS}
+    lock = threading.Lock()
+
+    def on(sample) -> None:
+        t = time.perf_counter()
+        m = msgs.deserialize(sample.payload.to_bytes(), "xm_msgs/msg/Tactile")
+        with lock:
+            received[m.hand][m.sequence] = t
+
+    session.declare_subscriber("xm/glove/*/tactile", on)
+    model = GloveSensorModel(0)
+    frames = {h: [tactile.encode_frame(tactile.TactileFrame(i, i * 1000, model.impedance(np.ones(6), i * 1e-3)))
+                  for i in range(n)] for h in HANDS}
+    time.sleep(3.0)  # services up and connected
+    warm = {h: tactile.encode_frame(tactile.TactileFrame(10**6, 0, np.zeros((16, 16), np.complex64))) for h in HANDS}
+    for h in HANDS:
+        devices[h].write(warm[h])
+    time.sleep(0.5)
+    cpu = {h: psutil.Process(p.pid) for h, p in procs.items()}
+    for c in cpu.values():
+        c.cpu_percent(None)
+    t0 = time.perf_counter()
+    for i in range(n):
+        target = t0 + i / RATE_HZ
+        while (now := time.perf_counter()) < target:
+            if target - now > 0.0003:
+                time.sleep(0.0002)
+        for h in HANDS:
+            sent[h][i] = time.perf_counter()
+            devices[h].write(frames[h][i])
+    elapsed = time.perf_counter() - t0
+    time.sleep(1.0)
+    cpu_share = {h: c.cpu_percent(None) / 100.0 for h, c in cpu.items()}
+    for p in procs.values():
+        os.killpg(p.pid, signal.SIGTERM)
+        p.wait(5)
+    session.close()
+    router.close()
+    lat, lost = [], 0
+    for h in HANDS:
+        got = received[h]
+        lost += sum(1 for i in range(n) if i not in got)
+        lat += [got[i] - sent[h][i] for i in range(n) if i in got]
+    lat = np.array(lat)
+    raw = raw_pty_latency()
+    res = {"gloves": len(HANDS), "rate_hz": RATE_HZ, "seconds": SECONDS, "send_rate_achieved_hz": n / elapsed,
+           "sent": n * len(HANDS), "lost": lost, "latency_p50_ms": float(np.percentile(lat, 50) * 1e3),
+           "latency_p99_ms": float(np.percentile(lat, 99) * 1e3), "raw_pty_p50_ms": float(np.median(raw) * 1e3),
+           "cpu_share_per_glove_process": cpu_share, "targets": {"lost": 0, "latency_p99_ms_max": 2.0}}
+    res["latency_p50_ratio_to_raw_pty"] = res["latency_p50_ms"] / res["raw_pty_p50_ms"]
+    Path(".bench").mkdir(exist_ok=True)
+    Path(".bench/glove.json").write_text(json.dumps(res, indent=2))
+    print(f"2 gloves x {RATE_HZ} Hz for {SECONDS:.0f} s: lost {lost}/{n * 2}, "
+          f"latency p50 {res['latency_p50_ms']:.2f} ms, "
+          f"p99 {res['latency_p99_ms']:.2f} ms (raw pty {res['raw_pty_p50_ms']:.3f} ms); CPU per glove process "
+          + ", ".join(f"{h} {v:.0%}" for h, v in cpu_share.items()))
+
+
+if __name__ == "__main__":
+    main()
