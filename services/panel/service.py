@@ -43,8 +43,10 @@ class PanelService:
         self.latest: dict[str, object] = {}
         self.camera_choice = params.camera
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
-        self.server.initial_camera.position = (0.75, -0.75, 0.7)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.1)
+        self.server.scene.set_up_direction("+z")
+        self.server.initial_camera.position = (1.1, -0.9, 0.9)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.15)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._build_scene()
         self._build_gui()
         for key in ("xm/robot/workcell/state", "xm/recon/main/scene", "xm/policy/main/plan",
@@ -53,7 +55,9 @@ class PanelService:
         node.subscribe("xm/glove/*/tactile", self._keep, latest(len(GLOVES)))
         node.subscribe("xm/camhub/*/info", self._keep, latest(len(CAMERAS)))
         node.subscribe("xm/camhub/*/image", self._keep_image, latest(len(CAMERAS)))
-        node.health_extra = lambda: {"clients": len(self.server.get_clients()), "url": self.url}
+        self.frames_drawn = 0
+        node.health_extra = lambda: {"clients": len(self.server.get_clients()), "url": self.url,
+                                     "frames_drawn": self.frames_drawn}
 
     @property
     def url(self) -> str:
@@ -78,7 +82,7 @@ class PanelService:
         for name, dims, _pose in view.link_boxes(self.robot, np.zeros(len(self.robot.joint_names))):
             self.links[name] = sc.add_box(f"/robot/{name}", color=(180, 185, 195), dimensions=tuple(dims))
         self.hand_handles = {h: sc.add_line_segments(f"/hands/{h}", np.zeros((20, 2, 3)),
-                                                     np.zeros((20, 2, 3), np.uint8), thickness=0.004)
+                                                     np.zeros((20, 2, 3), np.uint8), thickness=0.006)
                              for h in GLOVES}
         self.objects = sc.add_point_cloud("/objects", np.zeros((1, 3)), np.zeros((1, 3), np.uint8), point_size=0.006,
                                           point_shape="circle")
@@ -131,6 +135,7 @@ class PanelService:
                 continue
             try:
                 self._draw()
+                self.frames_drawn += 1
             except Exception as exc:  # a bad message must not stop the dashboard
                 self.node.stats.count("draw_error")
                 self.node.log.warning("draw failed: %r", exc)
@@ -175,7 +180,7 @@ class PanelService:
                 fov = 2 * np.arctan(info.height / (2 * K[1, 1]))
                 self.frustums[cam] = self.server.scene.add_camera_frustum(
                     f"/cameras/{cam}", fov=float(fov), aspect=info.width / info.height, scale=0.05,
-                    wxyz=wxyz(T[:3, :3]), position=T[:3, 3], color=(40, 40, 40))
+                    wxyz=wxyz(T[:3, :3]), position=T[:3, 3], color=(40, 40, 40), thickness=0.002)
         image = self.latest.pop("image", None)
         if image is not None:
             rgb = cv2.imdecode(np.frombuffer(bytes(image.data), np.uint8), cv2.IMREAD_COLOR)

@@ -49,6 +49,7 @@ def test_panel_renders_scene_in_headless_chromium(router, tmp_path):
         assert clients >= 1, "the page never opened a viser connection"
         health = query_json(session, "xm/panel/main/@health")[0]
         assert health["received_hz"].get("xm/robot/workcell/state", 0) > 0
+        assert health["frames_drawn"] > 0, "the panel never drew for the connected browser"
         assert shot.exists(), "chromium wrote no screenshot"
         from PIL import Image
 
