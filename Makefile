@@ -33,7 +33,7 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	mkdir -p .bench
-	for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+	for b in bench/*.py; do echo "== $$b"; PYTHONPATH=. $(BIN)/python $$b || exit 1; done
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -25,3 +25,15 @@ def pose_from_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def wxyz(R: np.ndarray) -> np.ndarray:
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     return np.array([w, x, y, z])
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera pose (4x4, OpenCV axes: x right, y down, z forward) at ``eye`` looking at ``target``."""
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T

@@ -101,6 +101,10 @@ class SerialLink:
         if self._on_state:
             self._on_state(False, 0.0)
 
+    def stats(self) -> dict:
+        return {"connected": self.connected, "connects": self.connects, "disconnects": self.disconnects,
+                "last_gap_s": round(self.last_gap_s, 4)}
+
     def close(self) -> None:
         self._closed = True
         self._lose("closed") if self._ser is not None else None

@@ -55,10 +55,6 @@ class GloveDriver:
                 pressure = self.calibration.pressure(item.impedance)
                 self.on_frame(item, pressure, self.clock.stamp(item.timestamp_us))
 
-    def link_stats(self) -> dict:
-        return {"connected": self.link.connected, "connects": self.link.connects,
-                "disconnects": self.link.disconnects, "last_gap_s": round(self.link.last_gap_s, 4)}
-
     async def run(self) -> None:
         await self.link.run()
 

@@ -34,7 +34,7 @@ class GloveService:
         self.raw_pub = node.publisher("raw") if params.publish_raw else None
         self.imu_pub = node.publisher("imu") if params.publish_imu else None
         self.mask = CELL_MASK.astype(np.uint8).ravel()
-        node.health_extra = lambda: {"link": self.driver.link_stats(), "decoder": dict(self.driver.decoder.stats)}
+        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats)}
 
     def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:
         header = msgs.header(stamp, f"glove_{self.hand}")

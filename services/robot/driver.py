@@ -43,10 +43,6 @@ class BoardDriver:
         self.sequence += 1
         return self.link.write(rb.encode_command(frame))
 
-    def link_stats(self) -> dict:
-        return {"connected": self.link.connected, "connects": self.link.connects,
-                "disconnects": self.link.disconnects, "last_gap_s": round(self.link.last_gap_s, 4)}
-
     async def run(self) -> None:
         await self.link.run()
 

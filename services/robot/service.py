@@ -39,7 +39,7 @@ class RobotService:
         self.target: np.ndarray | None = None
         node.subscribe("xm/trajopt/main/trajectory", self.on_trajectory, latest(1))
         node.queryable("hold", self.cmd_hold)
-        node.health_extra = lambda: {"link": self.driver.link_stats(), "decoder": dict(self.driver.decoder.stats),
+        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state}
 
     def _reject(self, reason: str) -> None:

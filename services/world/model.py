@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from shared.geometry import look_at
 from shared.kinematics import ROBOTS_DIR
 
 FRAME_SIZE = 0.8
@@ -52,16 +53,7 @@ def camera_specs(width: int = 320, height: int = 240) -> list[CameraSpec]:
     K = np.array([[fy, 0, width / 2], [0, fy, height / 2], [0, 0, 1.0]])
     specs = []
     for i, (x, y) in enumerate(CAMERA_XY):
-        eye = np.array([x, y, CAMERA_HEIGHT])
-        z = LOOK_AT - eye
-        z /= np.linalg.norm(z)
-        xaxis = np.cross(z, [0.0, 0.0, 1.0])
-        xaxis /= np.linalg.norm(xaxis)
-        yaxis = np.cross(z, xaxis)
-        T = np.eye(4)
-        T[:3, :3] = np.stack([xaxis, yaxis, z], axis=1)
-        T[:3, 3] = eye
-        specs.append(CameraSpec(f"cam{i}", width, height, K, T))
+        specs.append(CameraSpec(f"cam{i}", width, height, K, look_at(np.array([x, y, CAMERA_HEIGHT]), LOOK_AT)))
     return specs
 
 

@@ -7,19 +7,7 @@ import pytest
 
 from services.recon.detector import CameraModel, SimulatedDetector
 from services.recon.triangulation import reprojection_error, triangulate
-from shared.geometry import pose_from_projection, projection
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
+from shared.geometry import look_at, pose_from_projection, projection
 
 
 @pytest.fixture
