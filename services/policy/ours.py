@@ -196,6 +196,7 @@ class Ours:
         data = self._prepare(train)
         if cfg.memory:
             self.H0 = data["H"][np.unique(data["start"])].mean(axis=0)
+            self.H_lo, self.H_hi = data["H"].min(axis=0), data["H"].max(axis=0)
         x0, y0, _ = self._batch(data, rng, 2048)
         self.net = Net(x0.shape[1], y0.shape[1], cfg.hidden)
         self.net.mean.copy_(torch.from_numpy(x0.mean(0)))
@@ -255,7 +256,9 @@ class Ours:
         if cfg.memory:
             h_pred, dh = out[k:k + cfg.reservoir], out[k + cfg.reservoir:k + 2 * cfg.reservoir] / 0.1
             # 7.9 + 7.10 in least squares: H_t = argmin |H - H_P|^2 + |H - H_{t-1} - dH dt|^2
-            nxt["H"] = 0.5 * (h_pred + state["H"] + dh * self.dt)
+            # bounded to the range seen in training (the activations of a linear reservoir driven by
+            # demonstration speeds never leave it)
+            nxt["H"] = np.clip(0.5 * (h_pred + state["H"] + dh * self.dt), self.H_lo, self.H_hi)
         if cfg.time_window:
             nxt["history_h"] = state["history_h"] + [nxt["hands"]]
             nxt["history_o"] = state["history_o"] + [nxt["objects"]]
@@ -289,7 +292,8 @@ class Ours:
         tensors = {"net": self.net.state_dict()}
         if self.cfg.memory:
             tensors["reservoir"] = {"W_R": torch.from_numpy(self.reservoir.W_R),
-                                    "W_I": torch.from_numpy(self.reservoir.W_I), "H0": torch.from_numpy(self.H0)}
+                                    "W_I": torch.from_numpy(self.reservoir.W_I), "H0": torch.from_numpy(self.H0),
+                                    "H_lo": torch.from_numpy(self.H_lo), "H_hi": torch.from_numpy(self.H_hi)}
         torch.save({"config": asdict(self.cfg), "extra": extra, "tensors": tensors}, path)
 
     @classmethod
@@ -308,7 +312,7 @@ class Ours:
             r = ckpt["tensors"]["reservoir"]
             self.reservoir = F.Reservoir(r["W_I"].shape[1], self.cfg.reservoir)
             self.reservoir.W_R, self.reservoir.W_I = r["W_R"].numpy(), r["W_I"].numpy()
-            self.H0 = r["H0"].numpy()
+            self.H0, self.H_lo, self.H_hi = r["H0"].numpy(), r["H_lo"].numpy(), r["H_hi"].numpy()
         return self
 
 
