@@ -102,6 +102,7 @@ def test_recon_triangulates_the_scene_from_cameras_and_detections(router, tmp_pa
                 contact_forces=np.zeros(12, np.float32))))
             time.sleep(0.2)
         session.put("xm/camhub/cam0/image", b"\x00\x01garbage")  # malformed: counted, not fatal
+        time.sleep(0.3)  # the subscription keeps only the latest sample: let this one be seen alone
         session.put("xm/camhub/cam0/image", msgs.serialize(msgs.make(
             "sensor_msgs/msg/CompressedImage", header=header, format="jpeg", data=np.zeros(4, np.uint8))))
         assert wait_for(lambda: scenes, 10), svc.output()
