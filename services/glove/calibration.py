@@ -25,7 +25,8 @@ class Calibration:
     b: np.ndarray  # (16,16) 1/kPa
 
     def pressure(self, impedance: np.ndarray) -> np.ndarray:
-        r = (np.asarray(impedance).imag - self.c0) / self.c0
+        c0 = np.where(CELL_MASK == 1, self.c0, 1.0)  # unpopulated crossings: no division by ~0
+        r = (np.asarray(impedance).imag - c0) / c0
         r = np.minimum(r, 0.95 * self.a / np.maximum(self.b, 1e-9))  # beyond saturation: clamp, not blow up
         p = r / (self.a - self.b * r)
         return (np.clip(p, 0.0, None) * CELL_MASK).astype(np.float32)

@@ -74,11 +74,12 @@ def calibrate(readings: np.ndarray, forces: np.ndarray) -> tuple[Calibration, di
     predicted = np.array([region_means(cal.pressure(z)) for z in readings])
     reference = np.array([region_means(p) for p in pressure])
     loaded = reference.max(axis=0) > 0
-    rel_region = np.array([region_means((cap[i] - c0) / c0) for i in range(len(cap))])
+    safe_c0 = np.where(CELL_MASK == 1, c0, 1.0)  # unpopulated crossings read ~0: never divide by them
+    rel = (cap - c0) / safe_c0 * CELL_MASK
+    rel_region = np.array([region_means(r) for r in rel])
     rational_report = report(reference[:, loaded].ravel(), predicted[:, loaded].ravel(),
                              rel_region[:, loaded].ravel())
-    lin_pred = np.array([region_means(np.where(lin > 0, ((cap[i] - c0) / c0) / np.maximum(lin, 1e-9), 0))
-                         for i in range(len(cap))])
+    lin_pred = np.array([region_means(np.where(lin > 0, r / np.maximum(lin, 1e-9), 0)) for r in rel])
     linear_report = report(reference[:, loaded].ravel(), lin_pred[:, loaded].ravel(), rel_region[:, loaded].ravel())
     return cal, rational_report, linear_report
 
