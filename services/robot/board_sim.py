@@ -53,6 +53,7 @@ class BoardSim:
         self.rng = np.random.default_rng(seed)
         self.brake_events = 0
         self._braking = True
+        self.last_command_t: float | None = None
         self.lsb = np.array([encoder_lsb(n) for n in self.joint_names])
 
     def measure(self, q: np.ndarray) -> np.ndarray:
@@ -66,6 +67,7 @@ class BoardSim:
                 return  # a board ignores frames for another robot; the host sees no feedback change
             self.command = msg
             self.watchdog.kick(t)
+            self.last_command_t = t
         elif isinstance(msg, ConfigFrame):
             self.watchdog.timeout_s = msg.watchdog_timeout_us * 1e-6
 
@@ -75,6 +77,7 @@ class BoardSim:
         expired = self.watchdog.expired(t)
         if expired and not self._braking:
             self.brake_events += 1
+            self._next_feedback = t  # report the brake at once, not at the next feedback period
         self._braking = expired
         effort = np.zeros(len(q))
         c = self.command
@@ -97,7 +100,8 @@ class BoardSim:
         if t >= self._next_feedback:
             self._next_feedback = t + self.feedback_period_s - 1e-9
             current = effort / self.kt + self.rng.normal(0.0, 0.01, len(q))
+            last = int(round(self.last_command_t * 1e6)) if self.last_command_t is not None else 0
             feedback = FeedbackFrame(self.sequence, int(round(t * 1e6)), WATCHDOG_EXPIRED if expired else 0,
-                                     q.copy(), qd.copy(), current)
+                                     q.copy(), qd.copy(), current, last)
             self.sequence += 1
         return effort, feedback

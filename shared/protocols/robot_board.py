@@ -32,7 +32,7 @@ class Mode(IntEnum):
 WATCHDOG_EXPIRED = 0x01
 CMD_HEAD = struct.Struct("<IB")  # sequence, joint count
 CMD_JOINT = struct.Struct("<B5f")  # mode, position, velocity, effort, stiffness, damping
-FB_HEAD = struct.Struct("<IQBB")  # sequence, board time us, flags, joint count
+FB_HEAD = struct.Struct("<IQQBB")  # sequence, board time us, last command's arrival us, flags, joint count
 FB_JOINT = struct.Struct("<3f")  # position, velocity, motor current (A)
 CONFIG = struct.Struct("<I")  # watchdog timeout in microseconds
 MAX_PAYLOAD = CMD_HEAD.size + MAX_JOINTS * CMD_JOINT.size
@@ -57,6 +57,7 @@ class FeedbackFrame:
     position: np.ndarray
     velocity: np.ndarray
     current: np.ndarray
+    last_command_us: int = 0  # board time the last command frame arrived (0: none yet)
 
     @property
     def watchdog_expired(self) -> bool:
@@ -78,7 +79,7 @@ def encode_command(c: CommandFrame) -> bytes:
 
 def encode_feedback(f: FeedbackFrame) -> bytes:
     n = len(f.position)
-    payload = FB_HEAD.pack(f.sequence & 0xFFFFFFFF, f.timestamp_us, f.flags, n) + b"".join(
+    payload = FB_HEAD.pack(f.sequence & 0xFFFFFFFF, f.timestamp_us, f.last_command_us, f.flags, n) + b"".join(
         FB_JOINT.pack(f.position[i], f.velocity[i], f.current[i]) for i in range(n))
     return frame(TYPE_FEEDBACK, payload)
 
@@ -95,11 +96,11 @@ def _parse(kind: int, p: bytes) -> CommandFrame | FeedbackFrame | ConfigFrame:
         rows = np.array([CMD_JOINT.unpack_from(p, CMD_HEAD.size + i * CMD_JOINT.size) for i in range(n)]).reshape(n, 6)
         return CommandFrame(seq, rows[:, 0].astype(np.uint8), *(rows[:, k].astype(float) for k in range(1, 6)))
     if kind == TYPE_FEEDBACK:
-        seq, ts, flags, n = FB_HEAD.unpack_from(p)
+        seq, ts, last_cmd, flags, n = FB_HEAD.unpack_from(p)
         if len(p) != FB_HEAD.size + n * FB_JOINT.size:
             raise ValueError("feedback length does not match its joint count")
         rows = np.frombuffer(p, "<f4", n * 3, FB_HEAD.size).reshape(n, 3).astype(float)
-        return FeedbackFrame(seq, ts, flags, rows[:, 0], rows[:, 1], rows[:, 2])
+        return FeedbackFrame(seq, ts, flags, rows[:, 0], rows[:, 1], rows[:, 2], last_cmd)
     (timeout,) = CONFIG.unpack(p)
     return ConfigFrame(timeout)
 

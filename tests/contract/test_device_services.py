@@ -125,3 +125,51 @@ def test_robot_follows_trajectories_rejects_nan_and_stops_commanding_without_fee
     finally:
         assert svc.stop() in (0, -15), svc.output()
         dev.close()
+
+
+def test_world_board_brakes_within_10ms_of_the_last_command_100_of_100(router, tmp_path):
+    """The test is the host on the world's simulated control board (a pty): command bursts, then
+    silence; the board's brake report must come within 10 ms (+1 physics step) of sim time."""
+    import serial
+
+    endpoint, session = router
+    run = tmp_path / "run"
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"world": {"sim": {"robot_port": str(run / "board")}}},
+                           clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    try:
+        assert wait_for(lambda: (run / "board").exists(), 30), world.output()
+        port = serial.Serial(str(run / "board"), timeout=0)
+        names = load_robot("workcell").joint_names
+        n = len(names)
+        decoder = rb.StreamDecoder()
+        seq = 0
+        latencies = []
+        for trial in range(100):
+            cmd = rb.CommandFrame(0, np.full(n, rb.Mode.POSITION, np.uint8), np.zeros(n), np.zeros(n),
+                                  np.zeros(n), np.zeros(n), np.zeros(n))
+            seen_last = 0
+            t_end = time.time() + 0.03 + 0.02 * (trial % 3)
+            while time.time() < t_end:  # a command stream at ~250 Hz
+                cmd.sequence = seq
+                seq += 1
+                port.write(rb.encode_command(cmd))
+                for m in decoder.feed(port.read(65536)):
+                    if isinstance(m, rb.FeedbackFrame):
+                        seen_last = max(seen_last, m.last_command_us)
+                time.sleep(0.004)
+            deadline = time.time() + 1.0
+            while time.time() < deadline:  # silence: the first brake report after the final command
+                frames = [m for m in decoder.feed(port.read(65536)) if isinstance(m, rb.FeedbackFrame)]
+                brake = next((m for m in frames if m.watchdog_expired and m.last_command_us >= seen_last > 0), None)
+                if brake is not None:
+                    latencies.append((brake.timestamp_us - brake.last_command_us) * 1e-6)
+                    break
+                seen_last = max([seen_last] + [m.last_command_us for m in frames])
+                time.sleep(0.002)
+        port.close()
+        assert len(latencies) == 100, f"only {len(latencies)} of 100 trials saw the brake"
+        assert max(latencies) <= 0.010 + 0.002 + 1e-6, f"slowest brake {max(latencies) * 1e3:.1f} ms"
+        assert min(latencies) > 0.010 - 1e-6
+    finally:
+        assert world.stop() in (0, -15), world.output()

@@ -44,6 +44,7 @@ def test_board_vectors():
             assert rb.encode_command(msg) == data
         elif "feedback" in case:
             assert msg.watchdog_expired and msg.timestamp_us == case["feedback"]["timestamp_us"]
+            assert msg.last_command_us == case["feedback"]["last_command_us"]
             assert rb.encode_feedback(msg) == data
         else:
             assert msg.watchdog_timeout_us == case["config"]["watchdog_timeout_us"]
