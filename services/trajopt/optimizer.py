@@ -186,7 +186,7 @@ class TrajectoryOptimizer:
 
 def _qp_options(solver: str) -> dict:
     if solver == "osqp":
-        return {"osqp": {"verbose": False, "eps_abs": 1e-5, "eps_rel": 1e-5, "polish": False, "max_iter": 400},
+        return {"osqp": {"verbose": False, "eps_abs": 1e-5, "eps_rel": 1e-5, "polish": False, "max_iter": 1000},
                 "warm_start_primal": True, "error_on_fail": False}
     if solver == "qrqp":
         return {"print_iter": False, "print_header": False, "error_on_fail": False}
