@@ -63,9 +63,36 @@ def fit_linear(p: np.ndarray, r: np.ndarray) -> tuple[float, float]:
 
 
 def report(reference: np.ndarray, predicted: np.ndarray, response: np.ndarray) -> dict:
-    """Correlation of predicted vs reference, and relative non-linearity of the raw response."""
+    """Thesis 4.8.4: Pearson correlation of predicted vs reference force/pressure, and relative
+    non-linearity of the raw response: largest deviation from its least-squares line over the
+    full-scale output span."""
     corr = float(np.corrcoef(reference, predicted)[0, 1])
     slope, offset = fit_linear(reference, response)
     full_scale = float(np.ptp(response)) or 1.0
     nonlin = float(np.max(np.abs(response - (slope * reference + offset))) / full_scale)
     return {"correlation": corr, "relative_nonlinearity": nonlin, "samples": int(len(reference))}
+
+
+def plot_fit(pressure: np.ndarray, response: np.ndarray, a: float, b: float, png_path: str | Path,
+             title: str = "") -> None:
+    """Scatter of measured response over reference pressure with the rational and linear fits (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = np.asarray(pressure, float)
+    r = np.asarray(response, float)
+    grid = np.linspace(0.0, max(float(p.max()), 1e-9), 100)
+    slope, offset = fit_linear(p, r)
+    fig, ax = plt.subplots(figsize=(5, 4))
+    ax.plot(p, r, ".", ms=2, alpha=0.4, label="measured")
+    ax.plot(grid, rational(grid, a, b), "k", label=f"rational a={a:.4f} b={b:.4f}")
+    ax.plot(grid, slope * grid + offset, "r--", label="linear")
+    ax.set_xlabel("reference pressure (kPa)")
+    ax.set_ylabel("relative capacitance change")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)

@@ -14,6 +14,10 @@ column sums S = sum_k G_kj, starting from the naive G = v G_ref / V (no crosstal
 converges linearly with rate sum_i v_ij / V (slow when a column is pressed hard); summing the
 fixed-point equation over a column gives its limit in closed form, S_j = G_ref s_j / (1 - s_j)
 with s_j = sum_i v_ij / V, which ``compensate`` uses as its starting point.
+
+``network_readings`` solves the full resistor network by nodal analysis (any set of driven lines,
+the others grounded) as an independent check of the forward model; ``direct`` solves the same
+inverse problem as one linear system per column (the baseline in bench/crosstalk.py).
 """
 
 from __future__ import annotations
@@ -46,4 +50,29 @@ def compensate(v: np.ndarray, g_ref: float, v_drive: float = 1.0, iterations: in
         if np.max(np.abs(new - G)) <= tol * max(1.0, float(np.max(np.abs(new)))):
             return new
         G = new
+    return G
+
+
+def network_readings(G: np.ndarray, g_ref: float, v_drive: float = 1.0) -> np.ndarray:
+    """Forward model by nodal analysis: for each driven excitation line, Kirchhoff's current law at
+    every reception node (cells to all excitation lines, R_ref to ground), solved as a linear system."""
+    rows, cols = G.shape
+    out = np.empty_like(G, dtype=float)
+    for i in range(rows):
+        e = np.zeros(rows)
+        e[i] = v_drive  # the driven line; the others held at ground
+        # Node j: sum_k G_kj (e_k - v_j) = g_ref v_j -> (g_ref + sum_k G_kj) v_j = sum_k G_kj e_k
+        A = np.diag(g_ref + G.sum(axis=0))
+        out[i] = np.linalg.solve(A, G.T @ e)
+    return out
+
+
+def direct(v: np.ndarray, g_ref: float, v_drive: float = 1.0) -> np.ndarray:
+    """Exact inverse by one 16x16 linear solve per reception line:
+    (V I - v_j 1^T) G_j = g_ref v_j for column j."""
+    rows, cols = v.shape
+    G = np.empty_like(v, dtype=float)
+    for j in range(cols):
+        A = v_drive * np.eye(rows) - np.outer(v[:, j], np.ones(rows))
+        G[:, j] = np.linalg.solve(A, g_ref * v[:, j])
     return G

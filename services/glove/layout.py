@@ -1,10 +1,15 @@
 """Where the glove's sensors sit on the 16 excitation x 16 reception lines of the readout module.
 
-Thesis 4.8: five finger sensors and a 6x6 palm matrix with a 2x3 cutout. Our mapping (rows =
-excitation lines, cols = reception lines): palm rows 0-5 x cols 0-5 without rows 4-5 x cols 3-5
-(30 cells); thumb rows 6-8 x cols 0-3, index rows 6-8 x cols 4-7, middle rows 9-11 x cols 0-3,
-ring rows 9-11 x cols 4-7, little rows 12-14 x cols 0-3 (12 cells each). Other crossings are not
-populated and are masked out.
+Thesis 4.8: five finger sensors and a 6x6 palm matrix with a 2x3 cutout (between thumb and index).
+Our mapping (rows = excitation lines, cols = reception lines): the six reception lines run to
+every sensor, each sensor has its own excitation lines, so only 16 x 6 crossings are read
+(TX_MASK, RX_MASK: 423-byte frames, docs/protocols/tactile.md):
+
+    rows 0-5   palm    6x6, without rows 4-5 x cols 3-5 (the cutout): 30 cells
+    rows 6-7   thumb   2 across x 6 along the finger: 12 cells
+    rows 8-9   index,  10-11 middle,  12-13 ring,  14-15 little: 12 cells each
+
+Reception lines 6-15 are unused (masked out of the frames); the cutout crossings are not populated.
 """
 
 from __future__ import annotations
@@ -17,13 +22,17 @@ ROWS = COLS = 16
 CELL_AREA_M2 = 25e-6  # 5 mm x 5 mm electrodes
 
 
+TX_MASK = 0xFFFF  # excitation lines the glove uses
+RX_MASK = 0x003F  # reception lines the glove uses
+FINGER_ROWS = {"thumb": 6, "index": 8, "middle": 10, "ring": 12, "little": 14}
+
+
 def _layout() -> np.ndarray:
     region = np.full((ROWS, COLS), -1, int)
     region[0:6, 0:6] = TACTILE_REGIONS.index("palm")
-    region[4:6, 3:6] = -1  # the cutout
-    for name, (r, c) in {"thumb": (6, 0), "index": (6, 4), "middle": (9, 0), "ring": (9, 4),
-                         "little": (12, 0)}.items():
-        region[r:r + 3, c:c + 4] = TACTILE_REGIONS.index(name)
+    region[4:6, 3:6] = -1  # the 2x3 cutout
+    for name, r in FINGER_ROWS.items():
+        region[r:r + 2, 0:6] = TACTILE_REGIONS.index(name)
     return region
 
 

@@ -3,7 +3,8 @@
 Each cell is a capacitor whose capacitance rises with pressure following the rational response
 of thesis 4.5.6, dC/C0 = a*p / (1 + b*p) (stiffening dielectric), read out as a complex
 admittance-like value G + j*w*C (arbitrary units, w*C0 ~ 1). On top: Gaussian noise, a slow
-baseline drift and a little crosstalk from stretching neighbours.
+baseline drift and a little pressure/stretch crosstalk between neighbouring cells of the same
+sensor (thesis 4.5.6). Unpopulated crossings read noise only.
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from services.glove.calibration import Calibration
-from services.glove.layout import CELL_MASK, COLS, ROWS, pressure_from_forces
+from services.glove.layout import CELL_MASK, CELL_REGION, COLS, ROWS, RX_MASK, TX_MASK, pressure_from_forces
+from shared.protocols.tactile import TactileFrame
 
 NOMINAL_A = 0.02  # 1/kPa: 2 % capacitance change per kPa at low pressure
 NOMINAL_B = 0.01  # 1/kPa: saturation
@@ -34,16 +36,36 @@ class GloveSensorModel:
         p = np.maximum(pressure_kpa, 0.0)
         rel = self.a * p / (1.0 + self.b * p)
         # Stretching a cell couples into its row/column neighbours (a fraction of their change).
-        neighbours = (np.roll(rel, 1, 0) + np.roll(rel, -1, 0) + np.roll(rel, 1, 1) + np.roll(rel, -1, 1)) / 4
-        rel = rel + CROSSTALK * neighbours
+        rel = rel + CROSSTALK * self._neighbour_mean(rel)
         drift = DRIFT * np.sin(0.05 * t + self.drift_phase)
         cap = self.c0 * (1.0 + rel + drift) + self.rng.normal(0.0, NOISE, (ROWS, COLS))
         g = self.leak + self.rng.normal(0.0, NOISE, (ROWS, COLS))
         z = (g + 1j * cap) * CELL_MASK + (1 - CELL_MASK) * self.rng.normal(0.0, NOISE, (ROWS, COLS))
         return z.astype(np.complex64)
 
+    @staticmethod
+    def _neighbour_mean(x: np.ndarray) -> np.ndarray:
+        """Mean of the 4-neighbours that belong to the same sensor (no coupling across sensors)."""
+        total = np.zeros_like(x)
+        count = np.zeros_like(x)
+        for axis in (0, 1):
+            for shift in (1, -1):
+                same = (np.roll(CELL_REGION, shift, axis) == CELL_REGION) & (CELL_REGION >= 0)
+                if axis == 0:
+                    same[0 if shift == 1 else -1, :] = False  # no wrap-around
+                else:
+                    same[:, 0 if shift == 1 else -1] = False
+                total += np.where(same, np.roll(x, shift, axis), 0.0)
+                count += same
+        return total / np.maximum(count, 1)
+
     def impedance(self, region_forces: np.ndarray, t: float) -> np.ndarray:
         return self.measure(pressure_from_forces(region_forces), t)
+
+    def frame(self, region_forces: np.ndarray, t: float, sequence: int) -> TactileFrame:
+        """One protocol frame of the glove's lines (what the world's simulated module sends)."""
+        return TactileFrame(sequence & 0xFFFFFFFF, int(round(t * 1e6)), self.impedance(region_forces, t), None,
+                            TX_MASK, RX_MASK)
 
     def calibration(self) -> Calibration:
         """The calibration a perfect `xm glove calibrate` would find (no drift, no crosstalk)."""
