@@ -1,4 +1,5 @@
-"""Helpers for tests that run real processes: free ports, temporary deployments, a router."""
+"""Helpers for tests that run real processes: free ports, temporary deployments, a router,
+service subprocesses with captured logs, Zenoh queries and subscriptions."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -22,7 +25,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict]], clock: str = "wall") -> Path:
+def free_endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict]],
+                     clock: str = "wall") -> Path:
+    """A deployment TOML with one table per instance; run_dir is ``<path's folder>/run``."""
     lines = ["[deployment]", 'name = "test"', f'router = "{router}"', f'clock = "{clock}"',
              f'run_dir = "{path.parent / "run"}"', ""]
     for svc, instances in services.items():
@@ -36,44 +45,71 @@ def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict
 
 @pytest.fixture
 def router():
+    """``(endpoint, session)``: a Zenoh router on a free port; the session doubles as the test's client."""
     from shared.runtime import open_router
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = free_endpoint()
     session = open_router(endpoint)
     yield endpoint, session
     session.close()
 
 
 class ServiceProcess:
-    def __init__(self, service: str, deployment: Path, instance: str, log: Path) -> None:
+    """``python -m services.<service> --deployment D --instance I`` in its own process group.
+
+    Output goes to ``log``; ``output()`` reads it for assertion messages. Usable as a context manager."""
+
+    def __init__(self, service: str, deployment: Path, instance: str, log: Path,
+                 env: dict[str, str] | None = None) -> None:
         self.log = log
         self._log = log.open("w")
-        self.proc = subprocess.Popen([sys.executable, "-m", f"services.{service}", "--deployment", str(deployment),
-                                      "--instance", instance], cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
+        argv = [sys.executable, "-m", f"services.{service}", "--deployment", str(deployment),
+                "--instance", instance]
+        self.proc = subprocess.Popen(argv, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True, env={**os.environ, **(env or {})})
 
-    def stop(self) -> int:
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGTERM, then SIGKILL after ``timeout``; returns the exit status (-15 when killed by SIGTERM)."""
         if self.proc.poll() is None:
             os.killpg(self.proc.pid, signal.SIGTERM)
             try:
-                self.proc.wait(10)
+                self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
         self._log.close()
         return self.proc.returncode
 
+    def kill(self) -> int:
+        """SIGKILL, as a crash or power loss would end it."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
     def output(self) -> str:
         return self.log.read_text(errors="replace")
 
+    def __enter__(self) -> ServiceProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
 
 def query_json(session, selector: str, payload: dict | None = None, timeout: float = 2.0) -> list[dict]:
+    """Replies of a queryable (``@health``, ``@cmd/<verb>``) as dicts; [] when nobody answered."""
     kwargs = {"payload": json.dumps(payload)} if payload is not None else {}
     return [json.loads(r.ok.payload.to_bytes()) for r in session.get(selector, timeout=timeout, **kwargs)
             if r.ok is not None]
 
 
-def wait_for(predicate, timeout: float = 20.0, period: float = 0.2):
+def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, period: float = 0.2) -> Any:
+    """The first truthy value of ``predicate()`` within ``timeout`` seconds, else None."""
     deadline = time.time() + timeout
     while time.time() < deadline:
         value = predicate()
@@ -81,3 +117,41 @@ def wait_for(predicate, timeout: float = 20.0, period: float = 0.2):
             return value
         time.sleep(period)
     return None
+
+
+def wait_healthy(session, service: str, instance: str, proc: ServiceProcess | None = None,
+                 timeout: float = 20.0) -> dict:
+    """The service's first @health report; fails the test (with its log) when none comes."""
+    def report() -> list[dict]:
+        if proc is not None and not proc.alive():
+            pytest.fail(f"{service}/{instance} exited with {proc.proc.returncode}:\n{proc.output()[-3000:]}")
+        return query_json(session, f"xm/{service}/{instance}/@health")
+
+    got = wait_for(report, timeout)
+    if not got:
+        pytest.fail(f"no @health from {service}/{instance} within {timeout} s"
+                    + (f":\n{proc.output()[-3000:]}" if proc is not None else ""))
+    return got[0]
+
+
+class Collector:
+    """Samples of a key expression: ``(key, payload bytes)`` in arrival order; ``close()`` undeclares."""
+
+    def __init__(self, session, key_expr: str) -> None:
+        self.samples: list[tuple[str, bytes]] = []
+        self._sub = session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample) -> None:
+        self.samples.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def payloads(self, key: str) -> list[bytes]:
+        return [p for k, p in self.samples if k == key]
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def run_xm(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    """``xm <args>`` as a subprocess from the repository root, output captured as text."""
+    return subprocess.run([sys.executable, "-m", "shared.cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)

@@ -1,1 +1,1 @@
-"""Recording every key to MCAP (ros2 profile, CDR bytes verbatim) and replaying it."""
+"""Recording keys to MCAP (ros2 profile, the wire's CDR bytes verbatim) and replaying them."""

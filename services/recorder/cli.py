@@ -1,4 +1,4 @@
-"""`xm record` and `xm replay`."""
+"""`xm record` and `xm replay`: standalone clients of a running deployment's router."""
 
 from __future__ import annotations
 
@@ -10,137 +10,242 @@ import sys
 import time
 from pathlib import Path
 
-from services.recorder.service import Recording, default_path
-from services.recorder.writer import repair
+import zenoh
+
+from services.recorder.service import Recording, check_pattern, default_path
+from services.recorder.writer import RecordingError, check_mcap, is_complete, read_messages, repair
 from shared import keys
 from shared.config import ConfigError, load_deployment
 from shared.runtime import Node, open_client
 from shared.runtime.logs import setup_logging
 
+EXIT_ERROR = 2
 
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def _add_connection(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--deployment", default="deploy/sim.toml",
+                        help="deployment whose router to connect to (default: %(default)s)")
+    parser.add_argument("--router", metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447 "
+                        "(overrides the deployment's)")
+
+
+def _connect(args: argparse.Namespace) -> tuple[zenoh.Session | None, str, str]:
+    """(session or None, router, deployment name); on failure the message is already printed."""
+    name = ""
+    router = args.router
+    if router is None:
+        try:
+            deployment = load_deployment(args.deployment)
+        except ConfigError as exc:
+            _fail(str(exc))
+            return None, "", ""
+        router, name = deployment.router, deployment.name
+    try:
+        return open_client(router), router, name
+    except Exception as exc:
+        _fail(f"no router reachable at {router} ({str(exc).split(' at ')[0].strip()}); start the workcell "
+              f"first (`xm up {args.deployment}`) or give --deployment/--router")
+        return None, router, name
+
+
+# --- record ----------------------------------------------------------------------------------
 def record_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="xm record", description="Record keys of a running deployment to an MCAP "
-                                     "file (ros2 profile; opens in Foxglove, rosbags, mcap-ros2-support).")
-    parser.add_argument("--keys", default="xm/**", help="Zenoh key pattern (default: everything)")
-    parser.add_argument("-o", "--output", help="output file (default: recordings/xm-<time>.mcap)")
-    parser.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
-    parser.add_argument("--deployment", default="deploy/sim.toml", help="deployment whose router to use")
-    parser.add_argument("--repair", metavar="CUT_FILE", help="rewrite a recording cut by a crash into -o")
+    parser = argparse.ArgumentParser(
+        prog="xm record",
+        description="Record the keys of a running deployment into an MCAP file (ros2 profile, CDR bytes "
+        "as on the wire; opens in Foxglove, rosbags and mcap-ros2-support). Stops at Ctrl-C or after "
+        "--duration and prints messages and rates per key.",
+        epilog="A recording cut by a crash keeps everything up to its last flushed chunk (at most ~1 s "
+        "lost); `xm record --repair FILE` rewrites it as a complete file.")
+    parser.add_argument("--keys", default="xm/**", metavar="PATTERN",
+                        help="Zenoh key pattern to record (default: %(default)s, every registered key)")
+    parser.add_argument("-o", "--output", metavar="FILE",
+                        help="output file (default: recordings/xm-<date>-<time>.mcap)")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="seconds to record (default: until Ctrl-C)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    parser.add_argument("--repair", metavar="CUT_FILE",
+                        help="instead of recording: rewrite a recording cut by a crash into -o "
+                        "(default CUT_FILE with .repaired.mcap)")
+    _add_connection(parser)
     args = parser.parse_args(argv)
     if args.repair:
-        src = Path(args.repair)
-        if not src.exists():
-            print(f"error: {src} not found", file=sys.stderr)
-            return 2
-        dst = Path(args.output or src.with_suffix(".repaired.mcap"))
-        n = repair(src, dst)
-        print(f"recovered {n} messages into {dst}")
-        return 0
+        return _repair(Path(args.repair), Path(args.output) if args.output else None, args.force)
+    if args.duration is not None and args.duration <= 0:
+        parser.error("--duration must be positive")
     try:
-        deployment = load_deployment(args.deployment)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        check_pattern(args.keys)
+    except ValueError as exc:
+        parser.error(str(exc))
     out = Path(args.output) if args.output else default_path("recordings")
-    return asyncio.run(_record(deployment.router, args.keys, out, args.duration))
+    if out.is_dir():
+        out = default_path(out)
+    if out.exists() and not args.force:
+        return _fail(f"{out} exists; choose another -o or pass --force")
+    return asyncio.run(_record(args, out))
 
 
-async def _record(router: str, pattern: str, out: Path, duration: float | None) -> int:
-    log = setup_logging("record")
+def _repair(src: Path, dst: Path | None, force: bool) -> int:
+    dst = dst or src.with_suffix(".repaired.mcap")
+    if dst.exists() and not force:
+        return _fail(f"{dst} exists; choose another -o or pass --force")
     try:
-        session = open_client(router)
-    except Exception as exc:
-        print(f"error: no router at {router} ({exc}); start the workcell with `xm up`", file=sys.stderr)
-        return 2
-    node = Node("recorder", f"cli{os.getpid()}", session, "wall", log)
-    stop = asyncio.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        asyncio.get_running_loop().add_signal_handler(sig, stop.set)
-    rec = Recording(node, out, pattern, {"keys": pattern, "started": time.ctime()})
-    t0 = time.monotonic()
-    try:
-        while not stop.is_set() and (duration is None or time.monotonic() - t0 < duration):
-            await asyncio.sleep(0.5)
-            total = sum(rec.writer.counts.values())
-            print(f"\rrecording {out}: {time.monotonic() - t0:6.1f} s, {total} messages, "
-                  f"{rec.writer.bytes / 1e6:.1f} MB", end="", file=sys.stderr, flush=True)
-    finally:
-        summary = rec.stop()
-        await node.close()
-        session.close()
-    print(file=sys.stderr)
-    seconds = max(summary["seconds"], 1e-9)
-    print(f"{'key':<36}{'messages':>10}{'Hz':>8}")
-    for key, n in sorted(summary["messages"].items()):
-        print(f"{key:<36}{n:>10}{n / seconds:>8.1f}")
-    for key, n in summary["unknown_keys"].items():
-        print(f"{key:<36}{n:>10}   (not in the key registry: skipped)")
-    print(f"wrote {summary['path']} ({summary['bytes'] / 1e6:.1f} MB)")
+        check_mcap(src)
+        complete = is_complete(src)
+        n = repair(src, dst)
+    except (RecordingError, OSError) as exc:
+        return _fail(str(exc))
+    state = "was complete already" if complete else "had no footer (cut)"
+    print(f"{src} {state}: {n} messages written to {dst}")
     return 0
 
 
-def replay_main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="xm replay", description="Republish an MCAP recording on its original "
-                                     "keys with the original timing (xm/clock included).")
-    parser.add_argument("file", help="MCAP recording")
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1.0)")
-    parser.add_argument("--keys", default="xm/**", help="only keys matching this pattern")
-    parser.add_argument("--loop", action="store_true", help="start over at the end")
-    parser.add_argument("--deployment", default="deploy/sim.toml", help="deployment whose router to use")
-    args = parser.parse_args(argv)
-    path = Path(args.file)
-    if not path.exists():
-        print(f"error: {path} not found", file=sys.stderr)
-        return 2
-    if args.rate <= 0:
-        print("error: --rate must be positive", file=sys.stderr)
-        return 2
+async def _record(args: argparse.Namespace, out: Path) -> int:
+    session, router, name = _connect(args)
+    if session is None:
+        return EXIT_ERROR
+    log = setup_logging("record", "WARNING")  # the terminal is for the progress line
+    node = Node("recorder", f"cli-{os.getpid()}", session, "wall", log)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    tty = sys.stderr.isatty()
     try:
-        deployment = load_deployment(args.deployment)
-        session = open_client(deployment.router)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        print(f"error: no router reachable ({exc}); start one with `xm up`", file=sys.stderr)
-        return 2
+        rec = Recording(node, out, args.keys, {"deployment": name, "deployment_file": args.deployment,
+                                               "router": router, "recorder": "xm record"})
+    except (ValueError, OSError) as exc:
+        await node.close()
+        session.close()
+        return _fail(str(exc))
+    t0 = time.monotonic()
+    try:
+        while not stop.is_set():
+            left = None if args.duration is None else args.duration - (time.monotonic() - t0)
+            if left is not None and left <= 0:
+                break
+            try:
+                await asyncio.wait_for(stop.wait(), 0.5 if left is None else min(0.5, left))
+            except TimeoutError:
+                pass
+            if tty:
+                s = rec.writer.summary()
+                print(f"\rrecording {out}: {time.monotonic() - t0:6.1f} s, {sum(s.messages.values())} "
+                      f"messages on {len(s.messages)} keys, {s.bytes / 1e6:.1f} MB  ", end="",
+                      file=sys.stderr, flush=True)
+    finally:
+        summary = await rec.stop()
+        await node.close()
+        session.close()
+    if tty:
+        print(file=sys.stderr)
+    print(summary_table(summary))
+    if not summary["messages"]:
+        print(f"warning: nothing was published on {args.keys} (is the workcell running on {router}?)",
+              file=sys.stderr)
+    return 0
+
+
+def summary_table(summary: dict) -> str:
+    """The per-key table printed at the end of `xm record`."""
+    lines = [f"{'key':<40}{'messages':>10}{'Hz':>9}"]
+    for key, n in sorted(summary["messages"].items()):
+        lines.append(f"{key:<40}{n:>10}{summary['rates_hz'].get(key, 0.0):>9.1f}")
+    for kind, label in (("unknown_keys", "not in the key registry: skipped"),
+                        ("malformed", "did not decode as its type: skipped")):
+        for key, n in sorted(summary.get(kind, {}).items()):
+            lines.append(f"{key:<40}{n:>10}   ({label})")
+    total = sum(summary["messages"].values())
+    lines.append(f"wrote {summary['path']}: {total} messages, {summary['bytes'] / 1e6:.2f} MB "
+                 f"in {summary['seconds']:.1f} s")
+    return "\n".join(lines)
+
+
+# --- replay ----------------------------------------------------------------------------------
+def replay_main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="xm replay",
+        description="Republish an MCAP recording's stored bytes on their original keys with the original "
+        "timing (receive times) scaled by --rate. xm/clock is replayed too, so services of a sim-clock "
+        "deployment follow the replay; do not run the world at the same time.",
+        epilog="A recording cut by a crash is replayed up to its last flushed chunk.")
+    parser.add_argument("file", help="MCAP recording (from xm record or the recorder service)")
+    parser.add_argument("--rate", type=float, default=1.0,
+                        help="playback speed factor (default: %(default)s)")
+    parser.add_argument("--keys", default="xm/**", metavar="PATTERN",
+                        help="replay only keys matching this Zenoh pattern (default: %(default)s)")
+    parser.add_argument("--loop", action="store_true", help="start over at the end until Ctrl-C")
+    _add_connection(parser)
+    args = parser.parse_args(argv)
+    if not args.rate > 0:
+        parser.error("--rate must be positive")
+    path = Path(args.file)
+    try:
+        check_mcap(path)
+    except (RecordingError, OSError) as exc:
+        return _fail(str(exc))
+    session, _, _ = _connect(args)
+    if session is None:
+        return EXIT_ERROR
+    publishers: dict[str, zenoh.Publisher] = {}
+    sent = [0]  # messages published, also those of a pass cut short by Ctrl-C
+    passes = 0
     try:
         while True:
-            n = _replay_once(session, path, args.rate, args.keys)
-            print(f"replayed {n} messages from {path}", file=sys.stderr)
+            cut: list[str] = []
+            n = _replay_once(session, publishers, path, args.rate, args.keys, cut, sent)
+            passes += 1
+            for line in cut if passes == 1 else []:
+                print(f"warning: {line}", file=sys.stderr)
+            if n == 0:
+                print(f"{path}: no messages on keys matching {args.keys}", file=sys.stderr)
+                return 1
             if not args.loop:
-                return 0
+                break
     except KeyboardInterrupt:
-        return 0
-    except ValueError as exc:
-        print(f"error: {path} is not a readable MCAP file ({exc})", file=sys.stderr)
-        return 2
+        pass
+    except RecordingError as exc:
+        return _fail(str(exc))
+    except Exception as exc:  # a damaged file the readers reject
+        return _fail(f"{path}: unreadable MCAP ({type(exc).__name__}: {exc})")
     finally:
+        for pub in publishers.values():
+            pub.undeclare()
         session.close()
+    print(f"replayed {sent[0]} messages on {len(publishers)} keys from {path}"
+          + (f" ({passes} passes)" if passes > 1 else ""), file=sys.stderr)
+    return 0
 
 
-def _replay_once(session, path: Path, rate: float, pattern: str) -> int:
-    from mcap.reader import make_reader
-
-    pubs = {}
+def _replay_once(session: zenoh.Session, publishers: dict[str, zenoh.Publisher], path: Path, rate: float,
+                 pattern: str, cut: list[str], sent: list[int]) -> int:
     count = 0
-    with path.open("rb") as f:
-        try:
-            messages = make_reader(f).iter_messages(log_time_order=True)
-            t_file0 = t_wall0 = None
-            for _schema, channel, message in messages:
-                if not keys.key_matches(pattern, channel.topic):
-                    continue
-                if t_file0 is None:
-                    t_file0, t_wall0 = message.log_time, time.monotonic()
-                delay = t_wall0 + (message.log_time - t_file0) * 1e-9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                pub = pubs.get(channel.topic) or pubs.setdefault(channel.topic,
-                                                                 session.declare_publisher(channel.topic))
-                pub.put(message.data)
-                count += 1
-        except Exception as exc:
-            if count == 0:
-                raise ValueError(str(exc)) from exc
+    t_file0: int | None = None
+    t_wall0 = 0.0
+    tty = sys.stderr.isatty()
+    for stored in read_messages(path, cut=cut):
+        if not keys.key_matches(pattern, stored.key):
+            continue
+        if t_file0 is None:
+            t_file0, t_wall0 = stored.log_time, time.monotonic()
+        delay = t_wall0 + (stored.log_time - t_file0) * 1e-9 / rate - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        pub = publishers.get(stored.key)
+        if pub is None:  # BLOCK: a replay is as lossless as the recording was
+            pub = publishers[stored.key] = session.declare_publisher(
+                stored.key, congestion_control=zenoh.CongestionControl.BLOCK)
+        pub.put(stored.data)
+        count += 1
+        sent[0] += 1
+        if tty and count % 200 == 0:
+            print(f"\rreplaying {path}: {(stored.log_time - t_file0) * 1e-9:7.1f} s, {count} messages  ",
+                  end="", file=sys.stderr, flush=True)
+    if tty and count:
+        print(file=sys.stderr)
     return count

@@ -1,90 +1,231 @@
 """recorder node: record keys to MCAP on command (`@cmd/start`, `@cmd/stop`, `@cmd/status`).
 
 Subscriptions are lossless FIFOs of raw payloads; each key's type comes from the registry.
-Keys under `@` (health, liveliness, commands) are never recorded; unknown keys are counted.
+Keys with an `@` chunk (health, liveliness, commands) are never recorded; unregistered keys and
+payloads that do not decode as their key's type are counted in @health and skipped.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, ClassVar
 
-from services.recorder.writer import McapRecorder
-from shared import keys
+import zenoh
+
+from services.recorder.writer import McapRecorder, RecordingError, warm_up
+from shared import keys, msgs
 from shared.runtime import Node, Subscription, fifo
+from shared.runtime.logs import fields
+
+FLUSH_CHECK_S = 0.25
+DROP_KINDS = ("unregistered_key", "bad_payload", "write_error", "queue_overflow")
+
+
+def is_internal(key: str) -> bool:
+    """Health, liveliness and command keys: never part of a recording."""
+    return any(chunk.startswith("@") for chunk in key.split("/"))
+
+
+def default_path(directory: str | Path, now: float | None = None) -> Path:
+    """``<directory>/xm-YYYYmmdd-HHMMSS.mcap``, suffixed ``-2``, ``-3``... rather than overwrite."""
+    stem = time.strftime("xm-%Y%m%d-%H%M%S", time.localtime(now))
+    path = Path(directory) / f"{stem}.mcap"
+    n = 2
+    while path.exists():
+        path = Path(directory) / f"{stem}-{n}.mcap"
+        n += 1
+    return path
+
+
+def registered_types() -> list[str]:
+    return sorted({spec.msgtype for spec in keys.REGISTRY} | set(keys.OPTIONAL.values()))
+
+
+def check_pattern(pattern: str) -> str:
+    try:
+        zenoh.KeyExpr(pattern)
+    except Exception as exc:
+        raise ValueError(f"keys {pattern!r} is not a valid Zenoh key expression ({exc})") from None
+    if not pattern.startswith("xm/") and pattern not in ("**", "xm/**"):
+        raise ValueError(f"keys {pattern!r}: workcell keys start with xm/ (e.g. xm/** or xm/glove/*/tactile)")
+    return pattern
 
 
 class Recording:
-    """One open recording: a subscription feeding a writer."""
+    """One open recording: a lossless raw subscription feeding a writer, flushed by a timer."""
 
-    def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, str]) -> None:
+    def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any]) -> None:
         self.node = node
-        self.pattern = pattern
-        self.writer = McapRecorder(path, metadata)
-        self.started = time.monotonic()
-        self.unknown: dict[str, int] = {}
-        self.sub: Subscription = node.subscribe(pattern, self._on, fifo(), msgtype="raw")
+        self.pattern = check_pattern(pattern)
+        warm_up(registered_types())  # cached: costs only the first time in a process
+        self.writer = McapRecorder(path, {**metadata, "keys": pattern})
+        self.unknown: Counter[str] = Counter()
+        self.malformed: Counter[str] = Counter()
+        self.write_errors = 0
+        self.late = 0
+        self.closed = False
+        try:
+            self.sub: Subscription = node.subscribe(pattern, self._on, fifo(), msgtype="raw")
+        except Exception:
+            self.writer.close()
+            path.unlink(missing_ok=True)
+            raise
+        self._flusher = node.spawn(self._flush_loop(), name="recorder-flush")
 
     def _on(self, payload: bytes, key: str) -> None:
-        if "/@" in key:
+        if is_internal(key):
+            return
+        if self.closed:
+            self.late += 1
             return
         msgtype = keys.msgtype_of(key)
         if msgtype is None:
-            self.unknown[key] = self.unknown.get(key, 0) + 1
+            if not self.unknown[key]:
+                self.node.log.warning("key not in the registry: skipped", extra=fields(key=key))
+            self.unknown[key] += 1
             self.node.stats.count("unregistered_key", key)
             return
-        self.writer.write(key, msgtype, payload)
+        try:
+            self.writer.write(key, msgtype, payload)
+        except msgs.MessageError as exc:
+            if not self.malformed[key]:
+                self.node.log.warning("malformed payload: skipped",
+                                      extra=fields(key=key, error=str(exc)[:200]))
+            self.malformed[key] += 1
+            self.node.stats.count("bad_payload", key)
+        except OSError as exc:  # disk full, removed directory: keep counting, say so in health
+            self.write_errors += 1
+            self.node.stats.count("write_error")
+            self.node.set_status("error", f"cannot write {self.writer.path}: {exc}")
+
+    async def _flush_loop(self) -> None:
+        while True:
+            await asyncio.sleep(FLUSH_CHECK_S)
+            try:
+                self.writer.maybe_flush()
+            except OSError as exc:
+                self.write_errors += 1
+                self.node.stats.count("write_error")
+                self.node.set_status("error", f"cannot write {self.writer.path}: {exc}")
 
     def summary(self) -> dict:
-        return {"path": str(self.writer.path), "messages": dict(self.writer.counts), "bytes": self.writer.bytes,
-                "seconds": round(time.monotonic() - self.started, 3), "unknown_keys": self.unknown}
+        return {**self.writer.summary().as_dict(), "keys": self.pattern, "unknown_keys": dict(self.unknown),
+                "malformed": dict(self.malformed), "write_errors": self.write_errors}
 
-    def stop(self) -> dict:
+    async def stop(self) -> dict:
+        """Unsubscribe, write what is still queued, close the file."""
         self.sub.close()
+        self._flusher.cancel()
+        for _ in range(5):  # drain callbacks the Zenoh threads queued before the undeclare
+            await asyncio.sleep(0)
+        self.closed = True
         self.writer.close()
         return self.summary()
 
 
-def default_path(directory: str | Path) -> Path:
-    return Path(directory) / time.strftime("xm-%Y%m%d-%H%M%S.mcap")
-
-
 class RecorderService:
+    # Set by __main__ from --deployment: written into each recording's metadata.
+    deployment: ClassVar[str] = ""
+
     @dataclass
     class Params:
         directory: str = "recordings"
+        keys: str = "xm/**"  # default pattern of @cmd/start
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
         self.recording: Recording | None = None
         self.last: dict | None = None
+        self.deployment_name = _deployment_name(self.deployment)
+        warm_up(registered_types())  # now, not while the first messages of a recording queue up
         node.queryable("start", self.cmd_start)
         node.queryable("stop", self.cmd_stop)
         node.queryable("status", self.cmd_status)
-        node.health_extra = lambda: {"recording": self.recording.summary() if self.recording else None}
+        node.health_extra = self.health
+
+    def _path(self, requested: Any) -> Path:
+        if requested in (None, ""):
+            return default_path(self.p.directory)
+        if not isinstance(requested, str):
+            raise ValueError(f"path must be a string or null, got {type(requested).__name__}")
+        path = Path(requested)
+        if path.is_dir() or requested.endswith("/"):
+            return default_path(path)
+        if path.exists():
+            raise FileExistsError(f"{path} exists; give another path (recordings are never overwritten)")
+        return path
 
     def cmd_start(self, req: dict) -> dict:
         if self.recording is not None:
-            return {"ok": False, "error": f"already recording to {self.recording.writer.path}"}
-        path = Path(req["path"]) if req.get("path") else default_path(self.p.directory)
-        pattern = str(req.get("keys", "xm/**"))
-        self.recording = Recording(self.node, path, pattern, {"keys": pattern, "started": time.ctime()})
-        self.node.log.info("recording started", extra={"fields": {"path": str(path), "keys": pattern}})
+            return {"ok": False, "error": f"already recording to {self.recording.writer.path}",
+                    "path": str(self.recording.writer.path)}
+        pattern = req.get("keys") or self.p.keys
+        if not isinstance(pattern, str):
+            raise ValueError(f"keys must be a string pattern, got {type(pattern).__name__}")
+        path = self._path(req.get("path"))
+        meta = {"deployment": self.deployment_name, "deployment_file": self.deployment,
+                "recorder": f"{self.node.service}/{self.node.instance}", "clock": self.node.clock.mode}
+        self.recording = Recording(self.node, path, pattern, meta)
+        self.node.set_status("ok", f"recording to {path}")
+        self.node.log.info("recording started", extra=fields(path=str(path), keys=pattern))
         return {"ok": True, "path": str(path)}
 
-    def cmd_stop(self, _req: dict) -> dict:
+    async def cmd_stop(self, _req: dict) -> dict:
         if self.recording is None:
-            return {"ok": False, "error": "not recording"}
-        self.last = self.recording.stop()
-        self.recording = None
-        self.node.log.info("recording stopped", extra={"fields": {"path": self.last["path"]}})
+            return {"ok": False, "error": "not recording", "last": self.last}
+        recording, self.recording = self.recording, None
+        try:
+            self.last = await recording.stop()
+        except (OSError, RecordingError) as exc:
+            self.node.set_status("error", f"closing {recording.writer.path} failed: {exc}")
+            raise
+        self.node.set_status("ok", "")
+        self.node.log.info("recording stopped", extra=fields(
+            path=self.last["path"], messages=sum(self.last["messages"].values()), bytes=self.last["bytes"]))
         return {"ok": True, **self.last}
 
     def cmd_status(self, _req: dict) -> dict:
-        return {"ok": True, "recording": self.recording.summary() if self.recording else None, "last": self.last}
+        return {"ok": True, "recording": self.recording is not None,
+                "current": self.recording.summary() if self.recording else None, "last": self.last}
+
+    def health(self) -> dict:
+        rec = self.recording.summary() if self.recording else None
+        return {"recording": rec is not None, "path": rec["path"] if rec else None,
+                "messages": rec["messages"] if rec else {}, "bytes": rec["bytes"] if rec else 0,
+                "dropped": dropped(self.node.stats.errors), "last": self.last}
 
     async def close(self) -> None:
         if self.recording is not None:
-            self.recording.stop()
+            recording, self.recording = self.recording, None
+            self.last = await recording.stop()
+            self.node.log.info("recording closed at shutdown", extra=fields(path=self.last["path"]))
+
+
+def dropped(errors: Counter[str]) -> dict[str, Any]:
+    """``{"bad_payload": {key: n}, "unregistered_key": {key: n}, "queue_overflow": n}`` from node stats."""
+    out: dict[str, Any] = {}
+    for name, n in errors.items():
+        kind, _, key = name.partition(":")
+        if kind not in DROP_KINDS:
+            continue
+        if key:
+            out.setdefault(kind, {})[key] = n
+        else:
+            out[kind] = n
+    return out
+
+
+def _deployment_name(path: str) -> str:
+    if not path:
+        return ""
+    try:
+        from shared.config import load_deployment
+
+        return load_deployment(path).name
+    except Exception:  # the runtime already validated it; metadata is best effort
+        return Path(path).stem

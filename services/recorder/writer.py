@@ -1,55 +1,123 @@
-"""MCAP files from wire bytes (no Zenoh here).
+"""MCAP files from wire bytes, and reading them back (no Zenoh here).
 
-Profile ``ros2``, schemas ``ros2msg`` generated from the same typestore the services use, channel
-encoding ``cdr``; payloads are the received bytes unchanged. Chunks are closed and fsync'ed at
-least every ``flush_s`` seconds, so a recording killed with -9 is readable by stock readers up to
-its last flushed chunk (``repair`` rewrites such a file with a summary for seeking readers).
+Profile ``ros2``, schemas ``ros2msg`` generated from the typestore the services use, channels
+``cdr``; each payload is stored exactly as received, so the wire format is the file format.
+
+Crash safety: messages go into chunks of ~1 MB; a chunk is closed, written and fsync'ed when
+full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
+therefore ends after its last complete chunk, but has no summary section and no footer:
+
+* seeking readers (``mcap_ros2.reader.read_ros2_messages(path)``, rosbags ``AnyReader``) refuse it;
+* streaming readers read it up to the cut: ``read_messages(path)`` here, or
+  ``mcap.reader.NonSeekingReader(f).iter_messages(log_time_order=False)`` catching the
+  exception raised at the cut;
+* ``repair(src, dst)`` (``xm record --repair FILE``) rewrites it as a complete file.
 """
 
 from __future__ import annotations
 
+import json
 import os
-import struct
+import socket
 import time
 from collections import Counter
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, BinaryIO
 
-from mcap.records import Channel, Message, Schema
+from mcap.reader import NonSeekingReader, SeekingReader
+from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from shared import msgs
 
-CHUNK_BYTES = 512 * 1024
+MAGIC = b"\x89MCAP0\r\n"
+CHUNK_BYTES = 1024 * 1024
 FLUSH_S = 1.0
-_STAMP = struct.Struct("<iI")
+METADATA_NAME = "crossmodal"
+SUMMARY_NAME = "crossmodal.summary"
+LIBRARY = "crossmodal recorder"
 
 
-def stamp_ns(payload: bytes) -> int | None:
-    """Header stamp of a CDR message whose first field is a Time (every registered type): bytes 4..12."""
-    if len(payload) < 12:
-        return None
-    sec, nanosec = _STAMP.unpack_from(payload, 4)
-    if sec < 0 or nanosec >= 1_000_000_000:
+class RecordingError(ValueError):
+    """A file that is not a usable MCAP recording, or a writer used after close."""
+
+
+def stamp_ns(msg: Any) -> int | None:
+    """The time a decoded message carries: ``header.stamp``, or ``clock`` for rosgraph Clock."""
+    stamp = getattr(getattr(msg, "header", None), "stamp", None)
+    if stamp is None:
+        stamp = getattr(msg, "clock", None)
+    sec, nanosec = getattr(stamp, "sec", None), getattr(stamp, "nanosec", None)
+    if not isinstance(sec, int) or not isinstance(nanosec, int) or sec < 0:
         return None
     return sec * 1_000_000_000 + nanosec
 
 
+def check_payload(msgtype: str, payload: bytes) -> int | None:
+    """Decode ``payload`` as ``msgtype`` (raises ``msgs.MessageError``); returns its stamp in ns."""
+    return stamp_ns(msgs.deserialize(payload, msgtype))
+
+
+def warm_up(msgtypes: Iterable[str]) -> None:
+    """Generate the decoders and schemas of these types now (~50 ms each): done lazily on a
+    key's first message, it would stall the subscription queue while messages pile up."""
+    store = msgs.typestore()
+    for msgtype in msgtypes:
+        store.get_msgdef(msgtype)
+        msgs.schema_text(msgtype)
+
+
+@dataclass
+class Summary:
+    path: str
+    messages: dict[str, int]
+    bytes: int
+    seconds: float
+    chunks: int
+    rates_hz: dict[str, float]  # per key, from the first and last receive times
+    durable: int  # messages in chunks already fsync'ed: what a kill now would keep
+
+    def as_dict(self) -> dict:
+        return {"path": self.path, "messages": dict(self.messages), "bytes": self.bytes,
+                "seconds": round(self.seconds, 3), "chunks": self.chunks, "durable_messages": self.durable,
+                "rates_hz": {k: round(v, 2) for k, v in self.rates_hz.items()}}
+
+
 class McapRecorder:
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None, flush_s: float = FLUSH_S) -> None:
+    """One MCAP file being written; ``write`` takes wire bytes and the key's message type.
+
+    ``validate=True`` decodes each payload first: a payload that does not decode raises
+    ``msgs.MessageError`` and is not written, so stock readers never meet an undecodable message.
+    """
+
+    def __init__(self, path: str | Path, metadata: dict[str, Any] | None = None, flush_s: float = FLUSH_S,
+                 chunk_bytes: int = CHUNK_BYTES, validate: bool = True) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.path.open("wb")
-        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-        self._writer.start(profile="ros2", library="crossmodal")
-        if metadata:
-            self._writer.add_metadata("crossmodal", {k: str(v) for k, v in metadata.items()})
+        self._file: BinaryIO = self.path.open("wb")
+        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._writer.start(profile="ros2", library=LIBRARY)
+        self.metadata = {"host": socket.gethostname(), "started_ns": str(time.time_ns()),
+                         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.metadata.update({k: _text(v) for k, v in (metadata or {}).items()})
+        self._writer.add_metadata(METADATA_NAME, self.metadata)
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.counts: Counter[str] = Counter()
+        self.span_ns: dict[str, list[int]] = {}  # key -> [first, last] log time
         self.bytes = 0
+        self.chunks = 0
+        self.durable = 0
+        self._pending = 0  # messages in the open chunk
         self.flush_s = flush_s
-        self._last_flush = time.monotonic()
+        self.validate = validate
+        self.started = time.monotonic()
+        self._last_flush = self.started
+        self._synced_pos = self._file.tell()
+        self._sync()
         self.closed = False
 
     def _channel(self, key: str, msgtype: str) -> int:
@@ -64,57 +132,193 @@ class McapRecorder:
         return channel
 
     def write(self, key: str, msgtype: str, payload: bytes, log_time_ns: int | None = None) -> None:
+        """Append one message; log time defaults to now, publish time is its stamp when it has one."""
+        if self.closed:
+            raise RecordingError(f"{self.path}: recording already closed")
+        stamp = check_payload(msgtype, payload) if self.validate else None
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
-        publish = stamp_ns(payload)
         self._writer.add_message(self._channel(key, msgtype), log_time=log_time, data=payload,
-                                 publish_time=publish if publish is not None else log_time,
-                                 sequence=self.counts[key])
+                                 publish_time=stamp if stamp is not None else log_time,
+                                 sequence=self.counts[key] & 0xFFFFFFFF)
         self.counts[key] += 1
+        self._pending += 1
         self.bytes += len(payload)
-        if time.monotonic() - self._last_flush >= self.flush_s:
-            self.flush()
+        span = self.span_ns.setdefault(key, [log_time, log_time])
+        span[1] = log_time
+        if self._file.tell() != self._synced_pos:  # the writer closed a full chunk: make it durable now
+            self.chunks += 1
+            self._sync()
+            self._durable_now()
+        self.maybe_flush()
+
+    def maybe_flush(self, now: float | None = None) -> bool:
+        """Flush when the open chunk is older than ``flush_s``; call it from a timer too."""
+        now = time.monotonic() if now is None else now
+        if now - self._last_flush < self.flush_s:
+            return False
+        self.flush()
+        return True
 
     def flush(self) -> None:
-        """Close the open chunk and push it to disk: everything written so far survives a kill."""
+        """Close the open chunk and fsync: everything written so far survives a kill."""
+        if self.closed:
+            return
+        before = self._file.tell()
         self._writer.flush()
+        if self._file.tell() != before:
+            self.chunks += 1
+        self._sync()
+        self._durable_now()
+
+    def _durable_now(self) -> None:
+        self.durable += self._pending
+        self._pending = 0
+
+    def _sync(self) -> None:
         self._file.flush()
         os.fsync(self._file.fileno())
+        self._synced_pos = self._file.tell()
         self._last_flush = time.monotonic()
 
-    def close(self) -> None:
+    def rates(self) -> dict[str, float]:
+        """Messages per second of each key over its own first..last span (0 below two messages)."""
+        return {k: (self.counts[k] - 1) / ((b - a) * 1e-9) if b > a else 0.0
+                for k, (a, b) in self.span_ns.items()}
+
+    def summary(self) -> Summary:
+        return Summary(str(self.path), dict(self.counts), self.bytes, time.monotonic() - self.started,
+                       self.chunks, self.rates(), self.durable)
+
+    def close(self) -> Summary:
+        """Write the message counts, the summary section and the footer."""
         if not self.closed:
+            self.flush()
+            summary = self.summary()
+            self._writer.add_metadata(SUMMARY_NAME, {
+                "stopped_ns": str(time.time_ns()), "seconds": f"{summary.seconds:.3f}",
+                "messages": json.dumps(summary.messages, sort_keys=True), "bytes": str(self.bytes)})
             self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
             self._file.close()
             self.closed = True
+            self._summary = summary
+        return self._summary
+
+
+def _text(value: Any) -> str:
+    return value if isinstance(value, str) else json.dumps(value, default=str)
+
+
+# --- reading ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Stored:
+    key: str
+    msgtype: str
+    log_time: int
+    publish_time: int
+    data: bytes
+
+
+def check_mcap(path: str | Path) -> None:
+    """Raise RecordingError with a readable reason unless ``path`` starts like an MCAP file."""
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such file")
+    if path.is_dir():
+        raise RecordingError(f"{path}: is a directory, not an MCAP file")
+    with path.open("rb") as f:
+        head = f.read(len(MAGIC))
+    if head != MAGIC:
+        raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)")
+
+
+def is_complete(path: str | Path) -> bool:
+    """True when the file ends with a footer (it was closed, not cut)."""
+    with Path(path).open("rb") as f:
+        f.seek(0, os.SEEK_END)
+        if f.tell() < 2 * len(MAGIC):
+            return False
+        f.seek(-len(MAGIC), os.SEEK_END)
+        return f.read() == MAGIC
+
+
+def read_messages(path: str | Path, keys: set[str] | None = None,
+                  cut: list[str] | None = None) -> Iterator[Stored]:
+    """Messages of a recording in log-time order, complete or cut (then up to its last whole chunk).
+
+    For a cut file, a line saying where it ended is appended to ``cut``."""
+    check_mcap(path)
+    with Path(path).open("rb") as f:
+        if is_complete(path):
+            source = SeekingReader(f).iter_messages(topics=keys, log_time_order=True)
+            for schema, channel, message in source:
+                yield Stored(channel.topic, schema.name if schema else "", message.log_time,
+                             message.publish_time, message.data)
+            return
+        source = NonSeekingReader(f).iter_messages(topics=keys, log_time_order=False)
+        n = 0
+        try:
+            for schema, channel, message in source:
+                n += 1
+                yield Stored(channel.topic, schema.name if schema else "", message.log_time,
+                             message.publish_time, message.data)
+        except Exception as exc:  # EndOfFile, struct.error, ...: the torn tail of a killed recording
+            if cut is not None:
+                cut.append(f"{path}: no footer, cut after {n} messages ({type(exc).__name__}); "
+                           f"`xm record --repair {path}` writes a complete copy")
+
+
+def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
+    """Metadata records by name (streaming, so cut files work too)."""
+    check_mcap(path)
+    out: dict[str, dict[str, str]] = {}
+    with Path(path).open("rb") as f:
+        try:
+            for record in StreamReader(f).records:
+                if isinstance(record, Metadata):
+                    out[record.name] = dict(record.metadata)
+        except Exception:  # a cut tail: what came before it is kept
+            pass
+    return out
 
 
 def repair(src: str | Path, dst: str | Path) -> int:
     """Rewrite a cut recording (no footer) into a complete file; returns the messages recovered."""
+    check_mcap(src)
+    if Path(src).resolve() == Path(dst).resolve():
+        raise RecordingError(f"{dst}: repair needs a different output file than its input")
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
-    ids: dict[tuple[str, int], int] = {}
+    out_schema: dict[int, int] = {}
+    out_channel: dict[int, int] = {}
     count = 0
-    out = Writer(str(dst), chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-    out.start(profile="ros2", library="crossmodal repair")
-    with open(src, "rb") as f:
+    with Path(dst).open("wb") as out_file, Path(src).open("rb") as f:
+        out = Writer(out_file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        out.start(profile="ros2", library=f"{LIBRARY} (repair)")
         try:
             for record in StreamReader(f).records:
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record
+                elif isinstance(record, Metadata):
+                    data = dict(record.metadata)
+                    if record.name == METADATA_NAME:
+                        data["repaired_from"] = str(src)
+                    out.add_metadata(record.name, data)
                 elif isinstance(record, Message) and record.channel_id in channels:
                     ch = channels[record.channel_id]
-                    if ("s", ch.schema_id) not in ids:
-                        sc = schemas[ch.schema_id]
-                        ids[("s", ch.schema_id)] = out.register_schema(sc.name, sc.encoding, sc.data)
-                    if ("c", ch.id) not in ids:
-                        schema_id = ids[("s", ch.schema_id)]
-                        ids[("c", ch.id)] = out.register_channel(ch.topic, ch.message_encoding, schema_id)
-                    out.add_message(ids[("c", ch.id)], record.log_time, record.data, record.publish_time,
+                    if ch.id not in out_channel:
+                        if ch.schema_id not in out_schema:
+                            sc = schemas[ch.schema_id]
+                            out_schema[ch.schema_id] = out.register_schema(sc.name, sc.encoding, sc.data)
+                        out_channel[ch.id] = out.register_channel(ch.topic, ch.message_encoding,
+                                                                  out_schema[ch.schema_id], ch.metadata)
+                    out.add_message(out_channel[ch.id], record.log_time, record.data, record.publish_time,
                                     record.sequence)
                     count += 1
         except Exception:  # the cut tail (EndOfFile or a torn record): everything before it is kept
             pass
-    out.finish()
+        out.finish()
     return count
