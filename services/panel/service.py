@@ -1,8 +1,8 @@
-"""panel node: the viser dashboard at http://127.0.0.1:<port>.
+"""panel node: the viser dashboard at http://<host>:<port> (default http://127.0.0.1:8080).
 
-Subscriptions keep the latest message per key; a render loop draws at ``fps`` from that state,
-never per message. GUI callbacks run on viser's threads and only talk Zenoh (queries), so they
-never touch the event loop's state.
+Subscriptions only keep the latest message per key (event loop); a render loop draws at ``fps``
+from that state, never per message, and only while a browser is connected. GUI callbacks run on
+viser's worker threads and only issue Zenoh queries, so they never touch the loop's state.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import json
 import socket
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -19,12 +20,18 @@ import viser
 
 from services.panel import view
 from shared import msgs
-from shared.geometry import pose_from_projection, wxyz
+from shared.geometry import wxyz
 from shared.keys import CAMERAS, GLOVES
-from shared.kinematics import load_robot
+from shared.kinematics import RobotModel, URDFError, load_robot
 from shared.runtime import EndpointError, Node, latest
 
-HEALTH_PERIOD_S = 2.0
+STATE_KEY = "xm/robot/workcell/state"
+SCENE_KEY = "xm/recon/main/scene"
+PLAN_KEY = "xm/policy/main/plan"
+SESSION_KEY = "xm/world/sim/session"
+RECORDER = "xm/recorder/main/@cmd"
+FRAME_SIZE = 0.8  # the aluminium frame around the table, metres (services/world/model.py)
+FRAME_HEIGHT = 0.8
 
 
 class PanelService:
@@ -32,74 +39,106 @@ class PanelService:
     class Params:
         port: int = 8080
         host: str = "127.0.0.1"
-        fps: float = 15.0
-        camera: str = "cam0"
+        fps: float = 15.0  # scene redraw rate while a browser is connected
+        tactile_hz: float = 5.0  # heatmap and camera thumbnail refresh (images are the heavy part)
+        camera: str = "cam0"  # initial thumbnail camera
+        health_period_s: float = 2.0
+        robot: str = "workcell"  # shared/robots/<robot>.urdf
 
     def __init__(self, node: Node, params: Params) -> None:
+        if params.fps <= 0 or params.tactile_hz <= 0:
+            raise EndpointError(f"panel: fps ({params.fps}) and tactile_hz ({params.tactile_hz}) must be > 0")
         self.node = node
         self.p = params
-        _check_port(params.host, params.port)
-        self.robot = load_robot("workcell")
-        self.latest: dict[str, object] = {}
-        self.camera_choice = params.camera
+        check_port(params.host, params.port)
+        self.robot: RobotModel | None = None
+        self.robot_problem = ""
+        try:
+            self.robot = load_robot(params.robot)
+        except (FileNotFoundError, URDFError) as exc:  # draw joint markers instead, and say why
+            self.robot_problem = str(exc)
+            node.log.warning("no robot model, drawing joint markers: %s", exc)
+        self.latest: dict[str, Any] = {}
+        self.images: dict[str, Any] = {}
+        self.camera_choice = params.camera if params.camera in CAMERAS else CAMERAS[0]
+        self.frames_drawn = 0
+        self._last_images = 0.0
+        self._frustum_p: dict[str, tuple] = {}
+        self._logged: set[str] = set()
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
-        self.server.scene.set_up_direction("+z")
-        self.server.initial_camera.position = (1.1, -0.9, 0.9)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.15)
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        if self.server.get_port() != params.port:  # viser silently moves to the next free port
+            self.server.stop()
+            raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        for key in ("xm/robot/workcell/state", "xm/recon/main/scene", "xm/policy/main/plan",
-                    "xm/world/sim/session"):
+        for key in (STATE_KEY, SCENE_KEY, PLAN_KEY, SESSION_KEY):
             node.subscribe(key, self._keep, latest(1))
         node.subscribe("xm/glove/*/tactile", self._keep, latest(len(GLOVES)))
         node.subscribe("xm/camhub/*/info", self._keep, latest(len(CAMERAS)))
         node.subscribe("xm/camhub/*/image", self._keep_image, latest(len(CAMERAS)))
-        self.frames_drawn = 0
-        node.health_extra = lambda: {"clients": len(self.server.get_clients()), "url": self.url,
-                                     "frames_drawn": self.frames_drawn}
+        node.health_extra = self._health_extra
 
     @property
     def url(self) -> str:
         return f"http://{self.p.host}:{self.p.port}"
 
-    def _keep(self, msg, key: str) -> None:
+    def _health_extra(self) -> dict:
+        return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
+                "robot_model": self.robot is not None, "frustums": sorted(self.frustums)}
+
+    def _keep(self, msg: Any, key: str) -> None:
         self.latest[key] = msg
 
-    def _keep_image(self, msg, key: str) -> None:
-        if key.split("/")[2] == self.camera_choice:
-            self.latest["image"] = msg
+    def _keep_image(self, msg: Any, key: str) -> None:
+        self.images[key.split("/")[2]] = msg
 
     # --- layout -------------------------------------------------------------------------
     def _build_scene(self) -> None:
         sc = self.server.scene
-        sc.add_grid("/table", width=0.8, height=0.8, cell_size=0.1, section_size=0.4, plane="xy")
-        for x in (-0.4, 0.4):
-            for y in (-0.4, 0.4):
-                sc.add_box(f"/frame/post_{x}_{y}", color=(80, 80, 80), dimensions=(0.02, 0.02, 0.8),
-                           position=(x, y, 0.4))
-        self.links = {}
-        for name, dims, _pose in view.link_boxes(self.robot, np.zeros(len(self.robot.joint_names))):
-            self.links[name] = sc.add_box(f"/robot/{name}", color=(180, 185, 195), dimensions=tuple(dims))
-        self.hand_handles = {h: sc.add_line_segments(f"/hands/{h}", np.zeros((20, 2, 3)),
-                                                     np.zeros((20, 2, 3), np.uint8), thickness=0.006)
-                             for h in GLOVES}
-        self.objects = sc.add_point_cloud("/objects", np.zeros((1, 3)), np.zeros((1, 3), np.uint8), point_size=0.006,
-                                          point_shape="circle")
-        self.plan = sc.add_point_cloud("/plan", np.zeros((1, 3)), np.zeros((1, 3), np.uint8), point_size=0.003,
-                                       point_shape="circle")
-        self.frustums: dict[str, object] = {}
+        sc.set_up_direction("+z")
+        self.server.initial_camera.position = (1.1, -0.9, 0.9)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.2)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        half = FRAME_SIZE / 2
+        sc.add_grid("/table", width=FRAME_SIZE, height=FRAME_SIZE, cell_size=0.05, section_size=0.4, plane="xy")
+        sc.add_frame("/world", axes_length=0.08, axes_radius=0.003)
+        for x in (-half, half):
+            for y in (-half, half):
+                sc.add_box(f"/frame/post_{x:+.1f}_{y:+.1f}", color=(80, 80, 80), dimensions=(0.02, 0.02, FRAME_HEIGHT),
+                           position=(x, y, FRAME_HEIGHT / 2))
+        self.links: dict[str, Any] = {}
+        if self.robot is not None:
+            for box in view.link_boxes(self.robot, np.zeros(len(self.robot.joint_names))):
+                self.links[box.name] = sc.add_box(f"/robot/{box.name}", color=(180, 185, 195),
+                                                  dimensions=tuple(box.dimensions), position=box.pose[:3, 3],
+                                                  wxyz=wxyz(box.pose[:3, :3]))
+            self.markers = None
+        else:
+            self.markers = sc.add_line_segments("/robot/joint_markers", np.zeros((1, 2, 3)), (200, 120, 40),
+                                                thickness=0.012, visible=False)
+        self.hand_lines = {h: sc.add_line_segments(f"/hands/{h}", np.zeros((20, 2, 3)), view.HAND_COLORS[h],
+                                                   thickness=0.004, visible=False) for h in GLOVES}
+        self.hand_points = {h: sc.add_point_cloud(f"/hands/{h}_points", np.zeros((21, 3)), view.HAND_COLORS[h],
+                                                  point_size=0.008, point_shape="circle", visible=False)
+                            for h in GLOVES}
+        self.objects = sc.add_point_cloud("/objects", np.zeros((1, 3)), (0, 0, 0), point_size=0.012,
+                                          point_shape="circle", visible=False)
+        self.plan = sc.add_line_segments("/plan", np.zeros((1, 2, 3)), view.PLAN_COLOR, thickness=0.003,
+                                         visible=False)
+        self.frustums: dict[str, Any] = {}
 
     def _build_gui(self) -> None:
         gui = self.server.gui
-        self.session_md = gui.add_markdown("**session**: waiting for the world")
+        self.session_md = gui.add_markdown("**session**: waiting for `xm/world/sim/session`")
+        if self.robot is None:
+            gui.add_markdown(f"**robot model unavailable** ({self.robot_problem}): bars show |q| per joint")
         with gui.add_folder("Tactile"):
-            blank = view.tactile_image(np.zeros(256))
-            self.tactile_images = {h: gui.add_image(blank, label=f"{h} glove") for h in GLOVES}
+            blank = view.tactile_image(np.zeros(256), scale=8)
+            self.tactile_images = {h: gui.add_image(blank, label=f"{h} glove", format="png") for h in GLOVES}
         with gui.add_folder("Camera"):
             dropdown = gui.add_dropdown("camera", list(CAMERAS), initial_value=self.camera_choice)
             dropdown.on_update(lambda _e: setattr(self, "camera_choice", dropdown.value))
-            self.camera_image = gui.add_image(np.zeros((120, 160, 3), np.uint8), label="view")
+            self.camera_image = gui.add_image(np.zeros((120, 160, 3), np.uint8), label="view", format="jpeg")
         with gui.add_folder("Recording"):
             start = gui.add_button("Start recording", color="red")
             stop = gui.add_button("Stop recording")
@@ -107,22 +146,20 @@ class PanelService:
             start.on_click(lambda _e: self._recorder("start", {"keys": "xm/**"}))
             stop.on_click(lambda _e: self._recorder("stop", {}))
         with gui.add_folder("Services"):
-            self.status_md = gui.add_markdown("querying...")
+            self.status_md = gui.add_markdown("querying `xm/**/@health`...")
 
-    def _recorder(self, verb: str, request: dict) -> None:  # viser thread: blocking query is fine here
-        replies = [json.loads(r.ok.payload.to_bytes()) for r in self.node.session.get(
-            f"xm/recorder/main/@cmd/{verb}", payload=json.dumps(request), timeout=3.0) if r.ok is not None]
-        if not replies:
-            self.record_md.content = "**error**: no recorder answered (is the recorder service running?)"
+    def _recorder(self, verb: str, request: dict) -> None:
+        """viser worker thread: a blocking query is fine here."""
+        self.record_md.content = f"{verb}: asking the recorder..."
+        replies = []
+        try:
+            for r in self.node.session.get(f"{RECORDER}/{verb}", payload=json.dumps(request), timeout=5.0):
+                if r.ok is not None:
+                    replies.append(json.loads(r.ok.payload.to_bytes()))
+        except Exception as exc:  # a dead session or garbage reply: show it, keep the panel alive
+            self.record_md.content = f"**error**: {exc!r}"
             return
-        reply = replies[0]
-        if not reply.get("ok"):
-            self.record_md.content = f"**error**: {reply.get('error')}"
-        elif verb == "start":
-            self.record_md.content = f"recording to `{reply['path']}`"
-        else:
-            total = sum(reply.get("messages", {}).values())
-            self.record_md.content = f"saved `{reply['path']}`: {total} messages, {reply.get('bytes', 0) / 1e6:.1f} MB"
+        self.record_md.content = view.recorder_text(verb, replies)
 
     # --- loops --------------------------------------------------------------------------
     async def run(self) -> None:
@@ -130,82 +167,117 @@ class PanelService:
         period = 1.0 / self.p.fps
         while True:
             t0 = time.monotonic()
-            if not self.server.get_clients():  # nobody watching: keep only the latest state
-                await asyncio.sleep(period)
-                continue
-            try:
-                self._draw()
-                self.frames_drawn += 1
-            except Exception as exc:  # a bad message must not stop the dashboard
-                self.node.stats.count("draw_error")
-                self.node.log.warning("draw failed: %r", exc)
+            if self.server.get_clients():  # nobody watching: only keep the latest state
+                try:
+                    with self.server.atomic():
+                        self._draw(t0)
+                    self.frames_drawn += 1
+                except Exception as exc:  # a bad message must not stop the dashboard
+                    self.node.stats.count("draw_error")
+                    if repr(exc) not in self._logged:  # once per distinct error, not per frame
+                        self._logged.add(repr(exc))
+                        self.node.log.warning("draw failed: %r", exc, exc_info=exc)
             await asyncio.sleep(max(0.0, period - (time.monotonic() - t0)))
 
-    def _draw(self) -> None:
-        state = self.latest.get("xm/robot/workcell/state")
-        if state is not None:
-            order = {n: i for i, n in enumerate(state.name)}
-            q = np.array([state.position[order[n]] if n in order else 0.0 for n in self.robot.joint_names])
-            for name, _dims, pose in view.link_boxes(self.robot, q):
-                handle = self.links[name]
-                handle.position = pose[:3, 3]
-                handle.wxyz = wxyz(pose[:3, :3])
-        scene = self.latest.pop("xm/recon/main/scene", None)
-        if scene is not None:
-            hands = np.asarray(scene.hand_keypoints, float).reshape(-1, 21, 3)
-            masks = np.asarray(scene.hand_mask).reshape(-1, 21)
-            for i, name in enumerate(scene.hand_names):
-                if name in self.hand_handles:
-                    seg, bright = view.hand_segments(hands[i], masks[i])
-                    h = self.hand_handles[name]
-                    h.points = seg
-                    h.colors = view.segment_colors(view.HAND_COLORS[name], bright)
-            pts = np.asarray(scene.object_keypoints, float).reshape(-1, 3)
-            if len(pts):
-                self.objects.points = pts.astype(np.float32)
-                self.objects.colors = view.object_colors(list(scene.object_names))
-        plan = self.latest.pop("xm/policy/main/plan", None)
-        if plan is not None and len(plan.positions):
-            pts = np.asarray(plan.positions, np.float32).reshape(-1, 3)
-            self.plan.points = pts
-            self.plan.colors = np.tile(np.array([[60, 200, 90]], np.uint8), (len(pts), 1))
-        for hand in GLOVES:
-            msg = self.latest.pop(f"xm/glove/{hand}/tactile", None)
-            if msg is not None:
-                self.tactile_images[hand].image = view.tactile_image(msg.pressure, msg.mask)
+    def _pop(self, key: str) -> Any:
+        return self.latest.pop(key, None)
+
+    def _draw(self, now: float) -> None:
+        self._draw_robot(self._pop(STATE_KEY))
+        self._draw_scene(self._pop(SCENE_KEY))
+        self._draw_plan(self._pop(PLAN_KEY))
         for cam in CAMERAS:
-            info = self.latest.pop(f"xm/camhub/{cam}/info", None)
-            if info is not None and cam not in self.frustums:
-                K, T = pose_from_projection(np.asarray(info.p))
-                fov = 2 * np.arctan(info.height / (2 * K[1, 1]))
-                self.frustums[cam] = self.server.scene.add_camera_frustum(
-                    f"/cameras/{cam}", fov=float(fov), aspect=info.width / info.height, scale=0.05,
-                    wxyz=wxyz(T[:3, :3]), position=T[:3, 3], color=(40, 40, 40), thickness=0.002)
-        image = self.latest.pop("image", None)
-        if image is not None:
-            rgb = cv2.imdecode(np.frombuffer(bytes(image.data), np.uint8), cv2.IMREAD_COLOR)
-            if rgb is not None:
-                self.camera_image.image = cv2.cvtColor(rgb, cv2.COLOR_BGR2RGB)
-        session = self.latest.pop("xm/world/sim/session", None)
+            info = self._pop(f"xm/camhub/{cam}/info")
+            if info is not None:
+                self._draw_frustum(cam, info)
+        session = self._pop(SESSION_KEY)
         if session is not None:
-            self.session_md.content = (f"**{session.task}** demo {session.demo}, phase **{session.phase}**, "
-                                       f"glove on the {session.tactile_hand} hand, t = "
-                                       f"{msgs.stamp_seconds(session.header.stamp):.1f} s")
+            self.session_md.content = view.session_text(session, msgs.stamp_seconds(session.header.stamp))
+        if now - self._last_images >= 1.0 / self.p.tactile_hz:
+            self._last_images = now
+            self._draw_images()
+
+    def _draw_robot(self, state: Any) -> None:
+        if state is None:
+            return
+        if self.robot is None:
+            self.markers.points = view.joint_markers(state.position)
+            self.markers.visible = True
+            return
+        q = view.joint_vector(self.robot.joint_names, state.name, state.position)
+        for box in view.link_boxes(self.robot, q):
+            handle = self.links[box.name]
+            handle.position = box.pose[:3, 3]
+            handle.wxyz = wxyz(box.pose[:3, :3])
+
+    def _draw_scene(self, scene: Any) -> None:
+        if scene is None:
+            return
+        hands, masks = view.hand_arrays(scene.hand_keypoints, scene.hand_mask, len(scene.hand_names))
+        for i, name in enumerate(scene.hand_names):
+            if name not in self.hand_lines:
+                continue
+            seg, bright = view.hand_segments(hands[i], masks[i])
+            lines, points = self.hand_lines[name], self.hand_points[name]
+            lines.points = seg
+            lines.colors = view.segment_colors(view.HAND_COLORS[name], bright)
+            points.points = hands[i].astype(np.float32)
+            points.colors = view.point_colors(view.HAND_COLORS[name], masks[i])
+            lines.visible = points.visible = bool(masks[i].any())
+        pts = np.asarray(scene.object_keypoints, np.float32).reshape(-1, 3)
+        if len(pts) and len(pts) == len(scene.object_names):
+            self.objects.points = pts
+            self.objects.colors = view.object_colors(list(scene.object_names), scene.object_mask)
+        self.objects.visible = bool(len(pts))
+
+    def _draw_plan(self, plan: Any) -> None:
+        if plan is None:
+            return
+        seg = view.plan_segments(plan.positions, plan.mask, int(plan.steps), len(plan.point_names))
+        if len(seg):
+            self.plan.points = seg
+            self.plan.colors = np.broadcast_to(np.array(view.PLAN_COLOR, np.uint8), seg.shape).copy()
+        self.plan.visible = bool(len(seg))
+
+    def _draw_frustum(self, cam: str, info: Any) -> None:
+        p = tuple(np.asarray(info.p, float).round(6))
+        if self._frustum_p.get(cam) == p:
+            return
+        try:
+            f = view.camera_frustum(info.p, int(info.width), int(info.height))
+        except view.ViewError as exc:
+            self.node.stats.count("bad_camera_info", cam)
+            self.node.log.warning("camera %s: %s", cam, exc)
+            self._frustum_p[cam] = p  # complain once per distinct P
+            return
+        self._frustum_p[cam] = p
+        if cam in self.frustums:
+            self.frustums[cam].remove()
+        self.frustums[cam] = self.server.scene.add_camera_frustum(
+            f"/cameras/{cam}", fov=f.fov, aspect=f.aspect, scale=0.06, wxyz=f.wxyz, position=f.position,
+            color=(40, 40, 40), thickness=0.002)
+        self.server.scene.add_label(f"/cameras/{cam}/label", cam)
+
+    def _draw_images(self) -> None:
+        for hand in GLOVES:
+            msg = self._pop(f"xm/glove/{hand}/tactile")
+            if msg is not None:
+                self.tactile_images[hand].image = view.tactile_image(msg.pressure, msg.mask, int(msg.rows),
+                                                                     int(msg.cols), scale=8)
+        image = self.images.pop(self.camera_choice, None)
+        if image is not None:
+            bgr = cv2.imdecode(np.frombuffer(bytes(image.data), np.uint8), cv2.IMREAD_COLOR)
+            if bgr is None:
+                self.node.stats.count("bad_jpeg", self.camera_choice)
+            else:
+                self.camera_image.image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     async def _status_loop(self) -> None:
         while True:
-            if not self.server.get_clients():
-                await asyncio.sleep(HEALTH_PERIOD_S)
-                continue
-            reports = await asyncio.to_thread(self._query_health)
-            rows = ["| service | status | pid | up (s) | Hz | errors |", "|---|---|---|---|---|---|"]
-            for r in sorted(reports, key=lambda r: (r.get("service", ""), r.get("instance", ""))):
-                hz = ", ".join(f"{k.split('/')[-1]} {v:g}" for k, v in r.get("published_hz", {}).items())
-                errs = ", ".join(f"{k} {v}" for k, v in r.get("errors", {}).items()) or "-"
-                rows.append(f"| {r.get('service')}/{r.get('instance')} | {r.get('status')} | {r.get('pid')} | "
-                            f"{r.get('uptime_s', 0):.0f} | {hz or '-'} | {errs} |")
-            self.status_md.content = "\n".join(rows)
-            await asyncio.sleep(HEALTH_PERIOD_S)
+            if self.server.get_clients():
+                reports = await asyncio.to_thread(self._query_health)
+                self.status_md.content = view.health_table(reports)
+            await asyncio.sleep(self.p.health_period_s)
 
     def _query_health(self) -> list[dict]:
         out = []
@@ -221,11 +293,16 @@ class PanelService:
         self.server.stop()
 
 
-def _check_port(host: str, port: int) -> None:
-    with socket.socket() as sock:
+def port_message(host: str, port: int, why: str) -> str:
+    return (f"panel: cannot serve the dashboard on {host}:{port}: {why}. Another panel is running? "
+            f"Stop it, or set `port = <free port>` under [services.panel.<instance>] in the deployment file")
+
+
+def check_port(host: str, port: int) -> None:
+    """Fail with a readable EndpointError (exit code 2) when the dashboard port is taken."""
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host, port))
         except OSError as exc:
-            raise EndpointError(f"panel: cannot serve on {host}:{port}: {exc.strerror}; set "
-                                f"[services.panel.main] port to a free port in the deployment file") from None
+            raise EndpointError(port_message(host, port, exc.strerror or str(exc))) from None

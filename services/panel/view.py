@@ -1,55 +1,239 @@
-"""Messages -> drawable arrays for the dashboard (pure: no viser, no Zenoh)."""
+"""Messages -> drawable arrays for the dashboard (pure: no viser, no Zenoh).
+
+Everything here takes numpy arrays or message-like objects (attribute access only) and returns
+arrays, strings or small tuples, so the service only moves them into viser handles.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from matplotlib import colormaps
 
+from shared.geometry import pose_from_projection, wxyz
 from shared.kinematics import RobotModel
 
-# MANO/OpenPose bones: wrist to each finger base, then along each finger.
-BONES = [(0, 1), (1, 2), (2, 3), (3, 4)] + [
+KEYPOINTS = 21
+# MANO/OpenPose bones: thumb chain from the wrist, then wrist -> each finger base and along the finger.
+BONES: list[tuple[int, int]] = [(0, 1), (1, 2), (2, 3), (3, 4)] + [
     pair for b in (5, 9, 13, 17) for pair in ((0, b), (b, b + 1), (b + 1, b + 2), (b + 2, b + 3))]
 HAND_COLORS = {"left": (230, 120, 90), "right": (90, 120, 230)}
-DIM = 0.35  # brightness of unobserved keypoints
+DIM = 0.35  # brightness of what a mask marks unobserved
+PLAN_COLOR = (60, 190, 90)
+TACTILE_SHAPE = (16, 16)
+
+
+class ViewError(ValueError):
+    """A message whose arrays do not have the sizes its own fields promise."""
+
+
+# --- hands and objects ------------------------------------------------------------------------
+
+def hand_arrays(hand_keypoints: Sequence[float], hand_mask: Sequence[int] | None,
+                hands: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat Scene fields -> (H,21,3) keypoints and (H,21) bool mask (all observed when the mask is empty)."""
+    pts = np.asarray(hand_keypoints, float)
+    if pts.size != hands * KEYPOINTS * 3:
+        raise ViewError(f"hand_keypoints has {pts.size} values, expected {hands}*21*3 = {hands * KEYPOINTS * 3}")
+    mask = np.asarray(hand_mask if hand_mask is not None else [], np.uint8)
+    if mask.size == 0:
+        mask = np.ones(hands * KEYPOINTS, np.uint8)
+    if mask.size != hands * KEYPOINTS:
+        raise ViewError(f"hand_mask has {mask.size} values, expected {hands * KEYPOINTS}")
+    return pts.reshape(hands, KEYPOINTS, 3), mask.reshape(hands, KEYPOINTS).astype(bool)
 
 
 def hand_segments(hand: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(B,2,3) bone segments and a per-segment brightness (1 observed, DIM when an end is masked)."""
+    """(20,2,3) bone segments of one hand and per-segment brightness: 1 if both ends observed, else DIM."""
+    hand = np.asarray(hand, float)
+    if hand.shape != (KEYPOINTS, 3):
+        raise ViewError(f"hand has shape {hand.shape}, expected (21, 3)")
     idx = np.array(BONES)
-    seg = hand[idx]
-    seen = np.ones(len(idx)) if mask is None else np.where(mask[idx].all(axis=1), 1.0, DIM)
-    return seg, seen
+    seen = np.ones(len(idx)) if mask is None else np.where(np.asarray(mask, bool)[idx].all(axis=1), 1.0, DIM)
+    return hand[idx], seen
 
 
 def segment_colors(base: tuple[int, int, int], brightness: np.ndarray) -> np.ndarray:
-    c = np.asarray(base, float)[None, None, :] * brightness[:, None, None]
-    return np.repeat(c, 2, axis=1).astype(np.uint8)
+    """(N,2,3) uint8 colours: the base colour scaled per segment."""
+    c = np.asarray(base, float)[None, None, :] * np.asarray(brightness, float)[:, None, None]
+    return np.repeat(c, 2, axis=1).round().astype(np.uint8)
 
 
-def tactile_image(pressure: np.ndarray, mask: np.ndarray | None = None, vmax: float = 30.0,
-                  scale: int = 12) -> np.ndarray:
-    """16x16 pressure (kPa) -> an RGB heatmap image, unpopulated cells dark grey."""
-    p = np.clip(np.asarray(pressure, float).reshape(16, 16) / vmax, 0.0, 1.0)
-    rgb = (colormaps["inferno"](p)[..., :3] * 255).astype(np.uint8)
-    if mask is not None:
-        rgb[np.asarray(mask).reshape(16, 16) == 0] = (40, 40, 40)
+def point_colors(base: tuple[int, int, int], mask: np.ndarray) -> np.ndarray:
+    """(N,3) uint8: base colour where observed, dimmed elsewhere."""
+    scale = np.where(np.asarray(mask, bool), 1.0, DIM)
+    return (np.asarray(base, float)[None, :] * scale[:, None]).round().astype(np.uint8)
+
+
+def object_colors(names: Sequence[str], mask: Sequence[int] | None = None) -> np.ndarray:
+    """(N,3) uint8, one tab10 colour per object (the part of "<object>/<point>" before '/'), dimmed if unseen."""
+    objects = sorted({n.split("/")[0] for n in names})
+    palette = (np.asarray(colormaps["tab10"].colors)[:, :3] * 255).round()
+    rgb = np.array([palette[objects.index(n.split("/")[0]) % len(palette)] for n in names]).reshape(-1, 3)
+    if mask is not None and len(mask) == len(names):
+        rgb = rgb * np.where(np.asarray(mask, bool), 1.0, DIM)[:, None]
+    return rgb.round().astype(np.uint8)
+
+
+# --- plan ---------------------------------------------------------------------------------
+
+def plan_segments(positions: Sequence[float], mask: Sequence[int] | None, steps: int,
+                  points: int) -> np.ndarray:
+    """Plan fields -> (S,2,3) segments joining each keypoint's consecutive steps where both are valid."""
+    pos = np.asarray(positions, float)
+    if steps < 2 or points == 0:
+        return np.zeros((0, 2, 3))
+    if pos.size != steps * points * 3:
+        raise ViewError(f"plan positions has {pos.size} values, expected {steps}*{points}*3")
+    pos = pos.reshape(steps, points, 3)
+    m = np.asarray(mask if mask is not None else [], bool)
+    m = np.ones((steps, points), bool) if m.size == 0 else m.reshape(steps, points)
+    ok = m[:-1] & m[1:]  # (steps-1, points)
+    return np.stack([pos[:-1][ok], pos[1:][ok]], axis=1)
+
+
+# --- tactile ------------------------------------------------------------------------------
+
+def tactile_image(pressure: Sequence[float], mask: Sequence[int] | None = None, rows: int = 16, cols: int = 16,
+                  vmax: float = 30.0, scale: int = 12) -> np.ndarray:
+    """rows x cols pressure (kPa) -> (rows*scale, cols*scale, 3) uint8 inferno heatmap, absent cells grey."""
+    p = np.asarray(pressure, float)
+    if p.size != rows * cols:
+        raise ViewError(f"tactile pressure has {p.size} values, expected {rows}x{cols}")
+    level = np.clip(np.nan_to_num(p.reshape(rows, cols)) / vmax, 0.0, 1.0)
+    rgb = (colormaps["inferno"](level)[..., :3] * 255).round().astype(np.uint8)
+    if mask is not None and len(mask) == rows * cols:
+        rgb[np.asarray(mask).reshape(rows, cols) == 0] = (40, 40, 40)
     return np.kron(rgb, np.ones((scale, scale, 1), np.uint8))
 
 
-def link_boxes(model: RobotModel, q: np.ndarray) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, dimensions, world 4x4 pose) per collision shape; cylinders drawn as their bounding box."""
-    poses = model.fk(q)
+# --- robot --------------------------------------------------------------------------------
+
+def joint_vector(model_names: Sequence[str], names: Sequence[str], positions: Sequence[float]) -> np.ndarray:
+    """JointState (names, positions) in the model's joint order; joints the message lacks stay at 0."""
+    given = dict(zip(names, np.asarray(positions, float), strict=False))
+    return np.array([given.get(n, 0.0) for n in model_names])
+
+
+@dataclass(frozen=True)
+class LinkBox:
+    name: str
+    dimensions: np.ndarray  # full extents (3,)
+    pose: np.ndarray  # world 4x4 of the box centre
+
+
+def _shape_box(kind: str, size: np.ndarray, vertices: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(dimensions, centre in the shape frame): a box approximating the shape."""
+    if kind == "box":
+        return np.asarray(size, float), np.zeros(3)
+    if kind == "cylinder":
+        return np.array([2 * size[0], 2 * size[0], size[1]]), np.zeros(3)
+    if kind == "sphere":
+        return np.full(3, 2 * size[0]), np.zeros(3)
+    if vertices is not None and len(vertices):  # mesh: its bounding box
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        return np.maximum(hi - lo, 1e-3), (hi + lo) / 2
+    return np.full(3, 0.02), np.zeros(3)
+
+
+def link_boxes(model: RobotModel, q: np.ndarray) -> list[LinkBox]:
+    """One box per collision shape at its forward-kinematics pose."""
+    poses = model.fk(np.asarray(q, float))
     out = []
     for i, s in enumerate(model.shapes):
-        dims = s.size if s.kind == "box" else (np.array([2 * s.size[0]] * 2 + [s.size[1]]) if s.kind == "cylinder"
-                                                 else np.full(3, 2 * s.size[0]))
-        out.append((f"{s.link}_{i}", dims, poses[s.link] @ s.origin))
+        dims, centre = _shape_box(s.kind, s.size, s.vertices)
+        offset = np.eye(4)
+        offset[:3, 3] = centre
+        out.append(LinkBox(f"{s.link}_{i}", dims, poses[s.link] @ s.origin @ offset))
     return out
 
 
-def object_colors(names: list[str]) -> np.ndarray:
-    """One colour per object (the part before '/')."""
-    objects = sorted({n.split("/")[0] for n in names})
-    palette = (np.array(colormaps["tab10"](np.linspace(0, 1, 10))[:, :3]) * 255).astype(np.uint8)
-    return np.array([palette[objects.index(n.split("/")[0]) % 10] for n in names]).reshape(-1, 3)
+def joint_markers(positions: Sequence[float], spacing: float = 0.05, origin: Sequence[float] = (-0.35, -0.45, 0.0),
+                  gain: float = 0.5) -> np.ndarray:
+    """Fallback without a robot model: (N,2,3) vertical bars along the table edge, height = |q|*gain."""
+    q = np.abs(np.asarray(positions, float))
+    x = origin[0] + spacing * np.arange(len(q))
+    base = np.stack([x, np.full_like(x, origin[1]), np.full_like(x, origin[2])], axis=1)
+    top = base + np.stack([np.zeros_like(q), np.zeros_like(q), np.maximum(q * gain, 0.005)], axis=1)
+    return np.stack([base, top], axis=1)
+
+
+# --- cameras ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Frustum:
+    fov: float  # vertical, rad
+    aspect: float  # width / height
+    wxyz: np.ndarray
+    position: np.ndarray
+
+
+def camera_frustum(p: Sequence[float], width: int, height: int) -> Frustum:
+    """CameraInfo's P = K[R|t] (world -> pixels) -> the camera's world pose and field of view (OpenCV axes)."""
+    P = np.asarray(p, float)
+    if P.size != 12 or not np.isfinite(P).all() or abs(np.linalg.det(P.reshape(3, 4)[:, :3])) < 1e-12:
+        raise ViewError("CameraInfo.p is not a full-rank K[R|t]; camhub must fill it with the camera pose")
+    if width <= 0 or height <= 0:
+        raise ViewError(f"CameraInfo size {width}x{height} is not positive")
+    K, world_T_cam = pose_from_projection(P)
+    fov = 2.0 * np.arctan(height / (2.0 * abs(K[1, 1])))
+    return Frustum(float(fov), width / height, wxyz(world_T_cam[:3, :3]), world_T_cam[:3, 3].copy())
+
+
+# --- text ---------------------------------------------------------------------------------
+
+def session_text(session: Any, t: float) -> str:
+    return (f"**{session.task or '?'}** demo {session.demo}, phase **{session.phase or '?'}**, "
+            f"glove on the {session.tactile_hand or '?'} hand, t = {t:.1f} s")
+
+
+def _rates(hz: dict) -> str:
+    """Rates by topic (the key's last chunk); several keys of one topic read "image 7x5"."""
+    groups: dict[str, list[float]] = {}
+    for key, rate in hz.items():
+        groups.setdefault(key.rsplit("/", 1)[-1], []).append(float(rate))
+    parts = []
+    for topic, rates in sorted(groups.items()):
+        mean = sum(rates) / len(rates)
+        parts.append(f"{topic} {mean:.3g}" if len(rates) == 1 else f"{topic} {len(rates)}x{mean:.3g}")
+    return ", ".join(parts) or "-"
+
+
+def health_table(reports: Sequence[dict]) -> str:
+    """@health replies -> a markdown table, one row per service instance, sorted."""
+    if not reports:
+        return "no service answered `xm/**/@health`"
+    rows = ["| service | status | pid | up s | out Hz | in keys | errors |", "|---|---|---|---|---|---|---|"]
+    for r in sorted(reports, key=lambda r: (str(r.get("service", "")), str(r.get("instance", "")))):
+        errors = r.get("errors") or {}
+        err = ", ".join(f"{k} {v}" for k, v in sorted(errors.items())) or "-"
+        status = str(r.get("status", "?"))
+        if r.get("message"):
+            status += ": " + str(r["message"]).replace("|", "/")
+        up = r.get("uptime_s")
+        up_text = f"{up:.0f}" if isinstance(up, (int, float)) else "-"
+        rows.append(f"| {r.get('service', '?')}/{r.get('instance', '?')} | {status} | {r.get('pid', '-')} | "
+                    f"{up_text} | {_rates(r.get('published_hz') or {})} | "
+                    f"{len(r.get('received_hz') or {})} | {err} |")
+    return "\n".join(rows)
+
+
+def recorder_text(verb: str, replies: Sequence[dict]) -> str:
+    """The recorder's JSON reply -> one line for the GUI."""
+    if not replies:
+        return "**error**: no recorder answered `xm/recorder/main/@cmd/" + verb + "` (is the recorder running?)"
+    reply = replies[0]
+    if not reply.get("ok"):
+        return f"**error**: {reply.get('error', 'recorder refused without a reason')}"
+    path = reply.get("path", "?")
+    if verb == "start":
+        return f"recording to `{path}`"
+    messages = reply.get("messages")
+    total = sum(messages.values()) if isinstance(messages, dict) else messages
+    extra = f": {total} messages" if total is not None else ""
+    if isinstance(reply.get("bytes"), (int, float)):
+        extra += f", {reply['bytes'] / 1e6:.1f} MB"
+    return f"saved `{path}`{extra}"

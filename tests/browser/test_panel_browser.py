@@ -1,61 +1,101 @@
-"""The dashboard in a real browser: headless Chromium loads the panel, connects, and draws."""
+"""The dashboard in a real browser: headless Chromium (DevTools protocol) loads the panel, connects,
+shows what was published, and its record button reaches the recorder. Screenshot: .cache/panel.png."""
 
 from __future__ import annotations
 
+import json
 import shutil
-import subprocess
 import time
 
+import cv2
 import numpy as np
 import pytest
 
 from shared import msgs
+from tests.browser._cdp import Chromium, find_chromium
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, write_deployment
+from tests.contract.test_panel_contract import camera_info, joint_state, plan, scene, tactile
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM = find_chromium()
 pytestmark = [pytest.mark.browser,
-              pytest.mark.skipif(CHROMIUM is None, reason="needs Debian chromium (apt-get install chromium)")]
+              pytest.mark.skipif(CHROMIUM is None, reason="needs /usr/bin/chromium (apt-get install chromium)")]
+
+PAGE_TEXT = "document.body ? document.body.innerText : ''"
 
 
-def test_panel_renders_scene_in_headless_chromium(router, tmp_path):
+def session_msg() -> object:
+    return msgs.make("xm_msgs/msg/Session", header=msgs.header(12.5), task="pick_place", demo=3, phase="grasp",
+                     tactile_hand="right", seed_layout="{}")
+
+
+def jpeg() -> object:
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[:, :80] = (0, 200, 0)
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    return msgs.make("sensor_msgs/msg/CompressedImage", header=msgs.header(time.time(), "cam0"), format="jpeg",
+                     data=np.frombuffer(data, np.uint8))
+
+
+def test_panel_renders_and_records_in_headless_chromium(router, tmp_path):
     endpoint, session = router
     port = free_port()
-    deployment = write_deployment(tmp_path / "d.toml", endpoint, {"panel": {"main": {"port": port, "fps": 10.0}}})
-    panel = ServiceProcess("panel", deployment, "main", tmp_path / "panel.log")
+    dep = write_deployment(tmp_path / "d.toml", endpoint,
+                           {"panel": {"main": {"port": port, "fps": 10.0, "health_period_s": 0.5}}})
+    requests: list[dict] = []
+
+    def fake_recorder(query) -> None:  # stands in for the recorder service
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        requests.append(json.loads(payload or b"{}"))
+        query.reply(str(query.key_expr), json.dumps({"ok": True, "path": "/tmp/rec/test-0001.mcap"}))
+
+    recorder = session.declare_queryable("xm/recorder/main/@cmd/start", fake_recorder)
+    frames = {"xm/robot/workcell/state": joint_state(), "xm/recon/main/scene": scene(),
+              "xm/glove/left/tactile": tactile("left"), "xm/glove/right/tactile": tactile("right"),
+              "xm/camhub/cam0/info": camera_info(), "xm/camhub/cam0/image": jpeg(),
+              "xm/world/sim/session": session_msg(), "xm/policy/main/plan": plan()}
+    pubs = {k: (session.declare_publisher(k), msgs.serialize(m)) for k, m in frames.items()}
+    panel = ServiceProcess("panel", dep, "main", tmp_path / "panel.log")
+    browser = None
     try:
         assert wait_for(lambda: query_json(session, "xm/panel/main/@health"), 30), panel.output()
-        pub = session.declare_publisher("xm/robot/workcell/state")
-        from shared.kinematics import load_robot
+        browser = Chromium(CHROMIUM, tmp_path / "profile")
+        browser.navigate(f"http://127.0.0.1:{port}")
 
-        names = load_robot("workcell").joint_names
-        state = msgs.make("sensor_msgs/msg/JointState", header=msgs.header(time.time()), name=names,
-                          position=np.full(len(names), 0.1), velocity=np.zeros(len(names)),
-                          effort=np.zeros(len(names)))
-        shot = tmp_path / "panel.png"
-        browser = subprocess.Popen(
-            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic",
-             "--use-angle=swiftshader", "--enable-unsafe-swiftshader", f"--user-data-dir={tmp_path / 'profile'}",
-             "--window-size=1280,800", "--virtual-time-budget=15000", f"--screenshot={shot}",
-             f"http://127.0.0.1:{port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        clients = 0
-        deadline = time.time() + 60
-        while browser.poll() is None and time.time() < deadline:
-            pub.put(msgs.serialize(state))
-            health = query_json(session, "xm/panel/main/@health")
-            clients = max(clients, health[0]["clients"] if health else 0)
-            time.sleep(0.3)
-        browser.wait(30)
-        assert clients >= 1, "the page never opened a viser connection"
-        health = query_json(session, "xm/panel/main/@health")[0]
-        assert health["received_hz"].get("xm/robot/workcell/state", 0) > 0
-        assert health["frames_drawn"] > 0, "the panel never drew for the connected browser"
-        assert shot.exists(), "chromium wrote no screenshot"
-        from PIL import Image
+        def drawn() -> dict | None:
+            for pub, payload in pubs.values():
+                pub.put(payload)
+            rep = query_json(session, "xm/panel/main/@health")
+            return rep[0] if rep and rep[0]["clients"] >= 1 and rep[0]["frames_drawn"] > 0 else None
 
-        pixels = np.asarray(Image.open(shot).convert("RGB"), float)
+        health = wait_for(drawn, 60, 0.3)
+        assert health, f"the page never connected to viser: {query_json(session, 'xm/panel/main/@health')}"
+        assert "cam0" in health["frustums"], "camera frustum not built from CameraInfo.p"
+        assert browser.evaluate("document.querySelectorAll('canvas').length") >= 1, "no 3D canvas"
+        assert browser.evaluate("!!document.createElement('canvas').getContext('webgl2')"), "no WebGL"
+        text = wait_for(lambda: (t := browser.evaluate(PAGE_TEXT)) and "pick_place" in t and "panel/main" in t
+                        and t, 30, 0.5)
+        assert text, f"session and status table never shown; page text: {browser.evaluate(PAGE_TEXT)[:500]}"
+
+        clicked = browser.evaluate(
+            "(() => { const b = [...document.querySelectorAll('button')]"
+            ".find(e => e.textContent.includes('Start recording')); if (b) b.click(); return !!b; })()")
+        assert clicked, "no 'Start recording' button"
+        assert wait_for(lambda: "test-0001.mcap" in browser.evaluate(PAGE_TEXT), 20, 0.3), \
+            "the recorder's reply never appeared in the panel"
+        assert requests == [{"keys": "xm/**"}]
+
+        time.sleep(1.0)  # let the software renderer settle a frame with everything in it
+        shot = browser.screenshot(tmp_path / "panel.png")
+        pixels = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(float)
         assert pixels.std() > 5.0, "screenshot is blank"
+        viewport = pixels[150:-150, 300:900]  # the 3D view, clear of the GUI panel and notifications
+        assert (np.abs(viewport - 255).sum(axis=2) > 60).mean() > 0.01, "the 3D view draws nothing"
         (ROOT / ".cache").mkdir(exist_ok=True)
         shutil.copy(shot, ROOT / ".cache" / "panel.png")
+        health = query_json(session, "xm/panel/main/@health")[0]
+        assert "draw_error" not in health["errors"], panel.output()
     finally:
+        if browser is not None:
+            browser.close()
+        recorder.undeclare()
         assert panel.stop() in (0, -15), panel.output()
