@@ -1,17 +1,45 @@
-"""SIMULATED control board (thesis 6.2): per-joint control modes, motor currents, watchdog (pure).
+"""SIMULATED robot control board (thesis 6.2): per-joint control modes, motor currents, limits and
+the 10 ms watchdog. Pure logic, no I/O: the world decodes bytes from the pty, hands the messages to
+``receive`` and calls ``step`` every physics step with the joint state; ``step`` returns the joint
+efforts for MuJoCo and, at the feedback rate, a FeedbackFrame to encode onto the pty.
 
-The world feeds it decoded command frames and the measured joint state every physics step; it
-returns motor efforts for MuJoCo and, at the feedback rate, a feedback frame. When no command
-arrived for the watchdog timeout, it brakes: strong damping on every axis, so the Z axes sink
-slowly under gravity, as on the real robot (thesis 6.3).
+On the real board the same behaviour lives in the FPGA (hdl/motor/: encoder readout, PID,
+commutation, PWM, watchdog). When no command arrived for the watchdog timeout the board brakes:
+damping only (shorted windings), so the Z axes, which carry the arm's weight, sink slowly (about
+5 mm/s here) instead of dropping, as on the real robot (thesis 6.3).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from services.robot.safety import WATCHDOG_TIMEOUT_S, Watchdog
-from shared.protocols.robot_board import WATCHDOG_EXPIRED, CommandFrame, ConfigFrame, FeedbackFrame, Mode
+from services.robot.safety import (
+    WATCHDOG_TIMEOUT_S,
+    CommandRejectedError,
+    Limits,
+    LimitsError,
+    SafetyState,
+    Watchdog,
+    enforce_with_flags,
+)
+from shared.protocols.robot_board import (
+    CLAMPED,
+    COMMAND_REJECTED,
+    CONFIG_REJECTED,
+    JOINT_BRAKING,
+    LIMITS_ACTIVE,
+    NO_COMMAND_YET,
+    WATCHDOG_EXPIRED,
+    CommandFrame,
+    ConfigFrame,
+    FeedbackFrame,
+    Mode,
+)
+
+DEFAULT_DT = 0.001
+BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE = (int(m) for m in Mode)  # ints: fast array compares
 
 
 def encoder_lsb(name: str) -> float:
@@ -26,35 +54,75 @@ def encoder_lsb(name: str) -> float:
     return 2 * np.pi / 5 / 2 ** 15
 
 
-def _gains(name: str) -> tuple[float, float, float, float, float, float]:
-    """kp, kd, ki, integral clamp, brake damping, torque constant for an axis by its kind."""
+@dataclass(frozen=True)
+class AxisParams:
+    kp: float  # position loop, N/m or N m/rad
+    kd: float
+    ki: float
+    i_clamp: float  # N or N m: the narrowly clamped integral term (thesis 6.3)
+    kv: float  # velocity loop
+    brake_damping: float  # N s/m or N m s/rad with the windings shorted
+    kt: float  # joint effort per motor ampere (torque constant times transmission)
+    effort_max: float  # what the motor and driver can give
+    inertia: float  # effective moving mass (kg) or inertia (kg m^2) at the joint, for the brake model
+
+
+def axis_params(name: str) -> AxisParams:
     if "finger" in name:
-        return 300.0, 6.0, 0.0, 0.0, 20.0, 0.5
+        return AxisParams(300.0, 6.0, 0.0, 0.0, 30.0, 20.0, 0.5, 40.0, 0.05)
     if name.endswith("wrist"):
-        return 30.0, 1.0, 5.0, 0.5, 2.0, 0.08
+        return AxisParams(30.0, 1.0, 5.0, 0.5, 5.0, 2.0, 0.08, 5.0, 0.01)
     if name.endswith("_z"):
-        return 3000.0, 200.0, 8000.0, 40.0, 600.0, 4.0  # brake: ~2 cm/s descent under ~13 N
-    return 2000.0, 150.0, 1000.0, 20.0, 1500.0, 4.0
+        # Brake: ~10 N of arm weight against 2000 N s/m (+2 of joint friction) sinks at ~5 mm/s.
+        return AxisParams(3000.0, 200.0, 8000.0, 40.0, 1000.0, 2000.0, 4.0, 200.0, 1.0)
+    return AxisParams(2000.0, 150.0, 1000.0, 20.0, 750.0, 1500.0, 4.0, 200.0, 2.5)
 
 
 class BoardSim:
-    def __init__(self, joint_names: list[str], feedback_period_s: float = 0.004, seed: int = 0) -> None:
+    """SIMULATED control board. ``step(t, q, qd) -> (ctrl_effort, feedback | None)``.
+
+    ``limits`` are the board's power-up limits (a config frame can replace them); None means only the
+    motors' own effort maxima apply until the host sends a config with limits.
+    """
+
+    def __init__(self, joint_names: list[str], limits: Limits | None = None, feedback_period_s: float = 0.004,
+                 seed: int = 0, current_noise_a: float = 0.01) -> None:
         self.joint_names = list(joint_names)
-        g = np.array([_gains(n) for n in self.joint_names])
-        self.kp, self.kd, self.ki, self.i_clamp, self.brake_damping, self.kt = g.T
-        self.effort_max = np.array([5.0 if n.endswith("wrist") else 40.0 if "finger" in n else 200.0
-                                    for n in self.joint_names])
+        n = len(self.joint_names)
+        self.params = [axis_params(j) for j in self.joint_names]
+        for f in AxisParams.__dataclass_fields__:
+            setattr(self, f, np.array([getattr(p, f) for p in self.params]))
+        self.motor_limits = Limits(np.full(n, -1e9), np.full(n, 1e9), np.full(n, 1e9), self.effort_max,
+                                   tuple(self.joint_names))
+        self.limits = limits if limits is not None else self.motor_limits
+        self.limits_active = limits is not None
         self.watchdog = Watchdog(WATCHDOG_TIMEOUT_S)
-        self.command: CommandFrame | None = None
-        self.integral = np.zeros(len(self.joint_names))
+        self.command: CommandFrame | None = None  # the last accepted frame, as received
+        self.last_safe: np.ndarray | None = None
+        self.integral = np.zeros(n)
         self.feedback_period_s = feedback_period_s
+        self.current_noise_a = current_noise_a
         self._next_feedback = 0.0
+        self._last_t: float | None = None
+        self._prev_mode = np.zeros(n, np.uint8)
         self.sequence = 0
-        self.rng = np.random.default_rng(seed)
-        self.brake_events = 0
-        self._braking = True
+        self.config_sequence = 0
         self.last_command_t: float | None = None
-        self.lsb = np.array([encoder_lsb(n) for n in self.joint_names])
+        self.last_command_sequence = 0
+        self.rng = np.random.default_rng(seed)
+        self.lsb = np.array([encoder_lsb(j) for j in self.joint_names])
+        self.sticky_flags = 0
+        self.f_ext = np.zeros(n)  # observed external joint load (gravity, contacts), N or N m
+        self._qd_prev: np.ndarray | None = None
+        self._u_prev = np.zeros(n)
+        self.counters = {"commands": 0, "commands_rejected": 0, "configs": 0, "configs_rejected": 0,
+                         "brake_events": 0, "clamp_events": 0}
+        self.last_reasons: list[str] = []
+        self._braking = True
+
+    @property
+    def brake_events(self) -> int:
+        return self.counters["brake_events"]
 
     def measure(self, q: np.ndarray) -> np.ndarray:
         """What the encoders report: quantized, with one LSB of noise."""
@@ -62,46 +130,123 @@ class BoardSim:
         return counts * self.lsb
 
     def receive(self, msg, t: float) -> None:
+        """A decoded message from the host, arriving at board time ``t`` (s)."""
         if isinstance(msg, CommandFrame):
-            if len(msg.mode) != len(self.joint_names):
-                return  # a board ignores frames for another robot; the host sees no feedback change
+            if msg.n != len(self.joint_names):
+                self.counters["commands_rejected"] += 1
+                self.sticky_flags |= COMMAND_REJECTED  # a frame for another robot: keep the old command
+                return
+            self.sticky_flags &= ~COMMAND_REJECTED
             self.command = msg
             self.watchdog.kick(t)
             self.last_command_t = t
+            self.last_command_sequence = msg.sequence
+            self.counters["commands"] += 1
         elif isinstance(msg, ConfigFrame):
+            try:
+                if msg.has_limits:
+                    self.limits = Limits.from_config(msg, self.joint_names)
+                    self.limits.effort = np.minimum(self.limits.effort, self.effort_max)
+                    self.limits_active = True
+                if not 1000 <= msg.watchdog_timeout_us <= 1_000_000:
+                    raise LimitsError(f"watchdog timeout {msg.watchdog_timeout_us} us outside 1 ms .. 1 s")
+            except LimitsError:
+                self.counters["configs_rejected"] += 1
+                self.sticky_flags |= CONFIG_REJECTED
+                return
             self.watchdog.timeout_s = msg.watchdog_timeout_us * 1e-6
+            self.config_sequence = msg.sequence
+            self.sticky_flags &= ~CONFIG_REJECTED
+            self.counters["configs"] += 1
 
     def step(self, t: float, q: np.ndarray, qd: np.ndarray,
-             dt: float = 0.001) -> tuple[np.ndarray, FeedbackFrame | None]:
-        q = self.measure(q)
-        expired = self.watchdog.expired(t)
+             dt: float | None = None) -> tuple[np.ndarray, FeedbackFrame | None]:
+        """One control period at board time ``t`` with the measured joint state; dt defaults to the time
+        since the previous call."""
+        if dt is None:
+            dt = DEFAULT_DT if self._last_t is None or t <= self._last_t else t - self._last_t
+        self._last_t = t
+        q = self.measure(np.asarray(q, float))
+        qd = np.asarray(qd, float)
+        n = len(q)
+        self._observe(qd, dt)
+        expired = self.watchdog.check(t)
         if expired and not self._braking:
-            self.brake_events += 1
+            self.counters["brake_events"] += 1
             self._next_feedback = t  # report the brake at once, not at the next feedback period
         self._braking = expired
-        effort = np.zeros(len(q))
-        c = self.command
-        if expired or c is None:
-            effort = -self.brake_damping * qd
-            self.integral[:] = 0.0
+        joint_flags = np.zeros(n, np.uint8)
+        self.last_reasons = []
+        if expired or self.command is None:
+            effort = self._brake(qd, dt)
+            joint_flags[:] = JOINT_BRAKING
+            self.last_safe = None  # on resume, rate limits start from where the axes are
         else:
-            mode = c.mode.astype(int)
-            err = c.position - q
-            self.integral = np.clip(self.integral + err * dt, -self.i_clamp / np.maximum(self.ki, 1e-9),
-                                    self.i_clamp / np.maximum(self.ki, 1e-9))
-            pid = self.kp * err + self.kd * (c.velocity - qd) + self.ki * self.integral + c.effort
-            effort = np.select(
-                [mode == Mode.POSITION, mode == Mode.VELOCITY, mode == Mode.EFFORT, mode == Mode.IMPEDANCE],
-                [pid, self.kd * 5 * (c.velocity - qd) + c.effort, c.effort,
-                 c.stiffness * err + c.damping * (c.velocity - qd) + c.effort],
-                default=-self.brake_damping * qd)
-        effort = np.clip(effort, -self.effort_max, self.effort_max)
+            try:
+                safe, self.last_reasons, joint_flags = enforce_with_flags(
+                    self.command, SafetyState(q, qd, self.last_safe), self.limits, dt)
+            except CommandRejectedError:  # cannot happen for accepted frames; brake if it ever does
+                safe, joint_flags = CommandFrame.brake(0, n), np.full(n, JOINT_BRAKING, np.uint8)
+            if self.last_reasons:
+                self.counters["clamp_events"] += 1
+            uses_position = (safe.mode == POSITION) | (safe.mode == IMPEDANCE)
+            self.last_safe = np.where(uses_position, safe.position, q)
+            effort = self._control(safe, q, qd, dt)
+        effort = np.clip(effort, -self.limits.effort, self.limits.effort)
+        self._u_prev = effort
         feedback = None
         if t >= self._next_feedback:
             self._next_feedback = t + self.feedback_period_s - 1e-9
-            current = effort / self.kt + self.rng.normal(0.0, 0.01, len(q))
-            last = int(round(self.last_command_t * 1e6)) if self.last_command_t is not None else 0
-            feedback = FeedbackFrame(self.sequence, int(round(t * 1e6)), WATCHDOG_EXPIRED if expired else 0,
-                                     q.copy(), qd.copy(), current, last)
-            self.sequence += 1
+            feedback = self._feedback(t, q, qd, effort, expired, joint_flags)
         return effort, feedback
+
+    def _brake(self, qd: np.ndarray, dt: float) -> np.ndarray:
+        """Shorted windings: a viscous damper. The physics applies our effort one step late, so a stiff
+        damper (Z: 2000 N s/m on ~1 kg, 2 ms steps) written as -c*qd would ring; integrate it
+        implicitly instead, with the external load (the arm's weight) seen by a disturbance observer:
+        u = -(c qd + b F) / (1 + b), b = c dt / m, which settles at qd = F / c like the real damper."""
+        self.integral[:] = 0.0
+        return self._damper(qd, dt)
+
+    def _damper(self, qd: np.ndarray, dt: float) -> np.ndarray:
+        b = self.brake_damping * dt / self.inertia
+        return -(self.brake_damping * qd + b * self.f_ext) / (1.0 + b)
+
+    def _observe(self, qd: np.ndarray, dt: float) -> None:
+        """External joint load from the last step: what accelerated the axis beyond our own effort."""
+        if self._qd_prev is not None:
+            f = self.inertia * (qd - self._qd_prev) / dt - self._u_prev
+            self.f_ext = 0.5 * self.f_ext + 0.5 * f
+        self._qd_prev = qd.copy()
+
+    def _control(self, c: CommandFrame, q: np.ndarray, qd: np.ndarray, dt: float) -> np.ndarray:
+        mode = c.mode.astype(np.uint8)
+        self.integral[mode != self._prev_mode] = 0.0  # bumpless enough: a new mode starts from zero
+        self._prev_mode = mode.copy()
+        err = c.position - q
+        verr = c.velocity - qd
+        # Integral in effort units, narrowly clamped (thesis 6.3): position error for POSITION,
+        # velocity error for VELOCITY.
+        pos, vel, eff, imp = mode == POSITION, mode == VELOCITY, mode == EFFORT, mode == IMPEDANCE
+        drive = pos * (self.ki * err) + vel * (self.kv * 5 * verr)
+        self.integral = np.clip(self.integral + drive * dt, -self.i_clamp, self.i_clamp)
+        effort = (pos * (self.kp * err + self.kd * verr) + vel * (self.kv * verr)
+                  + (pos | vel) * self.integral + imp * (c.stiffness * err + c.damping * verr)
+                  + (pos | vel | eff | imp) * c.effort)
+        return np.where(mode == BRAKE, self._damper(qd, dt), effort)
+
+    def _feedback(self, t: float, q: np.ndarray, qd: np.ndarray, effort: np.ndarray, expired: bool,
+                  joint_flags: np.ndarray) -> FeedbackFrame:
+        # Motor current: the q-axis current that makes this joint effort, plus sensing noise.
+        current = effort / self.kt + self.rng.normal(0.0, self.current_noise_a, len(q))
+        flags = self.sticky_flags
+        flags |= WATCHDOG_EXPIRED if expired else 0
+        flags |= NO_COMMAND_YET if self.command is None else 0
+        flags |= LIMITS_ACTIVE if self.limits_active else 0
+        flags |= CLAMPED if self.last_reasons else 0
+        last = int(round(self.last_command_t * 1e6)) if self.last_command_t is not None else 0
+        fb = FeedbackFrame(self.sequence & 0xFFFFFFFF, int(round(t * 1e6)), flags, q.copy(), qd.copy(),
+                           current, last, self.last_command_sequence, self.config_sequence,
+                           joint_flags.astype(np.uint8))
+        self.sequence += 1
+        return fb

@@ -1,87 +1,210 @@
-"""Separating planes between the two arms of the workcell (thesis 7.21), initialised with coal.
+"""Collision geometry for the trajectory optimizer (thesis 7.20, 7.21), pure.
 
-Each pair is a convex shape of the left arm and one of the right arm (carriages, columns,
-hands). At the start of a solve, coal's GJK/EPA gives the closest points and the separating
-normal n for the current pose. Within the solve the plane normal is held fixed and the
-constraint  n . (p_right(q) - p_left(q)) - (n . (p_right0 - p_left0) - d0) >= clearance  keeps
-the shapes apart along it, where p are the link origins (the shapes translate with them: the
-gantry's carriages and columns do not rotate).
+Convex shapes come from the URDF (boxes, cylinders, spheres, convex meshes). For every selected
+pair of shapes and every free knot, the constraint is a separating plane between two points, one
+fixed to each link: with unit normal n (from shape A to shape B) and witness points a (on A) and
+b (on B),
+
+    n . (b(q) - a(q)) >= margin,
+
+which at the linearisation point equals the signed distance, and whose gradient is the signed
+distance's gradient (the witness points move with their links; the plane is held per SQP
+iteration). Normals and witness points are recomputed at every SQP iterate: by coal's GJK (EPA when
+the shapes overlap, giving a negative distance) for pairs whose covering spheres come within
+``near``, and from the closest pair of covering spheres otherwise (a conservative plane whose value
+is a lower bound of the distance, at a fraction of the cost). The optimizer gives its few
+constraint slots per knot to the closest pairs and checks every pair at the final iterate.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import casadi as ca
 import coal
 import numpy as np
 
 from shared.kinematics import RobotModel, Shape
 
-PAIRS = [("left_carriage", "right_carriage"), ("left_column", "right_column"), ("left_hand", "right_hand"),
-         ("left_carriage", "right_column"), ("left_column", "right_carriage")]
+# Cross-arm link pairs of the workcell that can meet: carriages share the Y rail, slides hang at one
+# height, columns, hands and fingers meet when both arms work near the middle.
+WORKCELL_PAIRS = [
+    ("left_carriage", "right_carriage"), ("left_slide", "right_slide"), ("left_column", "right_column"),
+    ("left_column", "right_hand"), ("left_hand", "right_column"), ("left_hand", "right_hand"),
+    ("left_finger_a", "right_finger"), ("left_finger_b", "right_finger"), ("left_hand", "right_finger"),
+    ("left_finger_a", "right_hand"), ("left_finger_b", "right_hand"),
+]
 
 
-def _coal_shape(shape: Shape):
+def coal_geometry(shape: Shape):
+    """The coal collision object of a URDF shape (meshes as their convex hull)."""
     if shape.kind == "box":
         return coal.Box(*shape.size)
     if shape.kind == "cylinder":
-        return coal.Cylinder(shape.size[0], shape.size[1])
-    return coal.Sphere(shape.size[0])
+        return coal.Cylinder(float(shape.size[0]), float(shape.size[1]))
+    if shape.kind == "sphere":
+        return coal.Sphere(float(shape.size[0]))
+    if shape.kind == "mesh":
+        pts = coal.StdVec_Vec3s()
+        for v in shape.vertices:
+            pts.append(np.asarray(v, float))
+        return coal.Convex.convexHull(pts, True, None)
+    raise ValueError(f"no collision geometry for shape kind {shape.kind!r}")
+
+
+def bounding_spheres(shape: Shape, most: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Spheres covering the shape (centres (m,3) in the shape frame, radii (m,)): long boxes and
+    cylinders are cut into up to ``most`` segments along their longest axis (tighter bounds)."""
+    if shape.kind == "sphere":
+        return np.zeros((1, 3)), np.array([float(shape.size[0])])
+    if shape.kind == "cylinder":
+        r, length = float(shape.size[0]), float(shape.size[1])
+        m = min(most, max(1, int(np.ceil(length / (2 * r)))))
+        z = (np.arange(m) + 0.5) * length / m - length / 2
+        return np.stack([np.zeros(m), np.zeros(m), z], 1), np.full(m, np.hypot(r, length / (2 * m)))
+    if shape.kind == "box":
+        centre, dims = np.zeros(3), np.asarray(shape.size, float)
+    else:  # mesh: its bounding box
+        lo, hi = shape.vertices.min(axis=0), shape.vertices.max(axis=0)
+        centre, dims = (lo + hi) / 2, hi - lo
+    axis = int(np.argmax(dims))
+    second = max(np.sort(dims)[-2], 1e-3)
+    m = min(most, max(1, int(np.ceil(dims[axis] / second))))
+    seg = dims.copy()
+    seg[axis] = dims[axis] / m
+    centres = np.tile(centre, (m, 1))
+    centres[:, axis] += (np.arange(m) + 0.5) * seg[axis] - dims[axis] / 2
+    return centres, np.full(m, np.linalg.norm(seg) / 2)
 
 
 @dataclass
-class ArmSeparation:
-    model: RobotModel
-    pairs: list[tuple[Shape, Shape]]
-    clearance: float
+class ShapePair:
+    a: Shape
+    b: Shape
+    geom_a: object
+    geom_b: object
+    solver: object  # coal.ComputeDistance; it keeps raw pointers, so the geometries live here too
 
-    @classmethod
-    def for_model(cls, model: RobotModel, clearance: float) -> ArmSeparation:
-        by_link = {s.link: s for s in model.shapes}
-        pairs = [(by_link[a], by_link[b]) for a, b in PAIRS if a in by_link and b in by_link]
-        return cls(model, pairs, clearance)
 
-    @property
-    def n_rows(self) -> int:
+@dataclass
+class Witnesses:
+    """Per pair and knot: normal (world), witness points in their link frames, signed distance."""
+    normal: np.ndarray  # (pairs, knots, 3)
+    local_a: np.ndarray  # (pairs, knots, 3)
+    local_b: np.ndarray
+    distance: np.ndarray  # (pairs, knots); a lower bound where the bounding spheres were used
+    exact: np.ndarray  # (pairs, knots) bool: from GJK/EPA
+
+
+class CollisionModel:
+    """Shape pairs between the given link pairs of a model, and their separating planes."""
+
+    def __init__(self, model: RobotModel, link_pairs: list[tuple[str, str]], near: float = 0.02) -> None:
+        self.model = model
+        self.near = near  # lower-bound gap under which GJK/EPA computes the exact separation
+        self.pairs: list[ShapePair] = []
+        for la, lb in link_pairs:
+            for a in model.shapes_of(la):
+                for b in model.shapes_of(lb):
+                    ga, gb = coal_geometry(a), coal_geometry(b)
+                    self.pairs.append(ShapePair(a, b, ga, gb, coal.ComputeDistance(ga, gb)))
+        self.links = sorted({p.a.link for p in self.pairs} | {p.b.link for p in self.pairs})
+        self.link_a = np.array([self.links.index(p.a.link) for p in self.pairs], int)
+        self.link_b = np.array([self.links.index(p.b.link) for p in self.pairs], int)
+        # covering spheres of every shape in a pair, in their link frames, and every
+        # (pair, sphere of a, sphere of b) combination as a padded (pairs, combos) table
+        centres, radii, owner, combos, known = [], [], [], [], {}
+        for pr in self.pairs:
+            ids = []
+            for shape in (pr.a, pr.b):
+                if id(shape) not in known:
+                    c, r = bounding_spheres(shape)
+                    start = len(radii)
+                    centres += list(c @ shape.origin[:3, :3].T + shape.origin[:3, 3])
+                    radii += list(r)
+                    owner += [self.links.index(shape.link)] * len(r)
+                    known[id(shape)] = range(start, len(radii))
+                ids.append(known[id(shape)])
+            combos.append([(u, v) for u in ids[0] for v in ids[1]])
+        self._centres, self._radii = np.array(centres).reshape(-1, 3), np.array(radii)
+        self._owner = np.array(owner, int)
+        width = max((len(c) for c in combos), default=0)
+        self._sa = np.zeros((len(self.pairs), width), int)
+        self._sb = np.zeros((len(self.pairs), width), int)
+        self._pad = np.ones((len(self.pairs), width), bool)
+        for i, c in enumerate(combos):
+            self._sa[i, :len(c)] = [u for u, _ in c]
+            self._sb[i, :len(c)] = [v for _, v in c]
+            self._pad[i, :len(c)] = False
+        self._origin_a = np.array([p.a.origin for p in self.pairs]).reshape(-1, 4, 4)
+        self._origin_b = np.array([p.b.origin for p in self.pairs]).reshape(-1, 4, 4)
+        self._req = coal.DistanceRequest()
+        self._req.enable_signed_distance = True
+        self._res = coal.DistanceResult()
+        self._tf_a, self._tf_b = coal.Transform3s(), coal.Transform3s()
+
+    def __len__(self) -> int:
         return len(self.pairs)
 
-    @property
-    def n_params(self) -> int:
-        return 4 * max(1, len(self.pairs))  # normal (3) and offset (1) per pair
-
-    def params(self, q: np.ndarray) -> np.ndarray:
-        """GJK/EPA at pose q: per pair the unit normal (left -> right) and the offset so the
-        constraint reads n.(o_R - o_L) - offset >= 0."""
-        poses = self.model.fk(q)
-        out = []
-        for a, b in self.pairs:
-            Ta, Tb = poses[a.link] @ a.origin, poses[b.link] @ b.origin
-            req, res = coal.DistanceRequest(), coal.DistanceResult()
-            req.enable_signed_distance = True
-            d = coal.distance(_coal_shape(a), _transform(Ta), _coal_shape(b), _transform(Tb), req, res)
-            normal = np.asarray(res.normal, float)
-            if not np.isfinite(normal).all() or np.linalg.norm(normal) < 1e-9:
-                normal = (Tb[:3, 3] - Ta[:3, 3]) / max(np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]), 1e-9)
-            normal = normal / np.linalg.norm(normal)
-            oa, ob = poses[a.link][:3, 3], poses[b.link][:3, 3]
-            offset = normal @ (ob - oa) - d + self.clearance
-            out += [*normal, offset]
-        return np.array(out if out else [0.0, 0.0, 1.0, -1.0])
-
-    def constraint(self, q, sep):
-        """n.(o_R(q) - o_L(q)) - offset per pair; works on SX and MX arguments."""
-        if not self.pairs:
-            return ca.SX.zeros(0)
-        if not hasattr(self, "_fn"):
-            q_s = ca.SX.sym("q", len(self.model.joint_names))
-            sep_s = ca.SX.sym("sep", self.n_params)
-            fk = self.model.fk_casadi(q_s)
-            rows = [ca.dot(sep_s[4 * i:4 * i + 3], fk[b.link][1] - fk[a.link][1]) - sep_s[4 * i + 3]
-                    for i, (a, b) in enumerate(self.pairs)]
-            self._fn = ca.Function("separation", [q_s, sep_s], [ca.vertcat(*rows)])
-        return self._fn(q, sep)
-
-
-def _transform(T: np.ndarray):
-    return coal.Transform3s(T[:3, :3], T[:3, 3])
+    def witnesses(self, poses: dict[str, np.ndarray], exact_below: float | None = None,
+                  per_knot: int | None = None) -> Witnesses:
+        """poses: link -> (knots, 4, 4) world poses. Separating plane for every pair and knot: from
+        GJK/EPA where the sphere bound is under ``exact_below`` (default ``near``), else from the
+        closest pair of covering spheres (a conservative plane and distance). ``per_knot`` caps the
+        GJK calls per knot to the pairs with the smallest bounds."""
+        P = len(self.pairs)
+        K = next(iter(poses.values())).shape[0] if poses else 0
+        if not P:
+            z = np.zeros((0, K, 3))
+            return Witnesses(z, z, z, np.zeros((0, K)), np.zeros((0, K), bool))
+        link_T = np.stack([poses[name] for name in self.links])  # (L, K, 4, 4)
+        Ts = link_T[self._owner]  # (spheres, K, 4, 4)
+        world = np.einsum("skij,sj->ski", Ts[..., :3, :3], self._centres) + Ts[..., :3, 3]  # (spheres, K, 3)
+        delta = world[self._sb] - world[self._sa]  # (P, width, K, 3)
+        length = np.linalg.norm(delta, axis=-1)
+        gap = np.where(self._pad[..., None], np.inf, length - self._radii[self._sa][..., None]
+                       - self._radii[self._sb][..., None])
+        best = np.argmin(gap, axis=1)  # (P, K): the closest sphere combination per pair and knot
+        pi, kk = np.arange(P)[:, None], np.arange(K)[None]
+        dist = gap[pi, best, kk]
+        d_len = length[pi, best, kk]
+        n = delta[pi, best, kk] / np.maximum(d_len, 1e-9)[..., None]
+        n[d_len < 1e-9] = (0.0, 0.0, 1.0)
+        sa, sb = self._sa[pi, best], self._sb[pi, best]
+        wa = world[sa, kk] + self._radii[sa][..., None] * n
+        wb = world[sb, kk] - self._radii[sb][..., None] * n
+        exact = np.zeros((P, K), bool)
+        limit = self.near if exact_below is None else exact_below
+        cand = dist < limit
+        if per_knot is not None:  # only the per_knot closest candidates (by their bound) per knot
+            rank = np.argsort(np.argsort(np.where(cand, dist, np.inf), axis=0), axis=0)
+            cand &= rank < per_knot
+        near = np.argwhere(cand)
+        if len(near):
+            ia, ka = near[:, 0], near[:, 1]
+            Sa = link_T[self.link_a[ia], ka] @ self._origin_a[ia]
+            Sb = link_T[self.link_b[ia], ka] @ self._origin_b[ia]
+            res, ta, tb, req = self._res, self._tf_a, self._tf_b, self._req
+            out_d, out_n, out_a, out_b = [], [], [], []
+            for j, i in enumerate(ia.tolist()):
+                ta.setRotation(Sa[j, :3, :3])
+                ta.setTranslation(Sa[j, :3, 3])
+                tb.setRotation(Sb[j, :3, :3])
+                tb.setTranslation(Sb[j, :3, 3])
+                res.clear()
+                out_d.append(self.pairs[i].solver(ta, tb, req, res))
+                out_n.append(res.normal)
+                out_a.append(res.getNearestPoint1())
+                out_b.append(res.getNearestPoint2())
+            nn = np.array(out_n)
+            norm = np.linalg.norm(nn, axis=1)
+            good = np.isfinite(norm) & (norm > 0.5)  # degenerate (coincident shapes): keep the sphere plane
+            ia, ka = ia[good], ka[good]
+            n[ia, ka] = nn[good] / norm[good, None]
+            dist[ia, ka] = np.array(out_d)[good]
+            wa[ia, ka], wb[ia, ka] = np.array(out_a)[good], np.array(out_b)[good]
+            exact[ia, ka] = True
+        Ra, pa = link_T[self.link_a][..., :3, :3], link_T[self.link_a][..., :3, 3]
+        Rb, pb = link_T[self.link_b][..., :3, :3], link_T[self.link_b][..., :3, 3]
+        la = np.einsum("pkji,pkj->pki", Ra, wa - pa)
+        lb = np.einsum("pkji,pkj->pki", Rb, wb - pb)
+        return Witnesses(n, la, lb, dist, exact)

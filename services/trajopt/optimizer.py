@@ -1,15 +1,18 @@
-"""The trajectory optimizer of thesis 7.4 as a Gauss-Newton SQP (pure; no I/O).
+"""The trajectory optimizer of thesis 7.4 (pure; no I/O): keypoint goals -> joint trajectory.
 
-Decision variables: joint positions at knots t_f+1..t_h (the first t_f knots are fixed to the
-executing trajectory). Cost (7.16): weighted squared distances between mapped robot points and
-the plan's goals, plus a small acceleration penalty and, for hand-arm models, the hand-pose
-regulariser (7.22). Constraints: joint limits (7.17), a trust region per iteration (7.18),
-velocity and acceleration limits (7.19), workspace planes against collision spheres (7.20) and
-separating planes between the two arms' convex shapes initialised by coal GJK/EPA (7.21).
+Decision variables are the independent joint positions at knots t_f..t_h-1 (the first t_f knots
+are the executing trajectory, held for continuity; mimic joints follow their masters). Cost (7.16):
+weighted squared distances between mapped robot frames and the plan's goals, a small acceleration
+penalty, and for hand-arm models the hand-pose regulariser (7.22). Constraints: joint limits
+(7.17), a trust region per SQP iteration (7.18), velocity and acceleration limits (7.19),
+workspace planes against collision spheres (7.20), and separating planes between convex shapes,
+recomputed by coal GJK/EPA at every SQP iterate (7.21, collision.py).
 
-Each SQP iteration is one call of a CasADi function (residual, Jacobian, linearised constraints,
-all code-generated as SX) and one interior-point/active-set QP; warm starts come from shifting
-the previous solution, so 1-3 iterations suffice at 10-100 Hz replanning.
+Solver: Gauss-Newton SQP. Each iteration is one call of a CasADi SX function (Gauss-Newton Hessian,
+gradient, constraints and their Jacobian in one sparse evaluation) and one QP solved by CasADi's
+primal-dual interior-point QP ``ipqp`` (Mehrotra predictor-corrector, sparse LDL), as in the thesis;
+docs/trajopt.md records the solver comparison behind that choice. Warm starts come from the
+executing trajectory, which the receding-horizon caller shifts by the elapsed knots.
 """
 
 from __future__ import annotations
@@ -20,174 +23,435 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from services.trajopt.collision import ArmSeparation
+from services.trajopt.collision import WORKCELL_PAIRS, CollisionModel
 from shared.kinematics import RobotModel
 
-# Plan keypoint -> robot frame for the workcell: the gripper executes the left hand's thumb and
-# index tips, the single finger the right hand's index tip.
-WORKCELL_MAP = {"left_tip_a": "left/4", "left_tip_b": "left/8", "right_tip": "right/8"}
+# Plan keypoint (hand/index of the 21-point hand) -> robot frame. The gripper executes the left
+# hand's thumb and index tips, the single finger the right index tip (thesis 7.6).
+WORKCELL_MAP = {"left/4": "left_tip_a", "left/8": "left_tip_b", "right/8": "right_tip"}
+HAND_ARM_MAP = {"right/0": "wrist_point", "right/4": "thumb_tip", "right/8": "index_tip", "right/12": "middle_tip",
+                "right/16": "ring_tip"}
+TABLE = ((0.0, 0.0, -1.0), 0.0)  # N . p <= P - r  <=>  z >= r
+OCP_SOLVERS = ("hpipm", "fatrop")  # QP solvers that need (and exploit) the stage-wise layout
+
+
+class TrajoptInputError(ValueError):
+    """The executing trajectory or the goals have the wrong shape."""
 
 
 @dataclass
 class TrajoptConfig:
     knots: int = 20
     fixed_knots: int = 2
-    point_map: dict[str, str] = field(default_factory=lambda: dict(WORKCELL_MAP))
-    trust_region: float = 0.05  # rad or m per SQP iteration (7.18)
-    max_iterations: int = 3
-    accel_weight: float = 1e-4
-    acceleration_limit: float = 5.0  # m/s^2 or rad/s^2 (7.19)
-    table_z: float = 0.0
-    sphere_radius: float = 0.002  # fingertip collision spheres against the table plane (7.20)
-    arm_clearance: float = 0.02  # minimum distance between the two arms' shapes (7.21)
-    pose_mean: dict[str, float] = field(default_factory=dict)  # 7.22 regulariser (hand-arm)
+    point_map: dict[str, str] | None = None  # plan point -> robot frame; None: the model's default
+    point_weights: dict[str, float] = field(default_factory=dict)  # plan point -> weight (default 1)
+    trust_region: float = 0.1  # rad or m per SQP iteration (7.18)
+    max_iterations: int = 2  # per control cycle; the next cycle continues from this one (warm start)
+    step_tolerance: float = 1e-4  # stop when no joint moves more than this in an iteration
+    damping: float = 1e-3  # added to the Gauss-Newton Hessian
+    model_tolerance: float = 1e-2  # or when the QP model predicted the new cost (relative to the decrease)
+    accel_time: float = 0.1  # acceleration limit = velocity limit / accel_time (7.19)
+    smooth_weight: float = 1e-3  # weight of squared accelerations * dt^2 (keeps H well conditioned)
+    planes: list[tuple[tuple[float, float, float], float]] = field(default_factory=lambda: [TABLE])  # (7.20)
+    sphere_radii: dict[str, float] | None = None  # keypoint frame -> sphere radius; None: 5 mm on every keypoint
+    collision_pairs: list[tuple[str, str]] | None = None  # link pairs (7.21); None: the model's default
+    margin: float = 0.005  # minimum distance between shapes of a pair
+    near: float = 0.02  # covering-sphere gap under which GJK/EPA computes the exact separation
+    contact_slots: int = 4  # separating-plane rows per knot, given to the closest shape pairs
+    pose_mean: dict[str, float] = field(default_factory=dict)  # 7.22: joint -> mean (services/trajopt/hand_prior)
     pose_std: dict[str, float] = field(default_factory=dict)
     pose_weight: float = 0.0
-    qp_solver: str = "osqp"
-    tolerance: float = 1e-6
+    qp_solver: str = "ipqp"
+    qp_options: dict = field(default_factory=dict)
+    violation_tolerance: float = 1e-3  # a result violating a constraint by more is rejected
+    reach_padding: float = 0.02  # goals this far outside the sampled workspace box are unreachable
 
 
 @dataclass
 class TrajoptResult:
-    q: np.ndarray
+    q: np.ndarray  # (knots, n joints), full joint order (mimic joints included)
+    status: str  # solved | max_iterations | unreachable | infeasible | bad_input
     ok: bool
-    status: str
-    reason: str
     solve_time_s: float
     iterations: int
     max_violation: float
-    cost: float
+    reason: str = ""
+    cost: float = float("nan")
+
+
+def default_point_map(model: RobotModel) -> dict[str, str]:
+    return dict(HAND_ARM_MAP if model.name == "hand_arm" else WORKCELL_MAP)
+
+
+def default_pairs(model: RobotModel) -> list[tuple[str, str]]:
+    links = set(model.links)
+    return [p for p in WORKCELL_PAIRS if p[0] in links and p[1] in links]
+
+
+def qp_options(name: str) -> dict:
+    """Quiet, non-throwing options per CasADi conic plugin (the ones compared in docs/trajopt.md)."""
+    common = {"error_on_fail": False}
+    specific = {
+        "ipqp": {"print_iter": False, "print_header": False, "print_info": False, "constr_viol_tol": 1e-8,
+                 "dual_inf_tol": 1e-8},
+        "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
+        "osqp": {"osqp": {"verbose": False, "eps_abs": 1e-7, "eps_rel": 1e-7, "polish": True, "max_iter": 20000},
+                 "warm_start_primal": True, "warm_start_dual": True},
+        "hpipm": {"hpipm": {"mode": "robust"}},
+        "daqp": {},
+        "proxqp": {},
+        "highs": {"highs": {"output_flag": False}},
+    }
+    return {**common, **specific.get(name, {})}
 
 
 class TrajectoryOptimizer:
     def __init__(self, model: RobotModel, config: TrajoptConfig | None = None) -> None:
         self.model = model
         self.cfg = cfg = config or TrajoptConfig()
+        if not 1 <= cfg.fixed_knots < cfg.knots:
+            raise ValueError(f"need 1 <= fixed_knots < knots, got {cfg.fixed_knots}, {cfg.knots}")
         self.n = len(model.joint_names)
-        self.frames = list(cfg.point_map)
-        self.point_names = [cfg.point_map[f] for f in self.frames]
-        self.lower, self.upper, self.vmax = model.lower, model.upper, model.max_velocity
-        self.free = cfg.knots - cfg.fixed_knots
-        self.separation = ArmSeparation.for_model(model, cfg.arm_clearance)
+        self.na = len(model.actuated)
+        self.M, self.c = model.coupling
+        self.act_index = [model.joint_names.index(j.name) for j in model.actuated]
+        self.point_map = dict(cfg.point_map or default_point_map(model))
+        missing = [f for f in self.point_map.values() if f not in model.frames()]
+        if missing:
+            raise ValueError(f"point_map names frames {missing} that {model.name} does not have")
+        self.point_names = list(self.point_map)
+        self.frames = [self.point_map[p] for p in self.point_names]
+        self.weights = np.array([cfg.point_weights.get(p, 1.0) for p in self.point_names])
+        self.collision = CollisionModel(model, default_pairs(model) if cfg.collision_pairs is None
+                                        else cfg.collision_pairs, cfg.near)
+        radii = cfg.sphere_radii if cfg.sphere_radii is not None else {k: 0.005 for k in model.keypoints}
+        self.spheres = [(f, np.zeros(3), r) for f, r in radii.items()]
+        self.spheres += [(s.link, s.origin[:3, 3], float(s.size[0])) for s in model.shapes if s.kind == "sphere"]
+        self.slots = min(cfg.contact_slots, len(self.collision))
+        self._limits()
+        self.layout = "ocp" if cfg.qp_solver in OCP_SOLVERS else "compact"
+        self._sample_workspace()
         self._build()
-        self.last: np.ndarray | None = None
+        self._warm: dict | None = None
 
-    # --- symbolic problem ---------------------------------------------------------------
-    def _build(self) -> None:
-        cfg, n, K, F = self.cfg, self.n, self.cfg.knots, self.cfg.fixed_knots
+    # --- problem data -------------------------------------------------------------------------
+    def _limits(self) -> None:
+        """Bounds of the independent joints: a master's limits intersected with those of its mimics."""
+        lo, hi, vel = self.model.lower.copy(), self.model.upper.copy(), self.model.max_velocity.copy()
+        alo, ahi, avel = lo[self.act_index], hi[self.act_index], vel[self.act_index]
+        for i, j in enumerate(self.model.moving):
+            if j.mimic is None:
+                continue
+            a = [jj.name for jj in self.model.actuated].index(j.mimic)
+            m = j.multiplier
+            if abs(m) > 1e-12:
+                b = sorted(((lo[i] - j.offset) / m, (hi[i] - j.offset) / m))
+                alo[a], ahi[a] = max(alo[a], b[0]), min(ahi[a], b[1])
+                avel[a] = min(avel[a], vel[i] / abs(m))
+        self.lower_a, self.upper_a, self.vmax_a = alo, ahi, avel
+        self.amax_a = avel / self.cfg.accel_time
+
+    def _sample_workspace(self, samples: int = 4000) -> None:
+        """Reach box of each mapped frame and the (plane, sphere) pairs that can ever be active,
+        from random joint vectors (half of them at corners of the joint box, where prismatic
+        chains reach their extremes)."""
+        rng = np.random.default_rng(0)
+        lo = np.where(np.isfinite(self.lower_a), self.lower_a, -np.pi)
+        hi = np.where(np.isfinite(self.upper_a), self.upper_a, np.pi)
+        qa = rng.uniform(lo, hi, size=(samples, self.na))
+        corner = rng.random((samples // 2, self.na)) < 0.5
+        qa[: samples // 2] = np.where(corner, lo, hi)
+        q = qa @ self.M.T + self.c
+        q_s = ca.SX.sym("q", self.n)
+        fk = self.model.fk_casadi(q_s)
+        targets = [(f, np.zeros(3)) for f in self.frames] + [(f, loc) for f, loc, _ in self.spheres]
+        pts_fn = ca.Function("pts", [q_s], [ca.horzcat(*[fk[f][0] @ ca.DM(loc) + fk[f][1] for f, loc in targets])])
+        # map() concatenates the (3, T) outputs horizontally: (3, samples * T)
+        pts = np.array(pts_fn.map(samples)(q.T)).reshape(3, samples, len(targets)).transpose(2, 1, 0)
         P = len(self.frames)
-        x = ca.SX.sym("x", self.free * n)  # free knots
-        fixed = ca.SX.sym("fixed", F * n)
-        goals = ca.SX.sym("goals", K * P * 3)
-        weights = ca.SX.sym("w", K * P)
+        self.reach_lo = pts[:P].min(axis=1) - self.cfg.reach_padding
+        self.reach_hi = pts[:P].max(axis=1) + self.cfg.reach_padding
+        self.active_planes = []  # (plane normal, offset, sphere index) that some pose can violate
+        for normal, offset in self.cfg.planes:
+            for i, (_, _, r) in enumerate(self.spheres):
+                if (offset - r - pts[P + i] @ np.asarray(normal)).min() < 1e-3:
+                    self.active_planes.append((normal, offset, i))
+
+    def _build(self) -> None:
+        """The SQP subproblem as one CasADi function. Layout "ocp" (for hpipm/fatrop) orders the
+        variables stage-wise as x_k = (q_k, q_{k-1}), u_k = q_{k+1} with dynamics rows, so the QP has
+        the optimal-control structure that Riccati-based interior-point solvers exploit; layout
+        "compact" has only the q_k (for general sparse QP solvers)."""
+        cfg, na, K, F = self.cfg, self.na, self.cfg.knots, self.cfg.fixed_knots
+        Kf, P = K - F, len(self.frames)
+        N = Kf - 1
+        ocp = self.layout == "ocp"
+        nz = Kf * 2 * na + N * na if ocp else Kf * na
+        z = ca.SX.sym("z", nz)
+        fixed = ca.SX.sym("fixed", F * na)
+        goals = ca.SX.sym("goals", Kf * P * 3)
+        w = ca.SX.sym("w", Kf * P)
         dt = ca.SX.sym("dt")
-        sep = ca.SX.sym("sep", self.separation.n_params)
-        Q = ca.vertcat(fixed, x)
-        q_at = [Q[k * n:(k + 1) * n] for k in range(K)]
-        res, cons, clb, cub = [], [], [], []
-        q_sym = ca.SX.sym("q", n)
-        fk = self.model.fk_casadi(q_sym)
-        points = ca.Function("points", [q_sym], [ca.vertcat(*[fk[f][1] for f in self.frames])])
-        tips = ca.Function("tips", [q_sym], [ca.vertcat(*[fk[f][1][2] for f in self.frames])])
-        for k in range(F, K):
-            p = points(q_at[k])
-            for i in range(P):
-                j = (k * P + i)
-                res.append(ca.sqrt(weights[j]) * (p[3 * i:3 * i + 3] - goals[3 * j:3 * j + 3]))
-            if cfg.pose_weight > 0:
-                for name, mu in cfg.pose_mean.items():
-                    idx = self.model.joint_names.index(name)
-                    res.append(np.sqrt(cfg.pose_weight) * (q_at[k][idx] - mu) / cfg.pose_std.get(name, 1.0))
-            # 7.20: fingertip spheres stay above the table plane (normal -z): z >= table + r
-            cons.append(tips(q_at[k]))
-            clb += [cfg.table_z + cfg.sphere_radius] * P
-            cub += [np.inf] * P
-            cons.append(self.separation.constraint(q_at[k], sep))
-            clb += [0.0] * self.separation.n_rows
-            cub += [np.inf] * self.separation.n_rows
-        for k in range(max(1, F), K):  # 7.19 velocities (from the last fixed knot on)
-            cons.append((q_at[k] - q_at[k - 1]) / dt)
-            clb += list(-self.vmax)
-            cub += list(self.vmax)
-        for k in range(max(1, F), K - 1):
-            cons.append((q_at[k + 1] - 2 * q_at[k] + q_at[k - 1]) / dt ** 2)
-            clb += [-cfg.acceleration_limit] * n
-            cub += [cfg.acceleration_limit] * n
-            res.append(np.sqrt(cfg.accel_weight) * (q_at[k + 1] - 2 * q_at[k] + q_at[k - 1]) / dt)
+        S, L = self.slots, len(self.collision.links)
+        # per knot and contact slot: normal, witness a and b (in their link frames), one-hot link a, link b
+        wit = ca.SX.sym("wit", Kf * S * (9 + 2 * L))
+        fixed_q = [fixed[k * na:(k + 1) * na] for k in range(F)]
+        stride = 3 * na
+        if ocp:
+            q_idx = [np.arange(k * stride, k * stride + na) for k in range(Kf)]
+            p_idx = [np.arange(k * stride + na, k * stride + 2 * na) for k in range(Kf)]
+            u_idx = [np.arange(k * stride + 2 * na, k * stride + 3 * na) for k in range(N)]
+        else:
+            q_idx = [np.arange(k * na, (k + 1) * na) for k in range(Kf)]
+            p_idx, u_idx = [], []
+        qv = [z[list(i)] for i in q_idx]
+
+        def prev(kf: int, back: int = 1):
+            j = kf - back
+            if j >= 0:
+                return z[list(p_idx[kf])] if (ocp and back == 1) else qv[j]
+            if ocp and back == 1:
+                return z[list(p_idx[kf])]  # a copy of the last fixed knot, pinned by its bounds
+            return fixed_q[F + j]
+
+        def nxt(kf: int):
+            return z[list(u_idx[kf])] if ocp else qv[kf + 1]
+
+        M, c = ca.DM(self.M), ca.DM(self.c)
+        fk = self.model._fk_function
+        frames = self.model.frames()
+        mean_idx = [(self.model.joint_names.index(j), mu, cfg.pose_std.get(j, 1.0)) for j, mu in cfg.pose_mean.items()]
+        res, cons, lbg, ubg, labels, pose_out, ng = [], [], [], [], [], [], []
+        self._slot_rows: list[int] = []
+
+        def add(expr, lo, hi, label: str) -> None:
+            cons.append(expr)
+            size = expr.numel()
+            lbg.extend(np.broadcast_to(lo, size))
+            ubg.extend(np.broadcast_to(hi, size))
+            labels.extend([label] * size)
+
+        for kf in range(Kf):
+            k = kf + F
+            if ocp and kf < N:  # dynamics out of this stage first (HPIPM's row order): u_k = q_{k+1}, q_k = p_{k+1}
+                add(z[list(u_idx[kf])] - qv[kf + 1], 0.0, 0.0, "dynamics")
+                add(qv[kf] - z[list(p_idx[kf + 1])], 0.0, 0.0, "dynamics")
+            rows0 = len(lbg)
+            q_full = ca.mtimes(M, qv[kf]) + c
+            out = fk(q_full)
+            pose = {f: (out[2 * i], out[2 * i + 1]) for i, f in enumerate(frames)}
+            for i, f in enumerate(self.frames):  # 7.16
+                j = kf * P + i
+                res.append(ca.sqrt(w[j]) * (pose[f][1] - goals[3 * j:3 * j + 3]))
+            for idx, mu, sd in mean_idx:  # 7.22
+                res.append(np.sqrt(cfg.pose_weight) * (q_full[idx] - mu) / sd)
+            for normal, offset, i in self.active_planes:  # 7.20
+                frame, local, r = self.spheres[i]
+                R, p = pose[frame]
+                add(ca.dot(ca.DM(normal), p + ca.mtimes(R, ca.DM(local))), -np.inf, offset - r,
+                    f"workspace plane for {frame} at knot {k}")
+            for i in range(S):  # 7.21, the S closest shape pairs at this knot
+                v = wit[(kf * S + i) * (9 + 2 * L):(kf * S + i + 1) * (9 + 2 * L)]
+                wa = sum(v[9 + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[3:6]))
+                         for j, lk in enumerate(self.collision.links))
+                wb = sum(v[9 + L + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[6:9]))
+                         for j, lk in enumerate(self.collision.links))
+                self._slot_rows.append(len(lbg))
+                add(ca.dot(v[:3], wb - wa), cfg.margin, np.inf, f"separation slot {i} at knot {k}")
+            for link in self.collision.links:
+                R, p = pose[link]
+                pose_out.append(ca.reshape(ca.horzcat(R, p), 12, 1))
+            add((qv[kf] - prev(kf)) / dt, -self.vmax_a, self.vmax_a, f"velocity limit at knot {k}")  # 7.19
+            if kf == 0 and F >= 2:
+                acc = (qv[0] - 2 * prev(0) + fixed_q[F - 2]) / dt ** 2
+                add(acc, -self.amax_a, self.amax_a, f"acceleration limit at knot {k - 1}")
+                res.append(np.sqrt(cfg.smooth_weight) * acc * dt)
+            if kf < N:
+                acc = (nxt(kf) - 2 * qv[kf] + prev(kf)) / dt ** 2
+                add(acc, -self.amax_a, self.amax_a, f"acceleration limit at knot {k}")
+                res.append(np.sqrt(cfg.smooth_weight) * acc * dt)
+            ng.append(len(lbg) - rows0)
         r = ca.vertcat(*res)
         g = ca.vertcat(*cons)
-        J = ca.jacobian(r, x)
-        G = ca.jacobian(g, x)
-        self._clb, self._cub = np.array(clb, float), np.array(cub, float)
-        H = ca.mtimes(J.T, J)
-        self._eval = ca.Function("sqp_terms", [x, fixed, goals, weights, dt, sep],
-                                 [H, ca.mtimes(J.T, r), g, G, ca.sumsqr(r)])
-        self._points = points
-        self._H_sp = H.sparsity() + ca.Sparsity.diag(x.numel())
-        self._qp = ca.conic("qp", cfg.qp_solver, {"h": self._H_sp, "a": G.sparsity()},
-                            _qp_options(cfg.qp_solver))
+        J = ca.jacobian(r, z)
+        G = ca.jacobian(g, z)
+        H = ca.mtimes(J.T, J) + cfg.damping * ca.SX.eye(nz)  # Levenberg-Marquardt: flat directions take small steps
+        params = [fixed, goals, w, dt, wit]
+        self._eval = ca.Function("trajopt_sqp", [z, *params], [H, ca.mtimes(J.T, r), g, G, 0.5 * ca.sumsqr(r)])
+        self._poses = ca.Function("trajopt_poses", [z], [ca.vertcat(*pose_out) if pose_out else ca.SX(0, 1)])
+        self._lbg, self._ubg, self._labels = np.array(lbg, float), np.array(ubg, float), labels
+        self._slot_rows = np.array(self._slot_rows, int).reshape(Kf, S)
+        self._smooth_rows = np.ones(len(lbg), bool)  # rows with a fixed meaning and finite bounds
+        self._smooth_rows[self._slot_rows.ravel()] = False
+        self._smooth_rows &= np.isfinite(self._lbg) | np.isfinite(self._ubg)
+        self._H_sp, self._G_sp = H.sparsity(), G.sparsity()
+        self.q_index = np.concatenate(q_idx)
+        self.nz = nz
+        # z from the stacked free-knot q's: every copy (q, p, u) of a knot gets the same value
+        self._expand = np.zeros(nz, int)
+        for kf in range(Kf):
+            self._expand[q_idx[kf]] = kf * na + np.arange(na)
+            if ocp and kf > 0:
+                self._expand[p_idx[kf]] = (kf - 1) * na + np.arange(na)
+            if ocp and kf < N:
+                self._expand[u_idx[kf]] = (kf + 1) * na + np.arange(na)
+        self._p0 = p_idx[0] if ocp else np.zeros(0, int)  # copy of the last fixed knot
+        q_s = ca.SX.sym("q", self.n)
+        fk_s = self.model.fk_casadi(q_s)
+        self._points = ca.Function("points", [q_s], [ca.horzcat(*[fk_s[f][1] for f in self.frames]).T])
+        opts = {**qp_options(cfg.qp_solver), **cfg.qp_options}
+        if ocp:
+            opts.update(N=N, nx=[2 * na] * Kf, nu=[na] * N + [0], ng=ng)
+            if cfg.qp_solver == "fatrop":
+                opts["structure_detection"] = "manual"
+        self._qp = ca.conic("trajopt_qp", cfg.qp_solver, {"h": self._H_sp, "a": self._G_sp}, opts)
 
-    # --- solve ------------------------------------------------------------------------------
-    def solve(self, current: np.ndarray, goals: np.ndarray, goal_mask: np.ndarray, dt: float) -> TrajoptResult:
-        """current: (K,n) executing trajectory; goals: (K,P,3) in point_names order; goal_mask: (K,P)."""
+    # --- helpers ------------------------------------------------------------------------------------
+    def points(self, q: np.ndarray) -> np.ndarray:
+        """Mapped frame positions (P, 3) for a full joint vector."""
+        return np.array(self._points(self.model.couple(q)))
+
+    def _link_poses(self, z: np.ndarray) -> dict[str, np.ndarray]:
+        L, Kf = len(self.collision.links), self.cfg.knots - self.cfg.fixed_knots
+        if not L:
+            return {}
+        raw = np.array(self._poses(z)).ravel()
+        T = np.zeros((Kf, L, 4, 4))
+        T[..., :3, :] = raw.reshape(Kf, L, 4, 3).transpose(0, 1, 3, 2)  # column-major 3x4 blocks
+        T[..., 3, 3] = 1.0
+        return {link: T[:, i] for i, link in enumerate(self.collision.links)}
+
+    def _witness_vector(self, z: np.ndarray, final: bool = False) -> tuple[np.ndarray, np.ndarray, float, str]:
+        """Separating planes of the closest shape pairs per knot (the QP's contact slots), the lower
+        bound of each slot row (-inf for an unused slot), and the smallest signed distance over all
+        pairs with its name (for the final check; a lower bound for pairs far apart)."""
+        Kf, S, L = self.cfg.knots - self.cfg.fixed_knots, self.slots, len(self.collision.links)
+        lb = self._lbg.copy()
+        if not S:
+            return np.zeros(0), lb, np.inf, ""
+        poses = self._link_poses(z)
+        if final:  # exact distances wherever the sphere bound cannot prove the margin
+            wit = self.collision.witnesses(poses, exact_below=self.cfg.margin + 1e-6)
+        else:  # GJK/EPA for the closest candidates that get a slot
+            wit = self.collision.witnesses(poses, per_knot=S)
+        order = np.argsort(wit.distance, axis=0)[:S]  # (S', Kf): the closest pairs per knot
+        k = np.arange(Kf)[None]
+        v = np.zeros((Kf, S, 9 + 2 * L))
+        used = np.zeros((Kf, S), bool)
+        Sp = order.shape[0]
+        v[:, :Sp, 0:3] = wit.normal[order, k].transpose(1, 0, 2)
+        v[:, :Sp, 3:6] = wit.local_a[order, k].transpose(1, 0, 2)
+        v[:, :Sp, 6:9] = wit.local_b[order, k].transpose(1, 0, 2)
+        kk, ss = np.meshgrid(np.arange(Kf), np.arange(Sp), indexing="ij")
+        v[kk, ss, 9 + self.collision.link_a[order.T]] = 1.0
+        v[kk, ss, 9 + L + self.collision.link_b[order.T]] = 1.0
+        used[:, :Sp] = True
+        lb[self._slot_rows[~used]] = -np.inf
+        i, k = np.unravel_index(np.argmin(wit.distance), wit.distance.shape)
+        pr = self.collision.pairs[i]
+        name = f"separation {pr.a.link}-{pr.b.link} at knot {k + self.cfg.fixed_knots}"
+        return v.ravel(), lb, float(wit.distance[i, k]), name
+
+    def _fail(self, current: np.ndarray, status: str, reason: str, t0: float, iterations: int = 0,
+              violation: float = float("nan")) -> TrajoptResult:
+        return TrajoptResult(current.copy(), status, False, time.perf_counter() - t0, iterations, violation, reason)
+
+    # --- solve ------------------------------------------------------------------------------------
+    def solve(self, current_traj: np.ndarray, goals: np.ndarray, goal_mask: np.ndarray, dt: float) -> TrajoptResult:
+        """current_traj: (knots, n) executing trajectory (its first fixed_knots rows are kept);
+        goals: (knots, points, 3) in ``point_names`` order; goal_mask: (knots, points), False = ignore.
+        Never raises on bad values (NaN, unreachable, infeasible): returns ok=False, the executing
+        trajectory unchanged and a reason. Wrong shapes raise TrajoptInputError."""
         t0 = time.perf_counter()
-        cfg, n, K, F = self.cfg, self.n, self.cfg.knots, self.cfg.fixed_knots
-        current = np.asarray(current, float)
-        if current.shape != (K, n) or not np.isfinite(current).all():
-            return self._fail(current, "current trajectory has the wrong shape or non-finite values", t0)
+        cfg, na, K, F = self.cfg, self.na, self.cfg.knots, self.cfg.fixed_knots
+        P = len(self.frames)
+        current = np.asarray(current_traj, float)
+        if current.shape != (K, self.n):
+            raise TrajoptInputError(f"current trajectory has shape {current.shape}, expected {(K, self.n)}")
         goals = np.asarray(goals, float)
         mask = np.asarray(goal_mask, bool)
-        if goals.shape != (K, len(self.frames), 3):
-            return self._fail(current, f"goals shape {goals.shape}, expected {(K, len(self.frames), 3)}", t0)
-        bad = ~np.isfinite(goals).all(axis=-1)
-        if (bad & mask).any():
-            return self._fail(current, "plan goals contain NaN or infinite values", t0)
-        goals = np.where(bad[..., None], 0.0, goals)
-        weights = mask.astype(float).ravel()
-        fixed = current[:F].ravel()
-        x = np.clip(current[F:], self.lower, self.upper).ravel()
-        sep = self.separation.params(current[F - 1] if F else current[0])
-        lo = np.tile(self.lower, self.free)
-        hi = np.tile(self.upper, self.free)
-        iterations = 0
-        while iterations < cfg.max_iterations:
-            iterations += 1
-            H, grad, g, G, cost = self._eval(x, fixed, goals.ravel(), weights, dt, sep)
-            H = H + 1e-6 * ca.DM.eye(x.size)
-            g = np.asarray(g).ravel()
-            lbx = np.maximum(lo - x, -cfg.trust_region)
-            ubx = np.minimum(hi - x, cfg.trust_region)
-            sol = self._qp(h=H, g=grad, a=G, lba=self._clb - g, uba=self._cub - g, lbx=lbx, ubx=ubx,
-                           x0=np.zeros(x.size))
-            step = np.asarray(sol["x"]).ravel()
-            if not np.isfinite(step).all():
-                return self._fail(current, "QP returned non-finite step", t0)
-            x = np.clip(x + step, lo, hi)
-            if np.max(np.abs(step)) < cfg.tolerance:
+        if goals.shape != (K, P, 3) or mask.shape != (K, P):
+            raise TrajoptInputError(f"goals {goals.shape} / mask {mask.shape}, expected {(K, P, 3)} / {(K, P)}")
+        if not np.isfinite(current).all():
+            return self._fail(current, "bad_input", "current trajectory contains NaN or infinite values", t0)
+        if not (np.isfinite(dt) and dt > 0):
+            return self._fail(current, "bad_input", f"dt must be positive, got {dt}", t0)
+        bad = ~np.isfinite(goals).all(axis=-1) & mask
+        if bad.any():
+            k, i = np.argwhere(bad)[0]
+            return self._fail(current, "bad_input", f"goal {self.point_names[i]} at knot {k} is NaN or infinite "
+                                                    f"({int(bad.sum())} such goals)", t0)
+        goals = np.where(mask[..., None], goals, 0.0)
+        out = mask & ((goals < self.reach_lo[None]) | (goals > self.reach_hi[None])).any(axis=-1)
+        out[:F] = False
+        if out.any():
+            k, i = np.argwhere(out)[0]
+            return self._fail(current, "unreachable",
+                              f"goal {self.point_names[i]} -> {self.frames[i]} at knot {k} "
+                              f"{np.round(goals[k, i], 3).tolist()} lies outside the reachable box "
+                              f"{np.round(self.reach_lo[i], 3).tolist()}..{np.round(self.reach_hi[i], 3).tolist()}", t0)
+        qa_cur = current[:, self.act_index]
+        fixed = qa_cur[:F].ravel()
+        lo_q, hi_q = np.tile(self.lower_a, K - F), np.tile(self.upper_a, K - F)
+        z = np.clip(qa_cur[F:].ravel(), lo_q, hi_q)[self._expand]
+        lo_z, hi_z = lo_q[self._expand], hi_q[self._expand]
+        if len(self._p0):  # the stage-0 copy of the last fixed knot is pinned by its bounds
+            z[self._p0] = lo_z[self._p0] = hi_z[self._p0] = qa_cur[F - 1]
+        weights = (mask[F:] * self.weights[None]).ravel()
+        gvec = goals[F:].ravel()
+        status, it, cost = "max_iterations", 0, float("nan")
+        wit, lbg, dmin, pair = self._witness_vector(z)
+        H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
+        for it in range(1, cfg.max_iterations + 1):
+            g = np.array(g).ravel()
+            lbx = np.maximum(lo_z - z, -cfg.trust_region)  # 7.17 and 7.18
+            ubx = np.minimum(hi_z - z, cfg.trust_region)
+            args = dict(h=H, g=grad, a=G, lbx=lbx, ubx=ubx, lba=lbg - g, uba=self._ubg - g)
+            if self._warm is not None:
+                args.update(self._warm)
+            sol = self._qp(**args)
+            dz = np.array(sol["x"]).ravel()
+            if not np.isfinite(dz).all():
+                self._warm = None
+                return self._fail(current, "infeasible", f"QP ({cfg.qp_solver}) failed in SQP iteration {it}", t0, it)
+            self._warm = dict(lam_x0=sol["lam_x"], lam_a0=sol["lam_a"])
+            decrease = -float(sol["cost"])  # the Gauss-Newton model's predicted cost decrease
+            predicted_cost = float(cost) - decrease
+            predicted_g = g + np.array(G @ dz).ravel()
+            z = z + dz
+            # the next linearisation; it is also the final check of the last iterate
+            wit, lbg, dmin, pair = self._witness_vector(z, final=True)
+            H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
+            # Converged when the step stayed inside the trust region and the QP model predicted the
+            # cost and constraints at the new iterate (then its solution is the local optimum).
+            inside = np.all(np.abs(dz) < cfg.trust_region * 0.999)
+            model_err = abs(float(cost) - predicted_cost)
+            # separation rows are re-assigned to the closest pairs at every iterate: not comparable
+            g_err = np.abs(np.array(g).ravel() - predicted_g)[self._smooth_rows]
+            if np.abs(dz).max() < cfg.step_tolerance or (
+                    inside and model_err <= cfg.model_tolerance * max(decrease, 0.0) + 1e-9
+                    and (g_err.max(initial=0.0) < cfg.step_tolerance)):
+                status = "solved"
                 break
-        _, _, g, _, cost = self._eval(x, fixed, goals.ravel(), weights, dt, sep)
-        g = np.asarray(g).ravel()
-        violation = float(np.max(np.concatenate([np.maximum(self._clb - g, 0), np.maximum(g - self._cub, 0), [0]])))
-        q = np.concatenate([current[:F], x.reshape(self.free, n)])
-        ok = violation < 1e-3
-        reason = "" if ok else f"constraint violation {violation:.3g} after {iterations} iterations"
-        if ok:
-            self.last = q
-        return TrajoptResult(q if ok else current, ok, "solved" if ok else "infeasible", reason,
-                             time.perf_counter() - t0, iterations, violation, float(cost))
+        violation, what = self._violation(z, np.array(g).ravel(), lbg, dmin, pair, lo_z, hi_z)
+        if violation > cfg.violation_tolerance:
+            return self._fail(current, "infeasible", f"kept the executing trajectory: {what} violated by "
+                                                     f"{violation:.4g} after {it} SQP iterations", t0, it, violation)
+        qa = z[self.q_index].reshape(K - F, na)
+        q = np.vstack([current[:F], qa @ self.M.T + self.c])
+        return TrajoptResult(q, status, True, time.perf_counter() - t0, it, violation, "", float(cost))
 
-    def points(self, q: np.ndarray) -> np.ndarray:
-        """Mapped robot points (P,3) for one joint vector."""
-        return np.asarray(self._points(q)).reshape(-1, 3)
+    def _violation(self, z, g, lbg, dmin, pair, lo_z, hi_z) -> tuple[float, str]:
+        """Largest constraint violation at z and what it is: the rows evaluated at z (separation
+        rows are signed distances there), every shape pair's distance, joint limits."""
+        rows = np.maximum(lbg - g, g - self._ubg)
+        cands = [(max(0.0, (lo_z - z).max(), (z - hi_z).max()), "joint limits"),
+                 (self.cfg.margin - dmin, pair)]
+        if len(rows):
+            cands.append((float(rows.max()), self._labels[int(np.argmax(rows))]))
+        v, what = max(cands, key=lambda c: c[0])
+        return max(float(v), 0.0), what
 
-    def _fail(self, current: np.ndarray, reason: str, t0: float) -> TrajoptResult:
-        return TrajoptResult(current, False, "rejected", reason, time.perf_counter() - t0, 0, np.inf, np.nan)
-
-
-def _qp_options(solver: str) -> dict:
-    if solver == "osqp":
-        return {"osqp": {"verbose": False, "eps_abs": 1e-5, "eps_rel": 1e-5, "polish": False, "max_iter": 1000},
-                "warm_start_primal": True, "error_on_fail": False}
-    if solver == "qrqp":
-        return {"print_iter": False, "print_header": False, "error_on_fail": False}
-    return {"error_on_fail": False}
+    def reset(self) -> None:
+        """Forget the QP warm start (after a jump in the executing trajectory)."""
+        self._warm = None

@@ -1,48 +1,89 @@
-"""Generates hand_arm.urdf: a 6-DoF arm (UR-like proportions) with a four-finger hand whose
-middle and distal finger joints are coupled (mimic), as in the hand-arm systems of thesis 7.3.1.
-Run: python shared/robots/make_hand_arm_urdf.py > shared/robots/hand_arm.urdf
+"""Generates hand_arm.urdf: the hand-arm systems of thesis 7.3.1, a 6-DoF arm with UR10-like link
+lengths and a humanoid hand (thumb + index, middle, ring) whose middle and distal finger joints are
+mechanically coupled (``<finger>_j3`` mimics ``<finger>_j2``, as in the Shadow hands).
+
+Arm zero pose: straight up. The palm's +z continues the last link, its -y is the palm side; fingers
+extend along their local +z and flex about their local +x towards the palm. Links are capsule-like
+(thesis 7.4): cylinders along the bones, spheres at the tips.
+
+Run: .venv/bin/python -m shared.robots.make_hand_arm_urdf  (writes hand_arm.urdf)
 """
 
 from __future__ import annotations
 
-from shared.robots.make_workcell_urdf import joint, link, point
+from math import pi
+from pathlib import Path
 
-ARM = [  # name, parent xyz offset, axis, lower, upper, link shape
-    ("shoulder_pan", "0 0 0.15", "0 0 1", -3.14, 3.14, ("cyl", "0 0 0.05", 0.06, 0.1)),
-    ("shoulder_lift", "0 0.1 0.05", "0 1 0", -3.14, 0.0, ("box", "0.2 0 0", "0.42 0.08 0.08")),
-    ("elbow", "0.42 -0.08 0", "0 1 0", -2.8, 2.8, ("box", "0.19 0 0", "0.39 0.06 0.06")),
-    ("wrist_1", "0.39 0.07 0", "0 1 0", -3.14, 3.14, ("cyl", "0 0.05 0", 0.04, 0.08)),
-    ("wrist_2", "0 0.09 0", "0 0 1", -3.14, 3.14, ("cyl", "0 0 0.04", 0.04, 0.08)),
-    ("wrist_3", "0 0 0.09", "0 1 0", -3.14, 3.14, ("box", "0 0.04 0", "0.09 0.03 0.09")),
+from shared.robots.urdf_writer import HEADER, MATERIALS, joint, link, point
+
+HERE = Path(__file__).parent
+# name, parent link, origin xyz, axis, limit (rad), velocity (rad/s), effort (Nm), link shape
+ARM = [
+    ("shoulder_pan", "base", "0 0 0.128", "0 0 1", pi, 2.0, 330, ("cylinder", "0 0 0", (0.075, 0.17))),
+    ("shoulder_lift", "shoulder_pan_link", "0 0.176 0", "0 1 0", pi, 2.0, 330,
+     ("cylinder", "0 0 0.306", (0.06, 0.612))),
+    ("elbow", "shoulder_lift_link", "0 -0.137 0.612", "0 1 0", 2.9, 3.0, 150,
+     ("cylinder", "0 0 0.286", (0.045, 0.572))),
+    ("wrist_1", "elbow_link", "0 0 0.572", "0 1 0", pi, 3.0, 56, ("cylinder", "0 0.06 0", (0.045, 0.11))),
+    ("wrist_2", "wrist_1_link", "0 0.116 0", "0 0 1", pi, 3.0, 56, ("cylinder", "0 0 0.06", (0.045, 0.11))),
+    ("wrist_3", "wrist_2_link", "0 0 0.116", "0 1 0", pi, 3.0, 28, ("cylinder", "0 0.04 0", (0.04, 0.07))),
 ]
-FINGERS = {"thumb": (0.03, -0.035), "index": (0.09, -0.02), "middle": (0.095, 0.0), "ring": (0.09, 0.02)}
+# finger -> (base xyz in the palm, base rpy, bone lengths proximal/middle/distal)
+FINGERS = {
+    "thumb": ("0.035 -0.018 0.03", f"0 {pi / 4:.5f} 0", (0.038, 0.032, 0.027)),
+    "index": ("0.03 0 0.1", "0 0 0", (0.045, 0.025, 0.022)),
+    "middle": ("0.0 0 0.104", "0 0 0", (0.045, 0.025, 0.022)),
+    "ring": ("-0.03 0 0.1", "0 0 0", (0.045, 0.025, 0.022)),
+}
+FINGER_LIMITS = {"j1": (-0.26, 1.57), "j2": (0.0, 1.57), "j3": (0.0, 1.57)}
+FINGER_MOTION = dict(velocity=2.0, effort=2.0)
+RADIUS = {"proximal": 0.010, "middle": 0.009, "distal": 0.008}
+
+
+def finger(name: str, xyz: str, rpy: str, bones: tuple[float, float, float]) -> str:
+    out = ""
+    if name == "thumb":  # opposition: rotates the whole thumb about its own long axis
+        out += joint("thumb_j0", "revolute", "palm", "thumb_base", xyz, "0 0 1", -1.0, 1.0, rpy=rpy, **FINGER_MOTION)
+        out += link("thumb_base", 0.01, [("sphere", "0 0 0", (0.012,))], "dark")
+        parent, xyz, rpy = "thumb_base", "0 0 0", "0 0 0"
+    else:
+        parent = "palm"
+    offsets = [xyz, f"0 0 {bones[0]}", f"0 0 {bones[1]}"]
+    for k, (bone, length) in enumerate(zip(("proximal", "middle", "distal"), bones, strict=True), start=1):
+        lo, hi = FINGER_LIMITS[f"j{k}"]
+        child = f"{name}_{bone}"
+        out += joint(f"{name}_j{k}", "revolute", parent, child, offsets[k - 1], "1 0 0", lo, hi,
+                     mimic=f"{name}_j2" if k == 3 else "", rpy=rpy if k == 1 else "0 0 0", **FINGER_MOTION)
+        r = RADIUS[bone]
+        shapes = [("cylinder", f"0 0 {length / 2}", (r, length))]
+        if bone == "distal":
+            shapes.append(("sphere", f"0 0 {length}", (r,)))
+        out += link(child, 0.02, shapes)
+        parent = child
+    out += point(f"{name}_tip", f"{name}_distal", f"0 0 {bones[2] + RADIUS['distal']}")
+    return out
 
 
 def urdf() -> str:
-    out = '<?xml version="1.0"?>\n<robot name="hand_arm">\n'
-    out += '  <material name="alu"><color rgba="0.7 0.72 0.75 1"/></material>\n  <link name="base"/>\n'
-    parent = "base"
-    for name, xyz, axis, lo, hi, shape in ARM:
-        out += link(f"{name}_link", 2.0, [shape])
-        out += joint(name, "revolute", parent, f"{name}_link", xyz, axis, lo, hi, 3.0, 50)
-        parent = f"{name}_link"
-    out += link("palm", 0.4, [("box", "0 0.06 0", "0.1 0.1 0.03")])
-    out += joint("palm_mount", "fixed", parent, "palm", "0 0.06 0")
+    out = HEADER.format(name="hand_arm") + MATERIALS
+    out += '  <mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco>\n'
+    out += '  <link name="base"/>\n'
+    for name, parent, xyz, axis, lim, vel, eff, shape in ARM:
+        out += joint(name, "revolute", parent, f"{name}_link", xyz, axis, -lim, lim, vel, eff)
+        out += link(f"{name}_link", 3.0 if name.startswith(("shoulder", "elbow")) else 1.2, [shape], "alu",
+                    rpy="0 0 0" if shape[1].startswith("0 0") or name == "wrist_2" else f"{pi / 2:.5f} 0 0")
+    # palm +z continues wrist_3's +y axis
+    out += joint("hand_mount", "fixed", "wrist_3_link", "palm", "0 0.082 0", rpy=f"{-pi / 2:.5f} 0 0")
+    out += link("palm", 0.4, [("box", "0 0 0.05", (0.095, 0.03, 0.1))], "dark")
     out += point("wrist_point", "palm", "0 0 0")
-    for name, (x, z) in FINGERS.items():
-        # fingers extend along the palm's +y; proximal joint flexes about x, middle+distal coupled
-        base = f"0 {x + 0.02} {z}"
-        out += link(f"{name}_proximal", 0.03, [("box", "0 0.022 0", "0.016 0.045 0.016")])
-        out += joint(f"{name}_j1", "revolute", "palm", f"{name}_proximal", base, "1 0 0", 0.0, 1.6, 4.0, 2)
-        out += link(f"{name}_middle", 0.02, [("box", "0 0.013 0", "0.014 0.026 0.014")])
-        out += joint(f"{name}_j2", "revolute", f"{name}_proximal", f"{name}_middle", "0 0.045 0", "1 0 0", 0.0, 1.6,
-                     4.0, 1)
-        out += link(f"{name}_distal", 0.01, [("box", "0 0.011 0", "0.012 0.022 0.012")])
-        out += joint(f"{name}_j3", "revolute", f"{name}_middle", f"{name}_distal", "0 0.026 0", "1 0 0", 0.0, 1.6,
-                     4.0, 1, mimic=f"{name}_j2")
-        out += point(f"{name}_tip", f"{name}_distal", "0 0.022 0")
+    for name, (xyz, rpy, bones) in FINGERS.items():
+        out += finger(name, xyz, rpy, bones)
     return out + "</robot>\n"
 
 
+def main() -> None:
+    (HERE / "hand_arm.urdf").write_text(urdf())
+
+
 if __name__ == "__main__":
-    print(urdf(), end="")
+    main()

@@ -1,94 +1,102 @@
-"""Generates workcell.urdf: the gantry of thesis chapter 6 (kept as code so dimensions stay in one place).
+"""Generates workcell.urdf and its convex mesh: the two-arm gantry of thesis chapter 6.
 
-World frame: table top z=0, x forward, y left. Per arm: a carriage on the shared Y rail (y), an
-X slide (x), a vertical Z axis (z, positive = down), a wrist (revolute about z). Left arm: a
-two-finger parallel gripper (finger_b mimics finger_a); right arm: one rigid finger.
-Run: python shared/robots/make_workcell_urdf.py > shared/robots/workcell.urdf
+World frame: table top at z=0, x forward (away from the robot's home side), y to the left; the
+aluminium frame is 0.8 m x 0.8 m centred at the origin and 0.7 m high. Per arm: a carriage on
+the shared Y rail under the top of the frame (``<arm>_y``),
+an X slide (``<arm>_x``, value = world x), a vertical Z axis that lowers the column
+(``<arm>_z``, axis -z, value = how far down), and a wrist rotating about z. The carriage joint
+(``<arm>_y``) counts from the arm's home on the rail (y = +0.15 left, -0.15 right), so the
+all-zero joint vector is a safe home pose with the carriages 30 cm apart; the carriages cover
+world y in [-0.05, 0.35] (left) and [-0.35, 0.05] (right) and can touch: a collision pair. The left arm carries a
+two-finger parallel gripper (``left_finger_b`` mimics ``left_finger_a``; each finger opens 0..4 cm
+in opposite directions), the right arm a single rigid finger 2 cm off the wrist axis.
+Fingertips are at z = 0.26 - q_z, so the Z travel of 0.25 m reaches 1 cm above the table.
+
+Run: .venv/bin/python -m shared.robots.make_workcell_urdf  (writes workcell.urdf + meshes/)
 """
 
 from __future__ import annotations
 
-RAIL_Z = 0.62  # Y rail height
-Z_TRAVEL = 0.368  # finger tips reach 2 mm above the table
-LINK = """  <link name="{name}">
-    <inertial><origin xyz="0 0 0"/><mass value="{mass}"/>
-      <inertia ixx="{i}" iyy="{i}" izz="{i}" ixy="0" ixz="0" iyz="0"/></inertial>
-{geoms}  </link>
-"""
-BOX = """    <{kind}><origin xyz="{xyz}"/><geometry><box size="{size}"/></geometry>{mat}</{kind}>
-"""
-CYL = """    <{kind}><origin xyz="{xyz}"/><geometry><cylinder radius="{r}" length="{l}"/></geometry>{mat}</{kind}>
-"""
-JOINT = """  <joint name="{name}" type="{type}">
-    <parent link="{parent}"/><child link="{child}"/>
-    <origin xyz="{xyz}" rpy="0 0 0"/>{axis}{limit}{mimic}
-  </joint>
-"""
+from pathlib import Path
+
+from shared.robots.urdf_writer import HEADER, MATERIALS, frustum, joint, link, point, write_stl
+
+HERE = Path(__file__).parent
+JOINTS = ["left_x", "left_y", "left_z", "left_wrist", "left_finger_a", "left_finger_b",
+          "right_x", "right_y", "right_z", "right_wrist"]
+FRAME_SIZE = 0.8
+FRAME_HEIGHT = 0.7
+RAIL_Z = 0.66  # carriage centre on the shared Y rail
+X_DROP = 0.04  # carriage centre -> X slide centre
+Z_DROP = 0.03  # X slide centre -> top of the Z column
+COLUMN = 0.25  # column length: Z column top -> wrist joint
+TIP = 0.08  # wrist joint -> fingertips
+Z_TRAVEL = 0.25
+Y_HOME = {"left": 0.15, "right": -0.15}
+Y_RANGE = {"left": (-0.05, 0.35), "right": (-0.35, 0.05)}  # world y of the carriage
+X_RANGE = (-0.3, 0.3)
+LINEAR = dict(velocity=0.5, effort=200.0)  # belt-driven 57BL axes
+WRIST = dict(velocity=6.0, effort=5.0)  # 42BLF with 5:1 reduction
+FINGER = dict(velocity=0.2, effort=40.0)
+GRIPPER_MESH = "meshes/gripper_head.stl"
+HEAD_HEIGHT = 0.035
 
 
-def link(name: str, mass: float, shapes: list[tuple]) -> str:
-    geoms = ""
-    for shape in shapes:
-        for kind in ("visual", "collision"):
-            mat = '<material name="alu"/>' if kind == "visual" else ""
-            if shape[0] == "box":
-                geoms += BOX.format(kind=kind, xyz=shape[1], size=shape[2], mat=mat)
-            else:
-                geoms += CYL.format(kind=kind, xyz=shape[1], r=shape[2], l=shape[3], mat=mat)
-    return LINK.format(name=name, mass=mass, i=max(1e-5, mass * 1e-3), geoms=geoms)
-
-
-def joint(name: str, kind: str, parent: str, child: str, xyz: str, axis: str = "",
-          lo: float = 0, hi: float = 0, vel: float = 0, effort: float = 0, mimic: str = "") -> str:
-    axis_s = f'\n    <axis xyz="{axis}"/>' if axis else ""
-    limit = f'\n    <limit lower="{lo}" upper="{hi}" velocity="{vel}" effort="{effort}"/>' if kind != "fixed" else ""
-    mimic_s = f'\n    <mimic joint="{mimic}" multiplier="1" offset="0"/>' if mimic else ""
-    return JOINT.format(name=name, type=kind, parent=parent, child=child, xyz=xyz, axis=axis_s, limit=limit,
-                        mimic=mimic_s)
-
-
-def point(name: str, parent: str, xyz: str) -> str:
-    return (f'  <link name="{name}"/>\n' + joint(f"{name}_fixed", "fixed", parent, name, xyz))
+def write_meshes() -> None:
+    """The gripper head: a convex frustum, wide at the wrist flange and narrow at the finger rails."""
+    v, t = frustum(bottom=(0.05, 0.09), top=(0.06, 0.06), height=HEAD_HEIGHT)
+    write_stl(HERE / GRIPPER_MESH, v, t)
 
 
 def arm(side: str) -> str:
-    s = 1 if side == "left" else -1
-    y_lo, y_hi = (-0.05, 0.35) if side == "left" else (-0.35, 0.05)
-    out = link(f"{side}_carriage", 1.0, [("box", "0 0 0", "0.12 0.08 0.05")])
-    out += joint(f"{side}_y", "prismatic", "base", f"{side}_carriage", f"0 {0.15 * s} {RAIL_Z}", "0 1 0",
-                 y_lo - 0.15 * s, y_hi - 0.15 * s, 0.5, 200)
-    out += link(f"{side}_slide", 0.8, [("box", "0 0 -0.04", "0.06 0.06 0.03")])
-    out += joint(f"{side}_x", "prismatic", f"{side}_carriage", f"{side}_slide", "0 0 0", "1 0 0",
-                 -0.3, 0.3, 0.5, 200)
-    out += link(f"{side}_column", 0.5, [("box", "0 0 0.1", "0.03 0.03 0.2")])
-    out += joint(f"{side}_z", "prismatic", f"{side}_slide", f"{side}_column", "0 0 -0.07", "0 0 -1",
-                 0.0, Z_TRAVEL, 0.5, 200)
-    out += link(f"{side}_hand", 0.3, [("cyl", "0 0 -0.02", 0.025, 0.04)])
-    out += joint(f"{side}_wrist", "revolute", f"{side}_column", f"{side}_hand", "0 0 -0.03", "0 0 1",
-                 -3.1416, 3.1416, 6.0, 5)
+    """One arm in JOINTS order (x before y in the document; the chain is base -> y -> x -> z -> wrist)."""
+    lo_y, hi_y = (v - Y_HOME[side] for v in Y_RANGE[side])
+    out = joint(f"{side}_x", "prismatic", f"{side}_carriage", f"{side}_slide", f"0 0 {-X_DROP}", "1 0 0",
+                *X_RANGE, **LINEAR)
+    out += joint(f"{side}_y", "prismatic", "base", f"{side}_carriage", f"0 {Y_HOME[side]} {RAIL_Z}", "0 1 0",
+                 round(lo_y, 6), round(hi_y, 6), **LINEAR)
+    out += joint(f"{side}_z", "prismatic", f"{side}_slide", f"{side}_column", f"0 0 {-Z_DROP}", "0 0 -1",
+                 0.0, Z_TRAVEL, **LINEAR)
+    out += joint(f"{side}_wrist", "revolute", f"{side}_column", f"{side}_hand", f"0 0 {-COLUMN}", "0 0 1",
+                 -3.14159, 3.14159, **WRIST)
+    out += link(f"{side}_carriage", 1.2, [("box", "0 0 0", (0.10, 0.08, 0.04))], "dark")
+    out += link(f"{side}_slide", 0.8, [("box", "0 0 0", (0.07, 0.06, 0.03))], "dark")
+    out += link(f"{side}_column", 0.6, [("box", f"0 0 {-COLUMN / 2}", (0.03, 0.03, COLUMN - 0.01))])
     out += point(f"{side}_wrist_point", f"{side}_hand", "0 0 0")
     if side == "left":
-        for f, sign in (("a", 1), ("b", -1)):
-            out += link(f"left_finger_{f}", 0.05, [("box", f"0 {0.003 * sign} -0.07", "0.012 0.004 0.08")])
-            out += joint(f"left_finger_{f}", "prismatic", "left_hand", f"left_finger_{f}", "0 0 -0.04",
-                         f"0 {sign} 0", 0.0, 0.04, 0.2, 40, mimic="left_finger_a" if f == "b" else "")
-            out += point(f"left_tip_{f}", f"left_finger_{f}", "0 0 -0.11")
+        out += link("left_hand", 0.35, [("mesh", "0 0 0", (GRIPPER_MESH, (0.03, 0.045, HEAD_HEIGHT / 2)))])
+        for f, s in (("a", 1), ("b", -1)):
+            out += joint(f"left_finger_{f}", "prismatic", "left_hand", f"left_finger_{f}", f"0 0 {-HEAD_HEIGHT}",
+                         f"0 {s} 0", 0.0, 0.04, mimic="left_finger_a" if f == "b" else "", **FINGER)
+            length = TIP - HEAD_HEIGHT
+            out += link(f"left_finger_{f}", 0.04, [("box", f"0 {0.004 * s} {-length / 2}", (0.012, 0.006, length))],
+                        "steel")
+            out += point(f"left_tip_{f}", f"left_finger_{f}", f"0 {0.002 * s} {-length}")
     else:
-        out += link("right_finger", 0.05, [("box", "0.02 0 -0.07", "0.008 0.008 0.08")])
-        out += joint("right_finger_mount", "fixed", "right_hand", "right_finger", "0 0 -0.04")
-        out += point("right_tip", "right_finger", "0.02 0 -0.11")
+        out += link("right_hand", 0.3, [("cylinder", f"0 0 {-HEAD_HEIGHT / 2}", (0.025, HEAD_HEIGHT))])
+        out += joint("right_finger_mount", "fixed", "right_hand", "right_finger", f"0.02 0 {-HEAD_HEIGHT}")
+        length = TIP - HEAD_HEIGHT
+        out += link("right_finger", 0.03, [("box", f"0 0 {-length / 2 + 0.003}", (0.008, 0.008, length - 0.006)),
+                                           ("sphere", f"0 0 {-length + 0.006}", (0.006,))], "steel")
+        out += point("right_tip", "right_finger", f"0 0 {-length}")
     return out
 
 
 def urdf() -> str:
-    body = '<?xml version="1.0"?>\n<robot name="workcell">\n'
-    body += '  <material name="alu"><color rgba="0.7 0.72 0.75 1"/></material>\n'
-    body += '  <link name="base"/>\n'
-    body += link("y_rail", 2.0, [("box", f"0 0 {RAIL_Z + 0.04}", "0.04 0.8 0.03")])
-    body += joint("y_rail_mount", "fixed", "base", "y_rail", "0 0 0")
-    body += arm("left") + arm("right")
-    return body + "</robot>\n"
+    out = HEADER.format(name="workcell") + MATERIALS
+    # MuJoCo: keep keypoint frames as bodies and resolve the mesh path relative to this file.
+    out += '  <mujoco><compiler strippath="false" fusestatic="false" discardvisual="true"/></mujoco>\n'
+    out += '  <link name="base"/>\n'
+    out += joint("y_rail_mount", "fixed", "base", "y_rail", f"0 0 {RAIL_Z + 0.03}")
+    out += link("y_rail", 3.0, [("box", "0 0 0", (0.04, FRAME_SIZE, 0.02))], "dark")
+    out += arm("left") + arm("right")
+    return out + "</robot>\n"
+
+
+def main() -> None:
+    write_meshes()
+    (HERE / "workcell.urdf").write_text(urdf())
 
 
 if __name__ == "__main__":
-    print(urdf(), end="")
+    main()

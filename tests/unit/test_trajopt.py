@@ -1,71 +1,213 @@
-"""Trajectory optimizer on both robot models: tracking, limits, arm separation, hand-pose prior."""
+"""The trajectory optimizer of thesis 7.4 on both robot models: tracking, limits, separating
+planes between the arms, the hand-pose prior, and how bad input is refused."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from services.trajopt.hand_prior import hand_pose_prior
-from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
+from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig, TrajoptInputError
 from services.world.teacher import generate_demo
 from shared.kinematics import load_robot
 
-HAND_MAP = {"index_tip": "right/8", "thumb_tip": "right/4", "middle_tip": "right/12", "wrist_point": "right/0"}
+K, DT = 20, 0.05
 
 
-def test_workcell_tracks_reachable_goals_within_limits_and_keeps_the_arms_apart():
+@pytest.fixture(scope="module")
+def workcell():
     model = load_robot("workcell")
-    opt = TrajectoryOptimizer(model, TrajoptConfig())
-    K, n = 20, len(model.joint_names)
-    q0 = np.zeros(n)
-    q0[[2, 8]] = 0.2
-    cur = np.repeat(q0[None], K, 0)
-    # the right arm's finger asked to cross far into the left arm's side: separation must hold
-    goals = np.repeat((opt.points(q0) + [[0.05, 0.05, -0.05], [0.05, 0.05, -0.05], [0.0, 0.45, 0.0]])[None], K, 0)
-    solved = 0
-    for _ in range(20):
-        r = opt.solve(cur, goals, np.ones((K, 3), bool), 0.05)
-        solved += r.ok  # a rejected solve keeps the executing trajectory (checked below)
-        assert r.ok or (np.array_equal(r.q, cur) and "violation" in r.reason)
-        cur = np.concatenate([r.q[1:], r.q[-1:]])
-    assert solved >= 16 and r.ok
-    q = r.q[-1]
+    return model, TrajectoryOptimizer(model, TrajoptConfig())
+
+
+def home(left_y: float = 0.15, right_y: float = -0.15, z: float = 0.15) -> np.ndarray:
+    """Joint vector with the carriages at world y = left_y, right_y (joints count from +-0.15)."""
+    q = np.zeros(10)
+    q[[1, 7]] = left_y - 0.15, right_y + 0.15
+    q[[2, 8]] = z
+    return q
+
+
+def run(opt, cur, goals, mask, steps):
+    results = []
+    for _ in range(steps):
+        r = opt.solve(cur, goals, mask, DT)
+        results.append(r)
+        cur = np.concatenate([r.q[1:], r.q[-1:]])  # receding horizon: shift by one knot
+    return results
+
+
+def check_limits(model, q, opt):
     assert np.all(q >= model.lower - 1e-6) and np.all(q <= model.upper + 1e-6)
-    np.testing.assert_allclose(opt.points(q)[:2], goals[-1][:2], atol=1e-3)  # reachable goals reached
-    poses = model.fk(q)
-    gap = poses["right_carriage"][1, 3] - poses["left_carriage"][1, 3]
-    assert abs(gap) >= 0.08 - 1e-3  # carriage boxes (8 cm deep) plus clearance never overlap
-    assert np.all(np.abs(np.diff(r.q, axis=0)) <= model.max_velocity * 0.05 + 1e-6)
+    act = q[:, opt.act_index]
+    vel = np.diff(act, axis=0) / DT
+    assert np.all(np.abs(vel) <= opt.vmax_a + 1e-4)
+    acc = np.diff(act, 2, axis=0) / DT ** 2
+    assert np.all(np.abs(acc) <= opt.amax_a + 1e-2)
 
 
-def test_nan_goals_are_rejected_with_a_reason_and_the_last_trajectory_kept():
-    model = load_robot("workcell")
-    opt = TrajectoryOptimizer(model, TrajoptConfig())
-    cur = np.zeros((20, len(model.joint_names)))
-    goals = np.full((20, 3, 3), np.nan)
-    r = opt.solve(cur, goals, np.ones((20, 3), bool), 0.05)
-    assert not r.ok and "NaN" in r.reason
+def test_tracks_moving_reachable_goals_within_joint_velocity_and_acceleration_limits(workcell):
+    model, opt = workcell
+    opt.reset()
+    q0 = home()
+    cur = np.repeat(q0[None], K, 0)
+    base = opt.points(q0)
+    errors = []
+    for step in range(25):
+        t = (step + np.arange(K)) * DT
+        wobble = np.stack([0.05 * np.sin(t), 0.04 * np.cos(0.7 * t), -0.03 + 0.02 * np.sin(1.3 * t)], -1)
+        goals = base[None] + wobble[:, None]
+        r = opt.solve(cur, goals, np.ones((K, 3), bool), DT)
+        assert r.ok, r.reason
+        check_limits(model, r.q, opt)
+        np.testing.assert_array_equal(r.q[:2], cur[:2])  # the fixed knots are the executing ones
+        assert np.allclose(r.q[:, 5], r.q[:, 4])  # finger_b mimics finger_a
+        errors.append(np.linalg.norm(opt.points(r.q[-1]) - goals[-1], axis=1).max())
+        cur = np.concatenate([r.q[1:], r.q[-1:]])
+    assert max(errors[5:]) < 1e-3
+
+
+def test_a_goal_step_is_followed_at_the_velocity_limit(workcell):
+    model, opt = workcell
+    opt.reset()
+    q0 = home()
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    goals[:, 2, 0] += 0.2  # right finger: 20 cm forward at once
+    r = run(opt, cur, goals, np.ones((K, 3), bool), 1)[0]
+    assert r.ok
+    check_limits(model, r.q, opt)
+    vx = np.diff(r.q[:, 6]) / DT
+    assert vx.max() == pytest.approx(0.5, abs=1e-3)  # saturates the X axis, never exceeds it
+
+
+def test_separating_planes_keep_the_arms_apart_when_goals_would_make_them_collide(workcell):
+    model, opt = workcell
+    opt.reset()
+    q0 = home(left_y=0.05)
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    goals[:, 2] = [0.0, 0.04, 0.12]  # the right finger wants the left carriage's place
+    results = run(opt, cur, goals, np.ones((K, 3), bool), 30)
+    assert all(r.ok for r in results), [r.reason for r in results if not r.ok]
+    q = results[-1].q
+    z = q[opt.cfg.fixed_knots:, opt.act_index].ravel()[opt._expand]
+    dist = opt.collision.witnesses(opt._link_poses(z), exact_below=np.inf).distance  # GJK/EPA everywhere
+    assert dist.min() >= opt.cfg.margin - 1e-3
+    poses = model.fk(q[-1])
+    gap = poses["left_carriage"][1, 3] - poses["right_carriage"][1, 3]
+    assert 0.08 + opt.cfg.margin - 1e-3 <= gap < 0.1  # pressed together, not overlapping
+    # without the pairs the same goals drive the carriages into each other
+    free = TrajectoryOptimizer(model, TrajoptConfig(collision_pairs=[]))
+    q_free = run(free, np.repeat(q0[None], K, 0), goals, np.ones((K, 3), bool), 30)[-1].q[-1]
+    poses = model.fk(q_free)
+    assert poses["left_carriage"][1, 3] - poses["right_carriage"][1, 3] < 0.08
+
+
+def test_masked_goals_are_ignored_even_when_nan(workcell):
+    _, opt = workcell
+    opt.reset()
+    q0 = home()
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    goals[:, 2] = np.nan
+    mask = np.ones((K, 3), bool)
+    mask[:, 2] = False
+    r = opt.solve(cur, goals, mask, DT)
+    assert r.ok and np.isfinite(r.q).all()
+    np.testing.assert_allclose(r.q[:, 6:], cur[:, 6:], atol=1e-3)  # nothing asks the right arm to move
+    assert opt.solve(np.zeros((K, 10)), np.repeat(opt.points(np.zeros(10))[None], K, 0), mask, DT).ok  # q=0 is safe
+
+
+@pytest.mark.parametrize("case", ["nan_goal", "nan_state", "unreachable", "bad_dt"])
+def test_bad_input_keeps_the_executing_trajectory_and_says_why(workcell, case):
+    _, opt = workcell
+    q0 = home()
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    dt = DT
+    if case == "nan_goal":
+        goals[7, 1] = np.nan
+    elif case == "nan_state":
+        cur[3, 2] = np.nan
+    elif case == "unreachable":
+        goals[10:, 0] = [0.0, 0.0, 0.6]  # above the gantry
+    else:
+        dt = 0.0
+    r = opt.solve(cur, goals, np.ones((K, 3), bool), dt)
+    assert not r.ok
+    np.testing.assert_array_equal(r.q, cur)
+    expected = {"nan_goal": ("bad_input", "left/8 at knot 7 is NaN"), "nan_state": ("bad_input", "NaN"),
+                "unreachable": ("unreachable", "left/4 -> left_tip_a at knot 10"), "bad_dt": ("bad_input", "dt")}
+    status, words = expected[case]
+    assert r.status == status and words in r.reason
+
+
+def test_an_executing_trajectory_in_collision_is_reported_infeasible(workcell):
+    _, opt = workcell
+    opt.reset()
+    q0 = home(left_y=0.0, right_y=0.0)  # carriages inside each other: no step can separate them
+    cur = np.repeat(q0[None], K, 0)
+    r = opt.solve(cur, np.repeat(opt.points(q0)[None], K, 0), np.ones((K, 3), bool), DT)
+    assert not r.ok and r.status == "infeasible" and "violated by" in r.reason
     np.testing.assert_array_equal(r.q, cur)
 
 
-def test_hand_arm_tracks_fingertips_and_the_prior_shapes_unconstrained_fingers():
+def test_wrong_shapes_raise(workcell):
+    _, opt = workcell
+    with pytest.raises(TrajoptInputError, match="shape"):
+        opt.solve(np.zeros((K, 9)), np.zeros((K, 3, 3)), np.ones((K, 3), bool), DT)
+    with pytest.raises(TrajoptInputError, match="goals"):
+        opt.solve(np.zeros((K, 10)), np.zeros((K, 2, 3)), np.ones((K, 2), bool), DT)
+
+
+@pytest.fixture(scope="module")
+def prior():
+    return hand_pose_prior([generate_demo("assembly", s) for s in (1, 2)])
+
+
+def hand_start(names):
+    q0 = np.zeros(len(names))
+    q0[names.index("shoulder_lift")], q0[names.index("elbow")] = -0.8, 1.2
+    return q0
+
+
+def test_hand_arm_tracks_wrist_and_fingertips_with_coupled_fingers(prior):
     model = load_robot("hand_arm")
-    demos = [generate_demo("assembly", s) for s in (1, 2)]
-    mean, std = hand_pose_prior(demos)
-    assert 0.0 <= mean["index_j2"] < 1.6 and std["index_j2"] >= 0.05
-    cfg = TrajoptConfig(point_map=dict(HAND_MAP), pose_mean=mean, pose_std=std, pose_weight=1e-6,
-                        sphere_radius=0.005, max_iterations=5)
-    opt = TrajectoryOptimizer(model, cfg)
-    K, n = cfg.knots, len(model.joint_names)
-    q0 = np.zeros(n)
-    q0[1], q0[2] = -1.2, 1.5
-    rng = np.random.default_rng(0)
-    target = q0 + rng.normal(0, 0.1, n) * (np.arange(n) < 6)
+    mean, std = prior
+    opt = TrajectoryOptimizer(model, TrajoptConfig(pose_mean=mean, pose_std=std, pose_weight=1e-6))
+    names = model.joint_names
+    q0 = hand_start(names)
+    target = q0.copy()
+    target[:6] += np.random.default_rng(0).normal(0, 0.1, 6)
+    for finger in ("index", "middle", "ring", "thumb"):
+        target[names.index(f"{finger}_j2")] = target[names.index(f"{finger}_j3")] = 0.6
     goals = np.repeat(opt.points(target)[None], K, 0)
-    cur = np.repeat(q0[None], K, 0)
-    for _ in range(30):
-        r = opt.solve(cur, goals, np.ones((K, len(HAND_MAP)), bool), 0.05)
-        cur = np.concatenate([r.q[1:], r.q[-1:]])
-    err = np.linalg.norm(opt.points(r.q[-1]) - goals[-1], axis=1)
-    assert err.max() < 0.01
-    ring = model.joint_names.index("ring_j1")  # no goal on the ring finger: the prior decides its pose
-    assert abs(r.q[-1][ring] - mean["ring_j1"]) < 0.05
+    results = run(opt, np.repeat(q0[None], K, 0), goals, np.ones((K, 5), bool), 40)
+    q = results[-1].q[-1]
+    assert results[-1].ok
+    assert np.linalg.norm(opt.points(q) - goals[-1], axis=1).max() < 5e-3
+    for finger in ("index", "middle", "ring", "thumb"):  # the distal joint follows the middle one
+        assert q[names.index(f"{finger}_j3")] == pytest.approx(q[names.index(f"{finger}_j2")])
+
+
+def test_hand_pose_prior_decides_fingers_without_goals(prior):
+    """Only the wrist has a goal: every finger joint settles at its prior mean (7.22); a coupled
+    pair settles at the deviation-weighted mean of both joints' priors."""
+    model = load_robot("hand_arm")
+    mean, std = prior
+    cfg = TrajoptConfig(pose_mean=mean, pose_std=std, pose_weight=1e-3,
+                        point_weights={"right/4": 0.0, "right/8": 0.0, "right/12": 0.0, "right/16": 0.0})
+    opt = TrajectoryOptimizer(model, cfg)
+    names = model.joint_names
+    q0 = hand_start(names)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    q = run(opt, np.repeat(q0[None], K, 0), goals, np.ones((K, 5), bool), 40)[-1].q[-1]
+    assert np.linalg.norm(opt.points(q)[0] - goals[-1, 0]) < 1e-3
+    for finger in ("index", "middle", "ring"):
+        j1 = names.index(f"{finger}_j1")
+        assert abs(q[j1] - mean[f"{finger}_j1"]) < 0.02
+        w2, w3 = std[f"{finger}_j2"] ** -2, std[f"{finger}_j3"] ** -2
+        expected = (w2 * mean[f"{finger}_j2"] + w3 * mean[f"{finger}_j3"]) / (w2 + w3)
+        assert abs(q[names.index(f"{finger}_j2")] - expected) < 0.02
+    assert abs(q[names.index("ring_j1")] - q0[names.index("ring_j1")]) > 0.3  # it did move there

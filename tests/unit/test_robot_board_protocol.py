@@ -1,0 +1,148 @@
+"""Robot control-board protocol: committed vectors, round trips, stream recovery, fuzzing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from shared.protocols import robot_board as rb
+from shared.protocols.framing import frame
+
+VECTOR_FILE = Path(__file__).resolve().parents[2] / "shared/protocols/vectors/robot_board.json"
+VECTORS = json.loads(VECTOR_FILE.read_text())
+FRAMES = [bytes.fromhex(c["bytes"]) for c in VECTORS]
+
+
+def test_vectors_decode_field_by_field_and_re_encode_byte_exact():
+    kinds = set()
+    for case in VECTORS:
+        data = bytes.fromhex(case["bytes"])
+        msg = rb.decode(data)
+        kind, fields = next((k, v) for k, v in case.items() if k != "bytes")
+        kinds.add(kind)
+        for name, want in fields.items():
+            got = getattr(msg, name)
+            if isinstance(got, np.ndarray):
+                assert got.tolist() == want, f"{kind}.{name}"
+            else:
+                assert got == want, f"{kind}.{name}"
+        assert rb.encode(msg) == data
+    assert kinds == {"command", "feedback", "config"}
+    assert rb.vector_cases() == VECTORS  # the committed file is what the code produces
+
+
+def test_sizes_match_the_spec():
+    n = len(rb.JOINTS)
+    assert len(rb.encode_command(rb.CommandFrame.brake(0, n))) == 9 + 5 + 21 * n
+    fb = rb.FeedbackFrame(0, 0, 0, np.zeros(n), np.zeros(n), np.zeros(n))
+    assert len(rb.encode_feedback(fb)) == 9 + 31 + 13 * n
+    assert len(rb.encode_config(rb.ConfigFrame())) == 9 + 9
+
+
+def test_joint_commands_round_trip_through_a_frame():
+    joints = [rb.JointCommand(rb.Mode.IMPEDANCE, 0.125, -0.5, 1.5, 300.0, 12.0),
+              rb.JointCommand(rb.Mode.EFFORT, 0, 0, -2.0)]
+    msg = rb.decode(rb.encode(rb.CommandFrame.from_joints(9, joints)))
+    assert [msg.joint(i) for i in range(msg.n)] == joints
+    assert msg.joint(0).mode is rb.Mode.IMPEDANCE
+
+
+def test_non_finite_setpoints_travel_unchanged_so_the_board_can_reject_them():
+    c = rb.CommandFrame.hold(1, np.array([np.nan, np.inf, -np.inf]))
+    out = rb.decode(rb.encode(c))
+    assert np.isnan(out.position[0]) and out.position[1] == np.inf and out.position[2] == -np.inf
+
+
+def test_encoder_refuses_inconsistent_messages():
+    with pytest.raises(rb.FrameError, match="shape"):
+        rb.encode_command(rb.CommandFrame(0, np.zeros(3, np.uint8), np.zeros(2), np.zeros(3), np.zeros(3),
+                                          np.zeros(3), np.zeros(3)))
+    with pytest.raises(rb.FrameError, match="together"):
+        rb.encode_config(rb.ConfigFrame(10_000, lower=np.zeros(2)))
+    with pytest.raises(rb.FrameError, match="at most"):
+        rb.encode_command(rb.CommandFrame.brake(0, rb.MAX_JOINTS + 1))
+
+
+def test_good_crc_with_a_wrong_length_is_counted_as_malformed():
+    bad = frame(rb.TYPE_COMMAND, rb.CMD_HEAD.pack(1, 3) + bytes(21 * 2))  # says 3 joints, carries 2
+    d = rb.StreamDecoder()
+    assert d.feed(bad + FRAMES[0]) and d.stats["malformed"] == 1
+    assert "expected for 3 joints" in d.last_error
+    with pytest.raises(rb.FrameError, match="expected for 3 joints"):
+        rb.decode(bad)
+
+
+def test_stream_recovers_after_garbage_and_counts_it():
+    good = rb.encode_command(rb.CommandFrame.hold(5, np.zeros(10)))
+    corrupted = bytearray(good)
+    corrupted[20] ^= 0x40
+    garbage = b"\x00\xa5\x5a\xff" + bytes(corrupted) + b"\xa5"
+    d = rb.StreamDecoder()
+    out = []
+    stream = garbage + good
+    for i in range(0, len(stream), 7):  # arbitrary read boundaries
+        out += d.feed(stream[i:i + 7])
+    assert len(out) == 1 and out[0].sequence == 5
+    assert d.stats["crc_errors"] >= 1 and d.stats["resyncs"] >= 1
+    assert d.stats["bytes_discarded"] == len(garbage)
+
+
+def test_sequence_gaps_and_lost_frames_are_counted_per_type():
+    d = rb.StreamDecoder()
+    n = 10
+    z = np.zeros(n)
+    fb = [rb.encode_feedback(rb.FeedbackFrame(s, s, 0, z, z, z)) for s in (1, 2, 5)]
+    cmds = [rb.encode_command(rb.CommandFrame.brake(s, n)) for s in (100, 101)]
+    d.feed(fb[0] + cmds[0] + fb[1] + cmds[1] + fb[2])  # interleaved types do not count as gaps
+    assert d.stats["sequence_gaps"] == 1 and d.stats["frames_lost"] == 2
+    d.feed(rb.encode_command(rb.CommandFrame.brake(0, n)))  # a host restart: one gap, no 4e9 losses
+    assert d.stats["sequence_gaps"] == 2 and d.stats["frames_lost"] == 2
+
+
+def test_sequence_wraps_without_a_gap():
+    d = rb.StreamDecoder()
+    d.feed(rb.encode(rb.CommandFrame.brake(0xFFFFFFFF, 2)) + rb.encode(rb.CommandFrame.brake(0, 2)))
+    assert d.stats["sequence_gaps"] == 0 and d.stats["frames"] == 2
+
+
+def accounted(d: rb.StreamDecoder) -> int:
+    return d.stats["frame_bytes"] + d.stats["bytes_discarded"] + len(d.frames.buffer)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.one_of(st.binary(max_size=200), st.sampled_from(FRAMES)), max_size=10),
+       st.integers(min_value=1, max_value=400))
+def test_fuzz_never_raises_and_accounts_for_every_byte(chunks, split):
+    stream = b"".join(chunks)
+    d = rb.StreamDecoder()
+    out = []
+    for i in range(0, len(stream), split):
+        out += d.feed(stream[i:i + split])
+    assert accounted(d) == len(stream)
+    assert len(out) <= sum(1 for c in chunks if c in FRAMES)  # random bytes never pass as a frame
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.binary(max_size=1500), st.sampled_from(FRAMES))
+def test_fuzz_frames_after_any_garbage_are_recovered(garbage, good):
+    d = rb.StreamDecoder()
+    out = d.feed(garbage + good * 3)  # a partial frame in the garbage may swallow at most one
+    assert len(out) >= 2 and all(rb.encode(m) == good for m in out[-2:])
+
+
+finite32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(0, 2 ** 32 - 1),
+       st.lists(st.tuples(st.sampled_from(list(rb.Mode)), finite32, finite32, finite32, finite32, finite32),
+                min_size=0, max_size=rb.MAX_JOINTS))
+def test_fuzz_any_command_round_trips(seq, rows):
+    c = rb.CommandFrame.from_joints(seq, [rb.JointCommand(*r) for r in rows])
+    out = rb.decode(rb.encode(c))
+    assert out.sequence == seq and [out.joint(i) for i in range(out.n)] == [c.joint(i) for i in range(c.n)]
