@@ -1,97 +1,346 @@
-"""Demonstrations from MCAP recordings: scene + session labels -> Demo objects (pure of Zenoh).
+"""Demonstrations -> training arrays of the chapter-7 policy (pure numpy, no I/O but the MCAP reader).
 
-Scenes are split into demonstrations by the session's demo index and resampled onto a fixed
-step. Missing keys, gaps and NaN keypoints are handled explicitly: NaN keypoints become masked,
-a gap longer than ``max_gap_s`` ends the demonstration (reported), a recording without scene or
-session messages is rejected with a message naming what is missing.
+A state has P = 42 + K keypoints (left hand 21, right hand 21, then the K object points), their
+velocities, per-point observed masks, tactile (2 hands x 6 regions) with its glove mask, and the
+reservoir activations (7.2.8). One training sample is the step t -> t+1 of a demonstration.
+
+Augmentation: left/right mirroring (y -> -y, hands swapped) of every demonstration, hand-swap
+sampling (left-grasping samples with probability 0.6, thesis 7.6.8), rotation about gravity
+(7.2.4: one angle per sample for feed-forward training, one per rollout for recurrent training).
+
+Recordings: ``demos_from_mcap`` splits the scene stream of an MCAP recording by the session's
+demonstration label; NaN keypoints become masked, gaps end a demonstration, both are reported.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from shared import msgs
-from shared.demo import Demo
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 
-SCENE = "xm/recon/main/scene"
-SESSION = "xm/world/sim/session"
+SCENE_KEY = "xm/recon/main/scene"
+SESSION_KEY = "xm/world/sim/session"
+HAND_POINTS = 2 * KEYPOINTS_PER_HAND
 
 
 class DatasetError(ValueError):
-    """A recording that cannot give demonstrations; the message says which and why."""
+    """Demonstrations that cannot be learned from; the message names the demonstration and why."""
 
 
-def demos_from_mcap(path: str | Path, dt: float = 0.02, max_gap_s: float = 0.5,
-                    min_steps: int = 20) -> tuple[list[Demo], list[str]]:
-    """Returns the demonstrations and a list of warnings (gaps, NaN masked, short demos dropped)."""
+# --- geometry ----------------------------------------------------------------------------------
+def rotate_z(x: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """Rotate vectors (..., 3) about gravity; ``angle`` broadcasts against x[..., 0]."""
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.array(x, copy=True)
+    out[..., 0] = c * x[..., 0] - s * x[..., 1]
+    out[..., 1] = s * x[..., 0] + c * x[..., 1]
+    return out
+
+
+def velocities(x: np.ndarray, dt: float) -> np.ndarray:
+    """Backward differences along axis 0, zero at the first step (what a causal observer sees)."""
+    v = np.zeros_like(x)
+    v[1:] = (x[1:] - x[:-1]) / dt
+    return v
+
+
+_SWAP = {"left": "right", "right": "left"}
+
+
+def mirror(demo: Demo) -> Demo:
+    """Left/right mirror image: y -> -y with the hands (and their tactile channels) swapped."""
+    flip = np.array([1.0, -1.0, 1.0], np.float32)
+    meta = dict(demo.meta)
+    for key in ("grasp_hand", "press_hand", "tactile_hand"):
+        if meta.get(key) in _SWAP:
+            meta[key] = _SWAP[meta[key]]
+    meta["mirrored"] = not meta.get("mirrored", False)
+    return Demo(dt=demo.dt, hands=(demo.hands[:, ::-1] * flip).astype(np.float32),
+                hand_mask=demo.hand_mask[:, ::-1].copy(), object_names=list(demo.object_names),
+                objects=(demo.objects * flip).astype(np.float32), object_mask=demo.object_mask.copy(),
+                tactile=demo.tactile[:, ::-1].copy(), tactile_mask=demo.tactile_mask[:, ::-1].copy(),
+                phase=list(demo.phase), meta=meta)
+
+
+def split_demos(demos: list[Demo], n_train: int = 3) -> tuple[list[Demo], list[Demo]]:
+    """Train/validation by demonstration: ``meta['split']`` where present, else the first n_train."""
+    if all("split" in d.meta for d in demos):
+        return ([d for d in demos if d.meta["split"] == "train"],
+                [d for d in demos if d.meta["split"] != "train"])
+    return demos[:n_train], demos[n_train:]
+
+
+# --- per-demonstration arrays ----------------------------------------------------------------
+@dataclass
+class DemoArrays:
+    """One demonstration as flat keypoint arrays (P = 42 + K points)."""
+
+    pos: np.ndarray  # (T,P,3)
+    vel: np.ndarray  # (T,P,3) backward differences; zero where either sample is unobserved
+    mask: np.ndarray  # (T,P) bool observed
+    vmask: np.ndarray  # (T,P) bool velocity valid (observed now and one step before)
+    tactile: np.ndarray  # (T,2,R)
+    tmask: np.ndarray  # (T,2,R) bool
+    left: bool  # grasping with the left hand
+    dt: float
+    name: str
+
+    @property
+    def steps(self) -> int:
+        return len(self.pos)
+
+
+def demo_arrays(demo: Demo) -> DemoArrays:
+    t = demo.steps
+    pos = np.concatenate([demo.hands.reshape(t, -1, 3), demo.objects], axis=1).astype(np.float64)
+    mask = np.concatenate([demo.hand_mask.reshape(t, -1), demo.object_mask], axis=1).astype(bool)
+    mask &= np.isfinite(pos).all(-1)
+    pos = np.nan_to_num(pos)
+    vmask = mask.copy()
+    vmask[1:] &= mask[:-1]
+    vel = velocities(pos, demo.dt) * vmask[..., None]
+    return DemoArrays(pos=pos, vel=vel, mask=mask, vmask=vmask, tactile=demo.tactile.astype(np.float64),
+                      tmask=demo.tactile_mask.astype(bool), left=demo.meta.get("grasp_hand", "left") == "left",
+                      dt=float(demo.dt), name=f"{demo.meta.get('task', '?')}#{demo.meta.get('demo', '?')}"
+                      + (" (mirrored)" if demo.meta.get("mirrored") else ""))
+
+
+def augmented(demos: list[Demo], mirrored: bool = True) -> list[Demo]:
+    """The training set copied and mirrored (7.6.8)."""
+    return list(demos) + ([mirror(d) for d in demos] if mirrored else [])
+
+
+def hand_weights(left: np.ndarray, left_probability: float = 0.6) -> np.ndarray:
+    """Sampling probabilities per sample so that left-grasping samples are drawn with
+    ``left_probability`` in total (7.6.8); falls back to uniform when one side is absent."""
+    left = np.asarray(left, bool)
+    if left.all() or not left.any():
+        return np.full(len(left), 1.0 / len(left))
+    p = np.where(left, left_probability / left.sum(), (1.0 - left_probability) / (~left).sum())
+    return p / p.sum()
+
+
+@dataclass
+class StepData:
+    """All t -> t+1 samples of a set of demonstrations, concatenated."""
+
+    pos: np.ndarray  # (N,P,3) at t
+    vel: np.ndarray  # (N,P,3) input velocity at t
+    vmask: np.ndarray  # (N,P)
+    mask: np.ndarray  # (N,P)
+    next_pos: np.ndarray  # (N,P,3) at t+1
+    next_vel: np.ndarray  # (N,P,3) target velocity (t -> t+1)
+    next_vmask: np.ndarray  # (N,P) target valid
+    next_mask: np.ndarray  # (N,P)
+    tactile: np.ndarray  # (N,2,R) at t
+    next_tactile: np.ndarray  # (N,2,R)
+    tmask: np.ndarray  # (N,2,R)
+    H: np.ndarray | None  # (3,N,size) reservoir components at t
+    next_H: np.ndarray | None  # (3,N,size) at t+1
+    prob: np.ndarray  # (N,) sampling probabilities
+    demo_index: np.ndarray  # (N,)
+    step_index: np.ndarray  # (N,)
+    dt: float
+
+    def __len__(self) -> int:
+        return len(self.pos)
+
+
+def step_data(arrays: list[DemoArrays], reservoir=None, left_probability: float = 0.6) -> StepData:
+    """Flatten demonstrations into transitions; ``reservoir`` (reservoir.Reservoir) adds H (7.2.8)."""
+    if not arrays:
+        raise DatasetError("no demonstrations to learn from")
+    dts = {round(a.dt, 9) for a in arrays}
+    if len(dts) != 1:
+        raise DatasetError(f"demonstrations have different time steps {sorted(dts)}; resample them first")
+    for a in arrays:
+        if a.steps < 3:
+            raise DatasetError(f"demonstration {a.name} has {a.steps} steps; at least 3 are needed")
+    cols: dict[str, list] = {k: [] for k in ("pos", "vel", "vmask", "mask", "next_pos", "next_vel", "next_vmask",
+                                             "next_mask", "tactile", "next_tactile", "tmask", "H", "next_H",
+                                             "left", "demo_index", "step_index")}
+    for i, a in enumerate(arrays):
+        cols["pos"].append(a.pos[:-1])
+        cols["vel"].append(a.vel[:-1])
+        cols["vmask"].append(a.vmask[:-1])
+        cols["mask"].append(a.mask[:-1])
+        cols["next_pos"].append(a.pos[1:])
+        cols["next_vel"].append(a.vel[1:])
+        cols["next_vmask"].append(a.vmask[1:])
+        cols["next_mask"].append(a.mask[1:])
+        cols["tactile"].append(a.tactile[:-1])
+        cols["next_tactile"].append(a.tactile[1:])
+        cols["tmask"].append(a.tmask[:-1] & a.tmask[1:])
+        if reservoir is not None:
+            comp = reservoir.components(a.vel, a.vmask)
+            cols["H"].append(comp[:, :-1])
+            cols["next_H"].append(comp[:, 1:])
+        cols["left"].append(np.full(a.steps - 1, a.left))
+        cols["demo_index"].append(np.full(a.steps - 1, i))
+        cols["step_index"].append(np.arange(a.steps - 1))
+    cat = {k: np.concatenate(v, axis=1 if k in ("H", "next_H") else 0) if v else None for k, v in cols.items()}
+    return StepData(pos=cat["pos"], vel=cat["vel"], vmask=cat["vmask"], mask=cat["mask"], next_pos=cat["next_pos"],
+                    next_vel=cat["next_vel"], next_vmask=cat["next_vmask"], next_mask=cat["next_mask"],
+                    tactile=cat["tactile"], next_tactile=cat["next_tactile"], tmask=cat["tmask"], H=cat["H"],
+                    next_H=cat["next_H"], prob=hand_weights(cat["left"], left_probability),
+                    demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt)
+
+
+def sample_batch(data: StepData, rng: np.random.Generator, n: int, rotate: bool = True) -> dict[str, np.ndarray]:
+    """n transitions drawn with the hand-swap probabilities, each rotated about gravity by its own
+    random angle (7.2.4, feed-forward case); reservoir activations rotated consistently."""
+    idx = rng.choice(len(data), n, p=data.prob)
+    angle = rng.uniform(0.0, 2 * np.pi, n) if rotate else np.zeros(n)
+    return batch_at(data, idx, angle)
+
+
+def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np.ndarray]:
+    """The transitions ``idx`` rotated about gravity by ``angle`` (one per transition)."""
+    a3 = angle[:, None]
+    out = {"pos": rotate_z(data.pos[idx], a3), "vel": rotate_z(data.vel[idx], a3),
+           "next_pos": rotate_z(data.next_pos[idx], a3), "next_vel": rotate_z(data.next_vel[idx], a3),
+           "vmask": data.vmask[idx], "mask": data.mask[idx], "next_vmask": data.next_vmask[idx],
+           "next_mask": data.next_mask[idx], "tactile": data.tactile[idx], "next_tactile": data.next_tactile[idx],
+           "tmask": data.tmask[idx], "angle": angle, "index": idx}
+    if data.H is not None:
+        from services.policy.reservoir import Reservoir
+
+        out["H"] = Reservoir.rotated(data.H[:, idx], angle)
+        out["next_H"] = Reservoir.rotated(data.next_H[:, idx], angle)
+    return out
+
+
+# --- recordings --------------------------------------------------------------------------------
+def demos_from_mcap(path: str | Path, dt: float = 0.02, max_gap_s: float = 0.5, min_steps: int = 20,
+                    report: list[str] | None = None) -> list[Demo]:
+    """Demonstrations of one MCAP recording (scene + session keys), resampled onto ``dt``.
+
+    NaN keypoints are masked, a gap longer than ``max_gap_s`` ends a demonstration, demonstrations
+    shorter than ``min_steps`` are dropped; each such event is appended to ``report`` with the
+    demonstration and the time. Raises DatasetError when nothing usable is in the file."""
     from rosbags.highlevel import AnyReader
 
+    from shared import msgs
+
     path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such recording")
+    report = report if report is not None else []
     scenes, sessions = [], []
-    with AnyReader([path], default_typestore=msgs.typestore()) as reader:
-        topics = {c.topic for c in reader.connections}
-        missing = [k for k in (SCENE, SESSION) if k not in topics]
-        if missing:
-            raise DatasetError(f"{path}: no messages on {missing}; record with `xm record` while the world "
-                               f"and recon run")
-        conns = [c for c in reader.connections if c.topic in (SCENE, SESSION)]
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            (scenes if conn.topic == SCENE else sessions).append((msgs.stamp_seconds(msg.header.stamp), msg))
-    sessions.sort(key=lambda s: s[0])
-    warnings: list[str] = []
+    try:
+        with AnyReader([path], default_typestore=msgs.typestore()) as reader:
+            topics = {c.topic for c in reader.connections}
+            missing = [k for k in (SCENE_KEY, SESSION_KEY) if k not in topics]
+            if missing:
+                raise DatasetError(f"{path}: no messages on {', '.join(missing)}; record while the world and "
+                                   f"recon services run")
+            conns = [c for c in reader.connections if c.topic in (SCENE_KEY, SESSION_KEY)]
+            for conn, _, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                (scenes if conn.topic == SCENE_KEY else sessions).append((msgs.stamp_seconds(msg.header.stamp), msg))
+    except DatasetError:
+        raise
+    except Exception as exc:  # rosbags raises several unrelated types for damaged files
+        raise DatasetError(f"{path}: unreadable recording ({type(exc).__name__}: {exc})") from exc
+    return demos_from_messages(scenes, sessions, dt, max_gap_s, min_steps, report, str(path))
+
+
+def demos_from_messages(scenes: list, sessions: list, dt: float = 0.02, max_gap_s: float = 0.5,
+                        min_steps: int = 20, report: list[str] | None = None, source: str = "recording"
+                        ) -> list[Demo]:
+    """Pure part of ``demos_from_mcap``: (stamp seconds, Scene) and (stamp seconds, Session) pairs."""
+    report = report if report is not None else []
+    if not scenes:
+        raise DatasetError(f"{source}: no scene messages")
+    if not sessions:
+        raise DatasetError(f"{source}: no session messages, so no demonstration labels")
+    sessions = sorted(sessions, key=lambda s: s[0])
+    stamps = np.array([s[0] for s in sessions])
     groups: dict[int, list] = {}
+    unlabeled = 0
     for t, scene in sorted(scenes, key=lambda s: s[0]):
-        label = [s for ts, s in sessions if ts <= t]
-        if not label:
+        k = int(np.searchsorted(stamps, t, side="right")) - 1
+        if k < 0:
+            unlabeled += 1
             continue
-        groups.setdefault(int(label[-1].demo), []).append((t, scene, label[-1]))
+        groups.setdefault(int(sessions[k][1].demo), []).append((t, scene, sessions[k][1]))
+    if unlabeled:
+        report.append(f"{source}: {unlabeled} scenes before the first session label ignored")
     demos = []
-    for index, items in groups.items():
-        demo = _demo(path, index, items, dt, max_gap_s, warnings)
-        if demo is None or demo.steps < min_steps:
-            warnings.append(f"{path}: demonstration {index} dropped (fewer than {min_steps} steps)")
+    for index, items in sorted(groups.items()):
+        try:
+            demo = _one_demo(source, index, items, dt, max_gap_s, report)
+        except DatasetError as exc:
+            report.append(str(exc))
+            continue
+        if demo.steps < min_steps:
+            report.append(f"{source}: demonstration {index} dropped: {demo.steps} steps < {min_steps}")
             continue
         demos.append(demo)
-    return demos, warnings
+    if not demos:
+        raise DatasetError(f"{source}: no usable demonstration ({'; '.join(report) or 'none labelled'})")
+    return demos
 
 
-def _demo(path: Path, index: int, items: list, dt: float, max_gap_s: float, warnings: list[str]) -> Demo | None:
+def _one_demo(source: str, index: int, items: list, dt: float, max_gap_s: float, report: list[str]) -> Demo:
     times = np.array([t for t, _, _ in items])
-    gaps = np.flatnonzero(np.diff(times) > max_gap_s)
-    if len(gaps):
-        cut = gaps[0] + 1
-        warnings.append(f"{path}: demonstration {index}: gap of {np.diff(times)[gaps[0]]:.2f} s at "
-                        f"t={times[gaps[0]]:.2f} s; kept the part before it")
-        items, times = items[:cut], times[:cut]
+    if len(times) > 1:
+        gaps = np.flatnonzero(np.diff(times) > max_gap_s)
+        if len(gaps):
+            g = gaps[0]
+            report.append(f"{source}: demonstration {index}: gap of {times[g + 1] - times[g]:.2f} s at "
+                          f"t={times[g] - times[0]:.2f} s; kept the part before it")
+            items, times = items[:g + 1], times[:g + 1]
     first = items[0][1]
-    n_obj = len(first.object_names)
-    hands = np.array([np.asarray(s.hand_keypoints, float).reshape(2, 21, 3) for _, s, _ in items])
-    hmask = np.array([np.asarray(s.hand_mask).reshape(2, 21) for _, s, _ in items]).astype(bool)
-    objs = np.array([np.asarray(s.object_keypoints, float).reshape(n_obj, 3) for _, s, _ in items])
-    omask = np.array([np.asarray(s.object_mask) for _, s, _ in items]).astype(bool)
-    tact = np.array([np.asarray(s.tactile, float).reshape(2, -1) if len(s.tactile) else np.zeros((2, 6))
-                     for _, s, _ in items])
-    tmask = np.array([np.asarray(s.tactile_mask).reshape(2, -1) if len(s.tactile_mask) else np.zeros((2, 6))
-                      for _, s, _ in items]).astype(bool)
-    nan_h, nan_o = ~np.isfinite(hands).all(-1), ~np.isfinite(objs).all(-1)
-    if nan_h.any() or nan_o.any():
-        first_bad = times[np.flatnonzero(nan_h.any(axis=(1, 2)) | nan_o.any(axis=1))[0]]
-        warnings.append(f"{path}: demonstration {index}: NaN keypoints from t={first_bad:.2f} s masked")
-    hmask &= ~nan_h
-    omask &= ~nan_o
-    grid = np.arange(times[0], times[-1], dt)
+    names = list(first.object_names)
+    n_obj = len(names)
+    regions = len(TACTILE_REGIONS)
+    rows = []
+    for t, s, _ in items:
+        try:
+            hands = np.asarray(s.hand_keypoints, float).reshape(len(HAND_NAMES), KEYPOINTS_PER_HAND, 3)
+            hmask = np.asarray(s.hand_mask, bool).reshape(len(HAND_NAMES), KEYPOINTS_PER_HAND)
+            if list(s.object_names) != names:
+                raise ValueError(f"object names changed to {list(s.object_names)}")
+            objs = np.asarray(s.object_keypoints, float).reshape(n_obj, 3)
+            omask = np.asarray(s.object_mask, bool).reshape(n_obj)
+            tact = (np.asarray(s.tactile, float).reshape(2, regions) if len(s.tactile) else np.zeros((2, regions)))
+            tmask = (np.asarray(s.tactile_mask, bool).reshape(2, regions) if len(s.tactile_mask)
+                     else np.zeros((2, regions), bool))
+        except ValueError as exc:
+            raise DatasetError(f"{source}: demonstration {index} rejected: malformed scene at "
+                               f"t={t - times[0]:.2f} s ({exc})") from exc
+        rows.append((hands, hmask, objs, omask, tact, tmask))
+    hands, hmask, objs, omask, tact, tmask = (np.array(c) for c in zip(*rows, strict=True))
+    bad_h, bad_o = ~np.isfinite(hands).all(-1), ~np.isfinite(objs).all(-1)
+    bad_t = ~np.isfinite(tact)
+    if bad_h.any() or bad_o.any() or bad_t.any():
+        first_bad = np.flatnonzero(bad_h.any(axis=(1, 2)) | bad_o.any(axis=1) | bad_t.any(axis=(1, 2)))[0]
+        report.append(f"{source}: demonstration {index}: NaN keypoints or tactile from t="
+                      f"{times[first_bad] - times[0]:.2f} s masked ({int(bad_h.sum() + bad_o.sum())} keypoints)")
+    hmask &= ~bad_h
+    omask &= ~bad_o
+    tmask &= ~bad_t
+    grid = np.arange(times[0], times[-1] + 1e-9, dt)
+    idx = np.clip(np.searchsorted(times, grid, side="right") - 1, 0, len(times) - 1)  # latest sample at or before
 
-    def resample(x: np.ndarray) -> np.ndarray:
-        idx = np.clip(np.searchsorted(times, grid), 0, len(times) - 1)
+    def pick(x: np.ndarray) -> np.ndarray:
         return np.nan_to_num(x[idx])
 
     label = items[-1][2]
-    return Demo(dt=dt, hands=resample(hands).astype(np.float32), hand_mask=resample(hmask).astype(np.uint8),
-                object_names=list(first.object_names), objects=resample(objs).astype(np.float32),
-                object_mask=resample(omask).astype(np.uint8), tactile=resample(tact).astype(np.float32),
-                tactile_mask=resample(tmask).astype(np.uint8), phase=[label.phase] * len(grid),
+    phases = [items[i][2].phase for i in idx]
+    return Demo(dt=dt, hands=pick(hands).astype(np.float32), hand_mask=pick(hmask).astype(np.uint8),
+                object_names=names, objects=pick(objs).astype(np.float32), object_mask=pick(omask).astype(np.uint8),
+                tactile=pick(tact).astype(np.float32), tactile_mask=pick(tmask).astype(np.uint8), phase=phases,
                 meta={"task": label.task, "demo": index, "tactile_hand": label.tactile_hand,
-                      "grasp_hand": label.tactile_hand, "source": str(path)})
+                      "grasp_hand": _grasp_hand(pick(hands), pick(objs)), "source": source})
+
+
+def _grasp_hand(hands: np.ndarray, objects: np.ndarray) -> str:
+    """The hand whose pinch point comes closest to any object point (the session does not say)."""
+    pinch = 0.5 * (hands[:, :, 4] + hands[:, :, 8])  # (T,2,3)
+    d = np.linalg.norm(pinch[:, :, None] - objects[:, None], axis=-1).min(axis=(0, 2))
+    return HAND_NAMES[int(np.argmin(d))]

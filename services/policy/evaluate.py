@@ -1,9 +1,11 @@
-"""`xm eval`: the Table 7.1 protocol on the simulated assembly task.
+"""`xm eval`: the Table 7.1 protocol (thesis 7.6.8) on the simulated assembly task.
 
-15 teacher demonstrations (3 train: two with the glove on the grasping hand, one on the pressing
-hand; 12 validation); every method is fitted on the train set and rolled out (neural or open-loop
-simulation) from each validation start state; distances as in services/policy/metrics.py.
-Writes results.json, results.md and results.png into --out.
+15 teacher demonstrations (3 train, 12 validation); every method is fitted on the train set and
+rolled out (neural simulation / open loop) from each validation start state; the rollouts are
+scored with the symmetric closest-point distance of services/policy/metrics.py, for hand and
+object keypoints, with and without the validation occlusion masks. Writes results.json,
+results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
+scale) and rollout_<method>.png (one example rollout per method) into --out.
 """
 
 from __future__ import annotations
@@ -16,110 +18,225 @@ from pathlib import Path
 
 import numpy as np
 
-from services.policy.metrics import trajectory_scores
-from services.world.teacher import assembly_protocol
+from services.policy.metrics import SCORE_KEYS, trajectory_scores
+from shared.demo import Demo
 
-METHODS = ["multimodal", "no_tactile", "single_state", "time_window", "dmp", "promp_conditional", "promp_simple",
-           "naive"]
-TABLE_ROWS = {"multimodal": "(1) Multimodal", "no_tactile": "(2) No tactile", "single_state": "(3) Single state",
-              "time_window": "(4) Time window", "dmp": "(5) DMP", "promp_conditional": "(6) Conditional ProMP",
-              "promp_simple": "(7) Simple ProMP", "naive": "(10) None (naive replay)"}
+OURS = ("multimodal", "no_tactile")
+METHODS = ("multimodal", "no_tactile", "single_state", "time_window", "dmp", "promp_conditional", "promp_simple",
+           "diffusion_unet", "diffusion_transformer", "naive")
+ROWS = {"multimodal": ("(1) Multimodal", "Yes", "Yes"), "no_tactile": ("(2) No tactile", "No", "Yes"),
+        "single_state": ("(3) Single state", "No", "No"), "time_window": ("(4) Time window", "No", "No"),
+        "dmp": ("(5) DMP", "No", "No"), "promp_conditional": ("(6) Conditional ProMP", "No", "No"),
+        "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) Diffusion U-Net", "No", "No"),
+        "diffusion_transformer": ("(9) Diffusion Transformer", "No", "No"), "naive": ("(10) None", "No", "No")}
+REFERENCE = "multimodal"
 
 
-def make_method(name: str, steps: int):
-    from services.policy.baselines import DMPBaseline, ProMPBaseline
-    from services.policy.naive import NaiveReplay
-    from services.policy.ours import PRESETS, Ours
+class EvaluationError(ValueError):
+    """Bad evaluation request (unknown method, no validation demonstrations)."""
 
-    if name in PRESETS:
+
+def make_method(name: str, quick: bool = False, seed: int = 0):
+    """A fresh unfitted method by its Table 7.1 name (rows 1-2 from services.policy.ours)."""
+    if name in OURS:
+        import dataclasses
+
+        from services.policy.ours import PRESETS, Ours
+
         cfg = PRESETS[name]
-        return Ours(type(cfg)(**{**cfg.__dict__, "steps": steps}))
-    return {"dmp": DMPBaseline, "promp_conditional": lambda: ProMPBaseline(True),
-            "promp_simple": lambda: ProMPBaseline(False), "naive": NaiveReplay}[name]()
+        if quick:
+            fields = {f.name for f in dataclasses.fields(cfg)}
+            cfg = dataclasses.replace(cfg, **{k: v for k, v in {"steps": 5, "hidden": (32, 32), "batch": 32}.items()
+                                              if k in fields})
+        return Ours(cfg)
+    from services.policy.baselines import make
+
+    return make(name, quick=quick, seed=seed)
 
 
-def evaluate(seed: int, methods: list[str], out: Path, steps: int, progress: bool = True) -> dict:
+def split(demos: list[Demo]) -> tuple[list[Demo], list[Demo]]:
+    train = [d for d in demos if d.meta.get("split") == "train"]
+    val = [d for d in demos if d.meta.get("split") == "validation"]
+    if not train or not val:
+        raise EvaluationError(f"need train and validation demos (meta['split']); got {len(train)} / {len(val)}")
+    return train, val
+
+
+def rollouts(method, val: list[Demo], progress: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One rollout per validation demo, as long as that demo. Batched when the method can."""
+    from tqdm import tqdm
+
+    if hasattr(method, "rollout_batch"):
+        outs = method.rollout_batch(val, max(d.steps for d in val))
+        return [(h[:d.steps], o[:d.steps]) for (h, o), d in zip(outs, val, strict=True)]
+    return [method.rollout(d, d.steps) for d in tqdm(val, desc=f"rollout {method.name}", disable=not progress,
+                                                     leave=False)]
+
+
+def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[str, float]:
+    """Mean over validation demos of each Table 7.1 column; raises if a rollout has a bad shape."""
+    per = []
+    for (hands, objects), demo in zip(outs, val, strict=True):
+        want_h, want_o = (demo.steps, 2, 21, 3), (demo.steps, demo.objects.shape[1], 3)
+        if hands.shape != want_h or objects.shape != want_o:
+            raise EvaluationError(f"rollout shapes {hands.shape}, {objects.shape}; expected {want_h}, {want_o}")
+        if not (np.isfinite(hands).all() and np.isfinite(objects).all()):
+            per.append({k: float("inf") for k in SCORE_KEYS})  # a diverged rollout scores infinitely bad
+            continue
+        per.append(trajectory_scores(hands, objects, demo))
+    return {k: float(np.mean([p[k] for p in per])) for k in SCORE_KEYS}
+
+
+def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[str, ...] = METHODS,
+             out_dir: str | Path = "runs/eval", quick: bool = False, progress: bool = True,
+             demos: list[Demo] | None = None) -> dict[str, dict[str, float]]:
+    """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
+
+    ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation')."""
     import torch
     from tqdm import tqdm
 
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise EvaluationError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
+    if task != "assembly":
+        raise EvaluationError(f"task {task!r}: only the assembly protocol of Table 7.1 exists")
     torch.set_num_threads(2)
-    demos = assembly_protocol(seed)
-    train = [d for d in demos if d.meta["split"] == "train"]
-    val = [d for d in demos if d.meta["split"] == "validation"]
-    results, timing, examples = {}, {}, {}
-    for name in tqdm(methods, desc="methods", disable=not progress):
-        method = make_method(name, steps)
+    if demos is None:
+        from services.world.teacher import assembly_protocol
+
+        demos = assembly_protocol(seed)
+    train, val = split(demos)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    results, timing = {}, {}
+    bar = tqdm(list(methods), desc="methods", disable=not progress)
+    for name in bar:
+        bar.set_postfix(method=name)
+        torch.manual_seed(seed)
+        method = make_method(name, quick=quick, seed=seed)
         t0 = time.perf_counter()
         method.fit(train, progress=progress)
-        fit_s = time.perf_counter() - t0
-        scores = []
-        for demo in val:
-            hands, objects = method.rollout(demo, demo.steps)
-            scores.append(trajectory_scores(hands, objects, demo))
-        examples[name] = (hands, objects, demo)
-        results[name] = {k: float(np.mean([s[k] for s in scores])) for k in scores[0]}
-        timing[name] = fit_s
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "results.md").write_text(table(results, seed, timing))
-    plot(results, examples, out / "results.png")
+        t1 = time.perf_counter()
+        outs = rollouts(method, val, progress)
+        t2 = time.perf_counter()
+        results[name] = score(outs, val)
+        timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
+        plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
+        # written after every method so that a long run leaves partial results behind
+        (out / "results.json").write_text(json.dumps(results, indent=2))
+    (out / "timing.json").write_text(json.dumps(timing, indent=2))
+    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=len(train),
+                                          n_val=len(val)))
+    plot_results(results, out / "results.png")
     return results
 
 
-def table(results: dict, seed: int, timing: dict) -> str:
-    ref = results.get("multimodal")
-    lines = [f"Table 7.1 protocol, simulated assembly task, seed {seed} (metres; lower is better)", "",
-             "| method | hand | object | hand (masked) | object (masked) | fit s |", "|---|---|---|---|---|---|"]
+def _fmt(x: float) -> str:
+    return "inf" if not np.isfinite(x) else (f"{x:.4f}" if x < 0.1 else f"{x:.3f}")
+
+
+def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool = False, n_train: int = 3,
+          n_val: int = 12) -> str:
+    """Markdown in the layout of Table 7.1, each cell with its ratio to the reference method."""
+    ref = results.get(REFERENCE)
+    lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}: {n_train} train / {n_val} validation demos"
+             + (" (--quick: tiny training budgets, numbers meaningless)" if quick else ""),
+             "", "Symmetric closest-point distance in metres (lower is better); (x) = ratio to (1) Multimodal.", "",
+             "| Method | Tactile | Memory | Hand | Object | Hand (masked) | Object (masked) | fit s | rollout s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, r in results.items():
-        cells = [f"{r[k]:.4f}" + (f" ({r[k] / ref[k]:.1f}x)" if ref and name != "multimodal" else "")
-                 for k in ("hand", "object", "hand_masked", "object_masked")]
-        lines.append(f"| {TABLE_ROWS.get(name, name)} | " + " | ".join(cells) + f" | {timing[name]:.0f} |")
+        label, tactile, memory = ROWS.get(name, (name, "?", "?"))
+        cells = []
+        for k in SCORE_KEYS:
+            ratio = f" ({r[k] / ref[k]:.2f}x)" if ref and name != REFERENCE and ref[k] > 0 and np.isfinite(r[k]) else ""
+            cells.append(_fmt(r[k]) + ratio)
+        t = (timing or {}).get(name, {})
+        lines.append(f"| {label} | {tactile} | {memory} | " + " | ".join(cells)
+                     + f" | {t.get('fit_s', float('nan')):.1f} | {t.get('rollout_s', float('nan')):.1f} |")
     return "\n".join(lines) + "\n"
 
 
-def plot(results: dict, examples: dict, path: Path) -> None:
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(14, 5))
+    return plt
+
+
+def plot_results(results: dict, path: Path) -> None:
+    plt = _pyplot()
     names = list(results)
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(names) + 2), 4.5))
     x = np.arange(len(names))
-    for i, key in enumerate(("hand", "object", "hand_masked", "object_masked")):
-        ax.bar(x + (i - 1.5) * 0.2, [results[n][key] for n in names], 0.2, label=key)
-    ax.set_xticks(x, [TABLE_ROWS.get(n, n) for n in names], rotation=30, ha="right")
+    for i, key in enumerate(SCORE_KEYS):
+        vals = [results[n][key] if np.isfinite(results[n][key]) else np.nan for n in names]
+        ax.bar(x + (i - 1.5) * 0.2, vals, 0.2, label=key.replace("_", " "))
+    ax.set_xticks(x, [ROWS.get(n, (n,))[0] for n in names], rotation=30, ha="right")
     ax.set_yscale("log")
     ax.set_ylabel("closest-point distance (m)")
-    ax.legend()
-    ax.set_title("Table 7.1 protocol (simulated assembly)")
-    for name, (hands, _objects, demo) in examples.items():
-        g = 0 if demo.meta["grasp_hand"] == "left" else 1
-        ax2.plot(hands[:, g, 8, 0], hands[:, g, 8, 1], label=name, lw=1)
-    ref = demo.hands[:, g, 8]
-    ax2.plot(ref[:, 0], ref[:, 1], "k--", lw=2, label="validation demo")
-    ax2.set_title("grasping index fingertip, last validation demo (top view)")
-    ax2.axis("equal")
-    ax2.legend(fontsize=7)
+    ax.set_title("Table 7.1 protocol (simulated assembly), lower is better")
+    ax.grid(axis="y", which="both", alpha=0.3)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
+def plot_rollout(name: str, out: tuple[np.ndarray, np.ndarray], demo: Demo, path: Path) -> None:
+    """Top view and height over time of the grasping hand's index tip and of the objects."""
+    plt = _pyplot()
+    hands, objects = out
+    g = 1 if demo.meta.get("grasp_hand") == "right" else 0
+    t_pred, t_ref = np.arange(len(hands)) * demo.dt, np.arange(demo.steps) * demo.dt
+    fig, (top, side) = plt.subplots(1, 2, figsize=(11, 4.5))
+    top.plot(demo.hands[:, g, 8, 0], demo.hands[:, g, 8, 1], "k--", lw=1.5, label="validation demo (index tip)")
+    top.plot(hands[:, g, 8, 0], hands[:, g, 8, 1], "tab:red", lw=1.2, label=f"{name} (index tip)")
+    top.plot(demo.objects[:, :, 0], demo.objects[:, :, 1], ".", color="0.6", ms=1)
+    top.plot(objects[:, :, 0], objects[:, :, 1], ".", color="tab:green", ms=1)
+    top.set_xlabel("x (m)")
+    top.set_ylabel("y (m)")
+    top.axis("equal")
+    top.legend(fontsize=7)
+    top.set_title("top view (objects: grey demo, green rollout)")
+    side.plot(t_ref, demo.hands[:, g, 8, 2], "k--", lw=1.5, label="demo index tip")
+    side.plot(t_pred, hands[:, g, 8, 2], "tab:red", lw=1.2, label="rollout index tip")
+    side.plot(t_ref, demo.objects[:, 0, 2], ":", color="0.4", label=f"demo {demo.object_names[0]}")
+    side.plot(t_pred, objects[:, 0, 2], color="tab:green", label=f"rollout {demo.object_names[0]}")
+    side.set_xlabel("time (s)")
+    side.set_ylabel("height (m)")
+    side.legend(fontsize=7)
+    side.set_title(f"{ROWS.get(name, (name,))[0]}: validation demo {demo.meta.get('demo', 0)}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="xm eval", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", default="assembly", choices=["assembly"])
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="runs/eval", help="output directory")
-    parser.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated subset of {METHODS}")
-    parser.add_argument("--steps", type=int, default=2500, help="training steps of the neural methods")
-    parser.add_argument("--quick", action="store_true", help="tiny training budget (smoke test)")
+    parser = argparse.ArgumentParser(
+        prog="xm eval", description="Table 7.1 protocol: fit every method on 3 teacher demonstrations, roll out "
+        "from 12 validation start states, score with the symmetric closest-point distance. Writes results.json, "
+        "results.md, results.png and rollout_<method>.png into --out.")
+    parser.add_argument("--task", default="assembly", choices=["assembly"],
+                        help="demonstrated task (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="teacher layout seed of the 15 demos (default %(default)s)")
+    parser.add_argument("--out", default="runs/eval", help="output directory (default %(default)s)")
+    parser.add_argument("--methods", default=",".join(METHODS),
+                        help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
+    parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    methods = [m for m in args.methods.split(",") if m]
-    unknown = sorted(set(methods) - set(METHODS))
-    if unknown:
-        print(f"error: unknown method(s) {unknown}; known: {METHODS}", file=sys.stderr)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    try:
+        evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress)
+    except EvaluationError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
-    results = evaluate(args.seed, methods, Path(args.out), 20 if args.quick else args.steps)
     print((Path(args.out) / "results.md").read_text())
-    return 0 if results else 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,321 +1,358 @@
-"""The learning method of thesis chapter 7 on one code path; variants are config switches.
+"""The learning method of thesis chapter 7 behind the common Method interface (fit / rollout).
 
-Network (7.2.1): dense 2048-512-512-512 ReLU, outputs keypoint velocities (hands and objects),
-tactile (7.2.10) and the reservoir's denoised value and rate (7.2.8). Training (7.2.2):
-exponentially scaled denoising noise on input positions, subtracted (scaled by f_n) from the
-target velocities; rotation about gravity (7.2.4); mirroring with 60/40 hand sampling (7.6.8);
-masked losses (7.2.5). Inference: the consistency constraints (7.3-7.5, 7.9-7.10) are solved as
-least squares each step (closed form: they are linear and decoupled).
-
-Variants: tactile on/off, memory (reservoir) on/off, time window (16 past samples averaged over
-8, 4, 2, 1, 1) instead of memory: the rows of Table 7.1 (1), (2), (3), (4).
+``Ours(config)`` builds ``network.PolicyNet`` from a ``PolicyConfig`` (or a preset name:
+"multimodal" = Table 7.1 row 1, "no_tactile" = row 2, "single_state" = row 3). Training samples
+(7.2.2): positions corrupted by exponentially scaled noise (7.6), the same noise times f_n
+subtracted from the target velocities (7.7); reservoir activations corrupted alike and denoised
+(7.9-7.10). Inference: one network evaluation, then the consistency solve (consistency.py).
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import asdict, dataclass
-
 import numpy as np
 import torch
-from torch import nn
 
-from services.policy import features as F
-from shared.demo import Demo
+from services.policy import dataset as D
+from services.policy.consistency import ConsistencySolver
+from services.policy.network import PAIR_SCALE, PRESETS, TACTILE_SCALE, VEL_SCALE, PolicyConfig, PolicyNet, preset
+from services.policy.reservoir import Reservoir
+from shared.demo import KEYPOINTS_PER_HAND, Demo
 
-WINDOW_SPLITS = (8, 4, 2, 1, 1)  # older -> newer, 16 samples
-MAX_SPEED = 1.0  # m/s: no keypoint of a hand or object moves faster in these tasks
-WORKSPACE_LO = np.array([-0.5, -0.5, 0.0])
-WORKSPACE_HI = np.array([0.5, 0.5, 0.6])
-
-
-@dataclass
-class PolicyConfig:
-    name: str = "multimodal"
-    tactile: bool = True
-    memory: bool = True  # recurrent denoising with reservoir activations
-    time_window: bool = False
-    denoise: bool = True
-    noise_base: float = 10.0  # b_n
-    noise_exponent: tuple[float, float] = (-3.3, -1.3)  # R_U range: 0.5 mm .. 5 cm
-    noise_gain: float = 4.0  # f_n (1/s): how fast a displacement is corrected
-    reservoir: int = 32
-    hidden: tuple[int, ...] = (2048, 512, 512, 512)
-    steps: int = 2500
-    batch: int = 256
-    lr: float = 1e-3
-    left_probability: float = 0.6  # grasping with the left (gripper) hand, 7.6.8
-    seed: int = 0
-
-
-PRESETS = {
-    "multimodal": PolicyConfig(),
-    "no_tactile": PolicyConfig(name="no_tactile", tactile=False),
-    "single_state": PolicyConfig(name="single_state", tactile=False, memory=False),
-    "time_window": PolicyConfig(name="time_window", tactile=False, memory=False, time_window=True),
-}
-
-
-class Net(nn.Module):
-    def __init__(self, n_in: int, n_out: int, hidden: tuple[int, ...]) -> None:
-        super().__init__()
-        layers, width = [], n_in
-        for h in hidden:
-            layers += [nn.Linear(width, h), nn.ReLU()]
-            width = h
-        layers.append(nn.Linear(width, n_out))
-        self.body = nn.Sequential(*layers)
-        self.register_buffer("mean", torch.zeros(n_in))
-        self.register_buffer("std", torch.ones(n_in))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.body((x - self.mean) / self.std)
+MAX_TACTILE_KPA = 500.0  # above any glove reading: bounds the tactile feedback of an untrained net
+__all__ = ["PRESETS", "Ours", "PolicyConfig", "PolicyError", "preset"]
 
 
 class PolicyError(RuntimeError):
-    """The policy produced something that must not be used (NaN), or was asked the impossible."""
+    """The policy produced something that must not be used (NaN), or was used out of order."""
+
+
+def _t(x: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
 
 
 class Ours:
-    """Method of Table 7.1 row (1) and its ablations, behind the common fit/rollout interface."""
+    """Method (1)-(3) of Table 7.1 and every ablation switch of PolicyConfig."""
 
     def __init__(self, config: PolicyConfig | str = "multimodal") -> None:
-        self.cfg = PRESETS[config] if isinstance(config, str) else config
+        self.cfg = preset(config) if isinstance(config, str) else config
         self.name = self.cfg.name
-        self.net: Net | None = None
-        self.train_seconds = 0.0
+        self.net: PolicyNet | None = None
+        self.reservoir: Reservoir | None = None
         self.losses: list[float] = []
+        self.train_seconds = 0.0
+        self.K, self.dt, self.object_names = 0, 0.02, []
+        self._infer: PolicyNet | None = None  # int8 copy for the control loop (use_int8)
 
-    # --- data ---------------------------------------------------------------------------
-    def _prepare(self, demos: list[Demo]) -> dict:
-        """Every demonstration and its mirror image, flattened into sample arrays (step t -> t+1)."""
-        cols: dict[str, list] = {k: [] for k in ("hands", "objects", "hv", "ov", "nh", "no", "hmask", "omask",
-                                                 "tactile", "ntactile", "tmask", "H", "nH", "left", "start")}
-        offset = 0
-        for demo in demos + [F.mirror(d) for d in demos]:
-            T = demo.steps
-            hv, ov = F.velocities(demo.hands, demo.dt), F.velocities(demo.objects, demo.dt)
-            cols["hands"].append(demo.hands[:-1])
-            cols["objects"].append(demo.objects[:-1])
-            cols["hv"].append(hv[:-1])
-            cols["ov"].append(ov[:-1])
-            cols["nh"].append(demo.hands[1:])
-            cols["no"].append(demo.objects[1:])
-            cols["hmask"].append(demo.hand_mask[:-1])
-            cols["omask"].append(demo.object_mask[:-1])
-            cols["tactile"].append(demo.tactile[:-1])
-            cols["ntactile"].append(demo.tactile[1:])
-            cols["tmask"].append(demo.tactile_mask[:-1])
-            if self.cfg.memory:
-                v = np.concatenate([hv.reshape(T, -1), ov.reshape(T, -1)], axis=1)
-                m = np.concatenate([np.repeat(demo.hand_mask.reshape(T, -1), 3, axis=1),
-                                    np.repeat(demo.object_mask, 3, axis=1)], axis=1)
-                H = self.reservoir.run(v * F.VEL_SCALE, m)
-                cols["H"].append(H[:-1])
-                cols["nH"].append(H[1:])
-            cols["left"].append(np.full(T - 1, demo.meta.get("grasp_hand", "left") == "left"))
-            cols["start"].append(np.full(T - 1, offset))
-            offset += T - 1
-        data = {k: np.concatenate(v) for k, v in cols.items() if v}
-        left = data["left"]
-        p = np.where(left, self.cfg.left_probability / max(left.sum(), 1),
-                     (1 - self.cfg.left_probability) / max((~left).sum(), 1))
-        data["p"] = p / p.sum()
+    # --- setup --------------------------------------------------------------------------------
+    def setup(self, train: list[Demo]) -> D.StepData:
+        """Builds the network, reservoir and statistics from the training demonstrations."""
+        if not train:
+            raise PolicyError("no training demonstrations")
+        cfg = self.cfg
+        self.K, self.dt, self.object_names = train[0].objects.shape[1], float(train[0].dt), list(train[0].object_names)
+        torch.manual_seed(cfg.seed)
+        self.net = PolicyNet(cfg, self.K)
+        P = self.net.layout.P
+        self.reservoir = Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.seed) if cfg.memory else None
+        arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
+        data = D.step_data(arrays, self.reservoir, cfg.left_probability)
+        bodies = [0] * KEYPOINTS_PER_HAND + [1] * KEYPOINTS_PER_HAND
+        groups = {}
+        for name in self.object_names:
+            bodies.append(2 + groups.setdefault(name.split("/")[0], len(groups)))
+        self.body = np.array(bodies)
+        if cfg.memory:
+            rng = np.random.default_rng(cfg.seed + 1)
+            Hs = Reservoir.rotated(data.H, rng.uniform(0, 2 * np.pi, len(data)) if cfg.rotate else 0.0)
+            nHs = Reservoir.rotated(data.next_H, 0.0)
+            self.net.H_mean.copy_(_t(Hs.mean(0)))
+            self.net.H_std.copy_(_t(Hs.std(0) + 1e-6))
+            dH = (data.next_H[0] - data.H[0]) / self.dt
+            self.net.dH_std.copy_(_t(np.sqrt((dH ** 2).mean(0)) + 1e-6))
+            starts = data.step_index == 0
+            self.net.H0.copy_(_t(Reservoir.rotated(data.H[:, starts], 0.0).mean(0)))
+            del nHs
+        rng = np.random.default_rng(cfg.seed + 2)
+        with torch.no_grad():
+            x = self.batch_inputs(self.make_batch(data, rng, 2048, noise=False))[0]
+        self.net.set_statistics(x)
         return data
 
-    def _window(self, x: np.ndarray, t: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
-        """Averages of the 16 samples before t over 8,4,2,1,1, clamped at the episode start."""
-        start = np.zeros_like(t) if start is None else start
-        parts, back = [], 16
-        for n in WINDOW_SPLITS:
-            idx = np.maximum(t[:, None] - back + np.arange(n)[None], start[:, None])
-            parts.append(x[idx].mean(axis=1))
-            back -= n
-        return np.concatenate(parts, axis=-1)
+    def solver(self) -> ConsistencySolver:
+        c = self.cfg
+        return ConsistencySolver(self.net.layout, self.dt, c.w_pair if c.pair_outputs else 0.0,
+                                 c.w_dyn if c.dynamics else 0.0, c.pair_eps)
 
-    def _batch(self, data: dict, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    # --- training samples ---------------------------------------------------------------------
+    def make_batch(self, data: D.StepData, rng: np.random.Generator, n: int, noise: bool = True) -> dict:
+        """A numpy batch with the denoising corruption (7.6-7.7) applied."""
         cfg = self.cfg
-        idx = rng.choice(len(data["p"]), n, p=data["p"])
-        hands, objects = data["hands"][idx], data["objects"][idx]
-        hv, ov = data["hv"][idx], data["ov"][idx]
-        dt = self.dt
-        thv, tov = (data["nh"][idx] - hands) / dt, (data["no"][idx] - objects) / dt
+        b = D.sample_batch(data, rng, n, cfg.rotate)
+        P = b["pos"].shape[1]
         scale = np.zeros(n)
-        if cfg.denoise:  # 7.6-7.7: one random exponent per sample, noise subtracted from the targets
+        if cfg.denoise and noise:
             scale = cfg.noise_base ** rng.uniform(*cfg.noise_exponent, n)
-            nh = rng.normal(0, 1, hands.shape) * scale[:, None, None, None]
-            no = rng.normal(0, 1, objects.shape) * scale[:, None, None] * 0.3  # objects are observed: smaller
-            hands, objects = hands + nh, objects + no
-            thv, tov = thv - nh * cfg.noise_gain, tov - no * cfg.noise_gain
-        angle = rng.uniform(0, 2 * np.pi, n)  # 7.2.4: rotation about gravity, one angle per sample
-
-        def rot(x: np.ndarray) -> np.ndarray:
-            return F.rotate_z(x, angle.reshape(n, *[1] * (x.ndim - 2)))
-
-        hands, objects, hv, ov, thv, tov = map(rot, (hands, objects, hv, ov, thv, tov))
-        x = [F.state_features(hands, objects, hv, ov)]
-        if cfg.time_window:
-            flat_h = data["hands"].reshape(len(data["hands"]), -1)
-            flat_o = data["objects"].reshape(len(data["objects"]), -1)
-            wh = self._window(flat_h, idx, data["start"][idx]).reshape(n, 5, 2, 21, 3)
-            wo = self._window(flat_o, idx, data["start"][idx]).reshape(n, 5, -1, 3)
-            x.append(self._window_features(rot_window(wh, angle), rot_window(wo, angle), hands, objects))
-        if cfg.tactile:
-            x += [data["tactile"][idx].reshape(n, -1) * F.TACTILE_SCALE, data["tmask"][idx].reshape(n, -1)]
+            bodies = rng.normal(0, 1, (n, self.body.max() + 1, 3))[:, self.body]
+            z = rng.normal(0, 1, (n, P, 3)) + cfg.rigid_noise * bodies
+            z /= np.sqrt(1 + cfg.rigid_noise ** 2)
+            z[:, 2 * KEYPOINTS_PER_HAND:] *= cfg.object_noise
+            R = z * scale[:, None, None]
+        else:
+            R = np.zeros_like(b["pos"])
+        gain = min(cfg.noise_gain, 1.0 / data.dt)
+        b["clean_pos"] = b["pos"]
+        b["pos"] = b["pos"] + R  # 7.6
+        b["target_vel"] = b["next_vel"] - R * gain  # 7.7
+        b["scale"] = scale
         if cfg.memory:
-            x.append(data["H"][idx] + rng.normal(0, 1, (n, cfg.reservoir)) * scale[:, None] * 10)
-        y = [thv.reshape(n, -1) * F.VEL_SCALE, tov.reshape(n, -1) * F.VEL_SCALE]
-        w = [np.repeat(data["hmask"][idx].reshape(n, -1), 3, axis=1), np.repeat(data["omask"][idx], 3, axis=1)]
+            Hn = (b["H"] - self.net.H_mean.numpy()) / self.net.H_std.numpy()
+            nHn = (b["next_H"] - self.net.H_mean.numpy()) / self.net.H_std.numpy()
+            b["H_clean"], b["dH"] = Hn, (b["next_H"] - b["H"]) / data.dt / self.net.dH_std.numpy()
+            b["H_in"] = Hn + rng.normal(0, 1, Hn.shape) * (scale * cfg.reservoir_noise)[:, None]
+            del nHn
+        return b
+
+    def batch_inputs(self, b: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        mask = b["mask"] if self.cfg.masks else np.ones_like(b["mask"])
+        vmask = b["vmask"] if self.cfg.masks else np.ones_like(b["vmask"])
+        return self.net.inputs(_t(b["pos"]), _t(b["vel"]), _t(mask), _t(vmask), _t(b["tactile"]),
+                               _t(b["tmask"]), _t(b["H_in"]) if "H_in" in b else None)
+
+    def loss(self, b: dict, rec: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """Masked losses of every active output for one batch (denoising targets)."""
+        cfg, net = self.cfg, self.net
+        x, _, side = self.batch_inputs(b)
+        if cfg.recurrent and rec is None:
+            rec = torch.zeros(len(x), cfg.rec_hidden)
+        out, rec_next = net(x, rec)
+        self.last = (out, rec_next)  # for the recurrent training loop
+        n, P = b["pos"].shape[:2]
+        wv = _t(np.repeat(b["next_vmask"], 3, axis=1).reshape(n, P * 3)) if cfg.masks else torch.ones(n, P * 3)
+        tv = _t(b["target_vel"].reshape(n, -1) * VEL_SCALE)
+        parts = {"vel": ((out["vel"] - tv) ** 2 * wv).sum() / wv.sum().clamp_min(1)}
+        if cfg.masks:
+            parts["mask"] = 0.1 * torch.nn.functional.binary_cross_entropy_with_logits(out["mask"], _t(b["next_mask"]))
         if cfg.tactile:
-            y.append(data["ntactile"][idx].reshape(n, -1) * F.TACTILE_SCALE)
-            w.append(data["tmask"][idx].reshape(n, -1))
+            tm = _t(b["tmask"].reshape(n, -1))
+            tt = _t(b["next_tactile"].reshape(n, -1) * TACTILE_SCALE)
+            parts["tactile"] = ((out["tactile"] - tt) ** 2 * tm).sum() / tm.sum().clamp_min(1)
+            if cfg.tactile_model:
+                now = _t(b["tactile"].reshape(n, -1) * TACTILE_SCALE)
+                parts["tactile_model"] = ((side["tactile"] - now) ** 2 * tm).sum() / tm.sum().clamp_min(1)
         if cfg.memory:
-            y += [data["H"][idx], (data["nH"][idx] - data["H"][idx]) / dt * 0.1]
-            w += [np.ones((n, cfg.reservoir)), np.ones((n, cfg.reservoir))]
-        return (np.concatenate(x, axis=1).astype(np.float32), np.concatenate(y, axis=1).astype(np.float32),
-                np.concatenate(w, axis=1).astype(np.float32))
+            parts["H"] = ((out["H"] - _t(b["H_clean"])) ** 2).mean()
+            parts["dH"] = 0.1 * ((out["dH"] - _t(b["dH"])) ** 2).mean()
+        lay = net.layout
+        if cfg.pair_outputs:
+            nxt = b["pos"] + b["target_vel"] * self.dt
+            a_now, a_next = b["pos"][:, lay.anchors], nxt[:, lay.anchors]
+            tgt = (a_next[:, lay.pair_j] - a_next[:, lay.pair_i]) - (a_now[:, lay.pair_j] - a_now[:, lay.pair_i])
+            d2 = (a_next[:, lay.pair_j] - a_next[:, lay.pair_i]) ** 2
+            w = cfg.pair_eps / (d2.sum(-1, keepdims=True) + cfg.pair_eps)  # 7.8 normalization, 1 at contact
+            am = b["next_mask"][:, lay.anchors]
+            pm = (am[:, lay.pair_j] & am[:, lay.pair_i]).astype(float)[..., None] if cfg.masks else 1.0
+            res = (out["pairs"].reshape(n, -1, 3) - _t(tgt * PAIR_SCALE)) * _t(w * pm)
+            parts["pairs"] = (res ** 2).mean() * 3
+        if cfg.dynamics:  # 7.14 on the clean input velocities
+            J = out["J"].reshape(n, self.K, 2)
+            v = b["vel"] * VEL_SCALE
+            vp = _t(v[:, lay.pinch].mean(axis=2))  # (n,2,3)
+            vo = _t(v[:, 2 * KEYPOINTS_PER_HAND:])
+            ok = b["vmask"][:, 2 * KEYPOINTS_PER_HAND:] & b["vmask"][:, lay.pinch].all(axis=(1, 2))[:, None]
+            okt = _t(ok.astype(float))[..., None]
+            parts["dyn"] = ((torch.einsum("nkh,nhd->nkd", J, vp) - vo) ** 2 * okt).sum() / okt.sum().clamp_min(1)
+            force = b["tactile"].sum(-1) * TACTILE_SCALE  # (n,2)
+            gloved = _t(b["tmask"].any(-1).astype(float))
+            inv = gloved / (_t(force) + 0.1)
+            parts["plausible"] = cfg.w_plausible * ((J * inv[:, None, :]) ** 2).mean()
+        if cfg.object_model:
+            vo_next = _t(b["next_vel"][:, 2 * KEYPOINTS_PER_HAND:].reshape(n, -1) * VEL_SCALE)
+            parts["object_model"] = ((side["objects"] - vo_next) ** 2).mean()
+        total = sum(parts.values())
+        return total, {k: float(v.detach()) for k, v in parts.items()}
 
-    def _window_features(self, wh: np.ndarray, wo: np.ndarray, hands: np.ndarray, objects: np.ndarray) -> np.ndarray:
-        """Past window averages (B,5,...) relative to the current positions (translation invariant)."""
-        b = hands.shape[0]
-        return np.concatenate([((wh - hands[:, None]) * F.POS_SCALE).reshape(b, -1),
-                               ((wo - objects[:, None]) * F.POS_SCALE).reshape(b, -1)], axis=1)
+    def sequence_loss(self, data: D.StepData, rng: np.random.Generator) -> tuple[torch.Tensor, dict[str, float]]:
+        """Recurrent training (7.2.7) on windows of the demonstrations: predicted velocities are
+        integrated and fed back as input positions, positions are reset to the demonstration at
+        random frames, recurrent feedback is reset only at the window start (the demonstration
+        start where the window begins there). One rotation angle per rollout (7.2.4). Gradients
+        flow through the recurrent branch; the integrated positions enter as data."""
+        cfg = self.cfg
+        L, n = cfg.seq_len, max(4, cfg.batch // cfg.seq_len)
+        ok = np.flatnonzero(data.step_index[:len(data) - L + 1] + L - 1
+                            == data.step_index[L - 1:len(data)][:len(data) - L + 1]
+                            ) if len(data) >= L else np.array([], int)
+        if not len(ok):
+            raise PolicyError(f"seq_len {L} is longer than every demonstration")
+        p = data.prob[ok] / data.prob[ok].sum()
+        rows = rng.choice(ok, n, p=p)[:, None] + np.arange(L)[None]  # (n, L)
+        angle = rng.uniform(0, 2 * np.pi, n) if cfg.rotate else np.zeros(n)
+        gain = min(cfg.noise_gain, 1.0 / data.dt)
+        pos_sim, vel_sim, rec, total = None, None, None, 0.0
+        parts: dict[str, float] = {}
+        for t in range(L):
+            r = rows[:, t]
+            b = D.batch_at(data, r, angle)
+            if pos_sim is None:
+                pos_sim, vel_sim = b["pos"].copy(), b["vel"].copy()
+            b["clean_pos"] = b["pos"]
+            b["target_vel"] = b["next_vel"] + (b["pos"] - pos_sim) * gain  # back onto the demonstration
+            b["pos"], b["vel"] = pos_sim, vel_sim
+            if cfg.memory:
+                Hn = (b["H"] - self.net.H_mean.numpy()) / self.net.H_std.numpy()
+                b["H_clean"] = b["H_in"] = Hn
+                b["dH"] = (b["next_H"] - b["H"]) / data.dt / self.net.dH_std.numpy()
+            loss, p_t = self.loss(b, rec)
+            total = total + loss / L
+            for k, v in p_t.items():
+                parts[k] = parts.get(k, 0.0) + v / L
+            out, rec = self.last
+            v = np.clip(out["vel"].detach().numpy().reshape(pos_sim.shape) / VEL_SCALE, -cfg.max_speed, cfg.max_speed)
+            new = pos_sim + v * data.dt
+            reset = rng.random(n) < cfg.reset_probability
+            new[reset] = b["next_pos"][reset]
+            vel_sim, pos_sim = (new - pos_sim) / data.dt, new
+        return total, parts
 
-    # --- training -----------------------------------------------------------------------
+    # --- Method interface ---------------------------------------------------------------------
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        from tqdm import tqdm
+        """Trains on ``train``; the checkpoint kept is the one whose rollouts from the training start
+        states stay closest to the training demonstrations (no validation data is used here)."""
+        from services.policy.train import fit_model
 
-        cfg = self.cfg
-        torch.manual_seed(cfg.seed)
-        rng = np.random.default_rng(cfg.seed)
-        self.K = train[0].objects.shape[1]
-        self.dt = train[0].dt
-        if cfg.memory:
-            n_v = (42 + self.K) * 3
-            self.reservoir = F.Reservoir(n_v, cfg.reservoir, seed=cfg.seed)
-        data = self._prepare(train)
-        if cfg.memory:
-            self.H0 = data["H"][np.unique(data["start"])].mean(axis=0)
-            self.H_lo, self.H_hi = data["H"].min(axis=0), data["H"].max(axis=0)
-        x0, y0, _ = self._batch(data, rng, 2048)
-        self.net = Net(x0.shape[1], y0.shape[1], cfg.hidden)
-        self.net.mean.copy_(torch.from_numpy(x0.mean(0)))
-        self.net.std.copy_(torch.from_numpy(x0.std(0) + 1e-3))
-        opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.steps)
-        t0 = time.perf_counter()
-        bar = tqdm(range(cfg.steps), desc=f"train {self.name}", disable=not progress, leave=False)
-        for _ in bar:
-            x, y, w = (torch.from_numpy(a) for a in self._batch(data, rng, cfg.batch))
-            loss = ((self.net(x) - y) ** 2 * w).sum() / w.sum()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            sched.step()
-            self.losses.append(loss.item())
-            if len(self.losses) % 50 == 0:
-                bar.set_postfix(loss=f"{np.mean(self.losses[-50:]):.4f}")
-        self.train_seconds = time.perf_counter() - t0
-        self.net.eval()
-
-    # --- inference ----------------------------------------------------------------------
-    def step(self, state: dict) -> dict:
-        """One policy step with the consistency solve: returns the next state."""
-        cfg = self.cfg
-        hands, objects = state["hands"], state["objects"]
-        x = [F.state_features(hands[None], objects[None], state["hv"][None], state["ov"][None])[0]]
-        if cfg.time_window:
-            hist_h = np.array(state["history_h"][-16:])
-            hist_o = np.array(state["history_o"][-16:])
-            t = np.array([len(hist_h) - 1])
-            wh = self._window(hist_h.reshape(len(hist_h), -1), t).reshape(1, 5, 2, 21, 3)
-            wo = self._window(hist_o.reshape(len(hist_o), -1), t).reshape(1, 5, -1, 3)
-            x.append(self._window_features(wh, wo, hands[None], objects[None])[0])
-        if cfg.tactile:
-            x += [state["tactile"].ravel() * F.TACTILE_SCALE, state["tactile_mask"].ravel()]
-        if cfg.memory:
-            x.append(state["H"])
-        with torch.no_grad():
-            out = self.net(torch.from_numpy(np.concatenate(x).astype(np.float32)[None]))[0].numpy()
-        if not np.isfinite(out).all():
-            raise PolicyError("network output contains NaN")
-        nh, no = hands.size, objects.size
-        hv = out[:nh].reshape(hands.shape) / F.VEL_SCALE
-        ov = out[nh:nh + no].reshape(objects.shape) / F.VEL_SCALE
-        k = nh + no
-        nxt = dict(state)
-        # 7.5: positions consistent with velocities; with the speed and workspace bounds the
-        # least-squares solution is the clipped integral.
-        hv, ov = np.clip(hv, -MAX_SPEED, MAX_SPEED), np.clip(ov, -MAX_SPEED, MAX_SPEED)
-        nxt["hands"] = np.clip(hands + hv * self.dt, WORKSPACE_LO, WORKSPACE_HI)
-        nxt["objects"] = np.clip(objects + ov * self.dt, WORKSPACE_LO, WORKSPACE_HI)
-        nxt["hv"], nxt["ov"] = hv, ov
-        if cfg.tactile:
-            nxt["tactile"] = np.clip(out[k:k + 12].reshape(2, 6) / F.TACTILE_SCALE, 0, None)
-            k += 12
-        if cfg.memory:
-            h_pred, dh = out[k:k + cfg.reservoir], out[k + cfg.reservoir:k + 2 * cfg.reservoir] / 0.1
-            # 7.9 + 7.10 in least squares: H_t = argmin |H - H_P|^2 + |H - H_{t-1} - dH dt|^2
-            # bounded to the range seen in training (the activations of a linear reservoir driven by
-            # demonstration speeds never leave it)
-            nxt["H"] = np.clip(0.5 * (h_pred + state["H"] + dh * self.dt), self.H_lo, self.H_hi)
-        if cfg.time_window:
-            nxt["history_h"] = state["history_h"] + [nxt["hands"]]
-            nxt["history_o"] = state["history_o"] + [nxt["objects"]]
-        return nxt
+        fit_model(self, train, None, progress=progress)
 
     def initial_state(self, start: Demo) -> dict:
-        state = {"hands": start.hands[0].astype(float), "objects": start.objects[0].astype(float),
-                 "hv": np.zeros((2, 21, 3)), "ov": np.zeros_like(start.objects[0], float),
-                 "tactile": start.tactile[0].astype(float), "tactile_mask": start.tactile_mask[0].astype(float)}
+        if not np.isfinite(start.hands[0]).all() or not np.isfinite(start.objects[0]).all():
+            raise PolicyError(f"start state of {start.meta.get('demo', '?')} has NaN keypoints")
+        if start.objects.shape[1] != self.K:
+            raise PolicyError(f"start state has {start.objects.shape[1]} object points; trained with {self.K}")
+        pos = np.concatenate([start.hands[0].reshape(-1, 3), start.objects[0]]).astype(np.float64)
+        mask = np.concatenate([start.hand_mask[0].reshape(-1), start.object_mask[0]]).astype(bool)
+        state = {"pos": pos, "vel": np.zeros_like(pos), "mask": mask if self.cfg.masks else np.ones_like(mask),
+                 "tactile": start.tactile[0].astype(np.float64), "tmask": start.tactile_mask[0].astype(bool)}
         if self.cfg.memory:
-            state["H"] = self.H0.copy()
-        if self.cfg.time_window:
-            state["history_h"] = [state["hands"]]
-            state["history_o"] = [state["objects"]]
+            state["H"] = ((self.net.H0 - self.net.H_mean) / self.net.H_std).numpy().astype(np.float64)
+        if self.cfg.recurrent:
+            state["rec"] = np.zeros(self.cfg.rec_hidden)
         return state
+
+    def use_int8(self, enabled: bool = True) -> None:
+        """Inference through a dynamically int8-quantized copy of the dense layers: at batch size one
+        the float weights (17 MB) do not fit the cache, the int8 ones do. Training is unaffected."""
+        if not enabled:
+            self._infer = None
+            return
+        import copy
+        import warnings
+
+        from torch.ao.quantization import quantize_dynamic
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self._infer = quantize_dynamic(copy.deepcopy(self.net).eval(), {torch.nn.Linear}, dtype=torch.qint8)
+
+    def network_outputs(self, state: dict) -> dict[str, np.ndarray]:
+        """The plain forward pass of one state (no consistency solve)."""
+        s = state
+        net = self._infer if self._infer is not None else self.net
+        with torch.inference_mode():
+            vm = s["mask"].astype(np.float32) if self.cfg.masks else np.ones(len(s["mask"]), np.float32)
+            x, _, _ = net.inputs(_t(s["pos"][None]), _t(s["vel"][None]), _t(vm[None]), _t(vm[None]),
+                                 _t(s["tactile"][None]), _t(s["tmask"][None].astype(np.float32)),
+                                 _t(s["H"][None]) if self.cfg.memory else None)
+            out, rec = net(x, _t(s["rec"][None]) if self.cfg.recurrent else None)
+        res = {k: v[0].numpy().astype(np.float64) for k, v in out.items()}
+        if rec is not None:
+            res["rec"] = rec[0].numpy().astype(np.float64)
+        return res
+
+    def step(self, state: dict, solver: ConsistencySolver | None = None,
+             observed_objects: np.ndarray | None = None) -> dict:
+        """One policy step with the consistency solve; returns the next state. ``observed_objects``
+        (K,3), where given, replace the predicted object points (live-driven neural simulation)."""
+        cfg = self.cfg
+        solver = solver or self.solver()
+        out = self.network_outputs(state)
+        if not all(np.isfinite(v).all() for v in out.values()):
+            raise PolicyError("network output contains NaN or inf")
+        P = len(state["pos"])
+        v = np.clip(out["vel"].reshape(P, 3) / VEL_SCALE, -cfg.max_speed, cfg.max_speed)
+        J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
+        v = np.clip(solver.velocities(v[:2 * KEYPOINTS_PER_HAND], v[2 * KEYPOINTS_PER_HAND:], J),
+                    -cfg.max_speed, cfg.max_speed)
+        pairs, pmask = None, None
+        if cfg.pair_outputs:
+            lay = self.net.layout
+            a = state["pos"][lay.anchors]
+            change = np.clip(out["pairs"].reshape(-1, 3) / PAIR_SCALE, -2 * cfg.max_speed * self.dt,
+                             2 * cfg.max_speed * self.dt)  # two points approach at most at twice max speed
+            pairs = a[lay.pair_j] - a[lay.pair_i] + change
+            if cfg.masks:
+                am = state["mask"][lay.anchors]
+                pmask = (am[lay.pair_j] & am[lay.pair_i]).astype(float)
+        pos = solver.positions(state["pos"], v, pairs, pmask)
+        if observed_objects is not None:
+            pos[2 * KEYPOINTS_PER_HAND:] = observed_objects
+        nxt = dict(state)
+        nxt["vel"] = (pos - state["pos"]) / self.dt
+        nxt["pos"] = pos
+        if cfg.masks:
+            nxt["mask"] = out["mask"] > 0.0
+        if cfg.tactile:
+            nxt["tactile"] = np.clip(out["tactile"].reshape(2, -1) / TACTILE_SCALE, 0.0, MAX_TACTILE_KPA)
+        if cfg.memory:
+            Hp = out["H"]
+            dH = out["dH"] * self.net.dH_std.numpy() / self.net.H_std.numpy()
+            # bounded to +-5 training standard deviations: a linear reservoir driven by demonstration
+            # speeds never leaves that range, and an untrained net must not run away through it
+            nxt["H"] = np.clip(solver.memory(Hp, state["H"], dH, self.dt), -5.0, 5.0)
+        if cfg.recurrent:
+            nxt["rec"] = out["rec"]
+        if not np.isfinite(pos).all():
+            raise PolicyError("consistency solve produced NaN positions")
+        return nxt
 
     def rollout(self, start: Demo, steps: int) -> tuple[np.ndarray, np.ndarray]:
         if self.net is None:
             raise PolicyError("fit() or load() first")
+        self.net.eval()
+        solver = self.solver()
         state = self.initial_state(start)
-        hands, objects = [state["hands"]], [state["objects"]]
-        for _ in range(steps - 1):
-            state = self.step(state)
-            hands.append(state["hands"])
-            objects.append(state["objects"])
-        return np.array(hands), np.array(objects)
+        out = np.empty((steps, len(state["pos"]), 3))
+        out[0] = state["pos"]
+        for t in range(1, steps):
+            state = self.step(state, solver)
+            out[t] = state["pos"]
+        n = 2 * KEYPOINTS_PER_HAND
+        return out[:, :n].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), out[:, n:]
 
-    # --- checkpoints --------------------------------------------------------------------
+    # --- checkpoints (state_dict + JSON config; torch.load(weights_only=True)) -----------------
+    def state(self) -> dict:
+        meta = {"K": self.K, "dt": self.dt, "object_names": self.object_names, "config": self.cfg.to_json()}
+        tensors = dict(self.net.state_dict())
+        if self.reservoir is not None:
+            tensors["reservoir.W_R"] = torch.from_numpy(self.reservoir.W_R)
+            tensors["reservoir.W_I"] = torch.from_numpy(self.reservoir.W_I)
+        return {"meta": meta, "state_dict": tensors}
+
     def save(self, path: str) -> None:
-        extra = {"K": self.K, "dt": self.dt}
-        tensors = {"net": self.net.state_dict()}
+        torch.save(self.state(), path)
+
+    @classmethod
+    def from_state(cls, ckpt: dict) -> Ours:
+        meta = ckpt["meta"]
+        self = cls(PolicyConfig.from_json(meta["config"]))
+        self.K, self.dt, self.object_names = int(meta["K"]), float(meta["dt"]), list(meta["object_names"])
+        self.net = PolicyNet(self.cfg, self.K)
+        sd = dict(ckpt["state_dict"])
         if self.cfg.memory:
-            tensors["reservoir"] = {"W_R": torch.from_numpy(self.reservoir.W_R),
-                                    "W_I": torch.from_numpy(self.reservoir.W_I), "H0": torch.from_numpy(self.H0),
-                                    "H_lo": torch.from_numpy(self.H_lo), "H_hi": torch.from_numpy(self.H_hi)}
-        torch.save({"config": asdict(self.cfg), "extra": extra, "tensors": tensors}, path)
+            self.reservoir = Reservoir.from_arrays(sd.pop("reservoir.W_R").numpy(), sd.pop("reservoir.W_I").numpy())
+        self.net.load_state_dict(sd)
+        self.net.eval()
+        return self
 
     @classmethod
     def load(cls, path: str) -> Ours:
-        ckpt = torch.load(path, weights_only=True)
-        cfg = dict(ckpt["config"])
-        cfg["hidden"], cfg["noise_exponent"] = tuple(cfg["hidden"]), tuple(cfg["noise_exponent"])
-        self = cls(PolicyConfig(**cfg))
-        self.K, self.dt = ckpt["extra"]["K"], ckpt["extra"]["dt"]
-        state = ckpt["tensors"]["net"]
-        self.net = Net(state["mean"].shape[0], state["body." + str(2 * len(self.cfg.hidden)) + ".weight"].shape[0],
-                       self.cfg.hidden)
-        self.net.load_state_dict(state)
-        self.net.eval()
-        if self.cfg.memory:
-            r = ckpt["tensors"]["reservoir"]
-            self.reservoir = F.Reservoir(r["W_I"].shape[1], self.cfg.reservoir)
-            self.reservoir.W_R, self.reservoir.W_I = r["W_R"].numpy(), r["W_I"].numpy()
-            self.H0, self.H_lo, self.H_hi = r["H0"].numpy(), r["H_lo"].numpy(), r["H_hi"].numpy()
-        return self
+        return cls.from_state(torch.load(path, weights_only=True))
 
-
-def rot_window(w: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotate window averages (B,5,...,3) by per-sample angles."""
-    return F.rotate_z(w, angle.reshape(len(angle), *[1] * (w.ndim - 2)))

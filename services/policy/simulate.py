@@ -1,37 +1,209 @@
-"""`xm simulate`: neural simulation of a trained policy from a start state (recursive rollout)."""
+"""Neural simulation (recursive rollout, thesis 7.6.1/7.6.8) and the runner the policy service uses;
+`xm simulate` writes a rollout and its plot.
+
+``simulate``: positions fed back as inputs step after step; with ``observed_objects`` the object
+points come from observation instead of the model (the interactive mode of 7.6.1).
+``PolicyRunner``: holds the latest observed scene, advances the memory each observation, gives the
+next positions (``step``) or a horizon rollout for the trajectory optimizer (``horizon``); never
+returns NaN: it raises ``PolicyInputError`` for unusable observations and ``PolicyError`` when the
+network itself produces NaN. The predicted tactile of the last step is exposed as ``efforts``
+(7.2.10: added to the robot's control efforts).
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from services.policy.ours import Ours, PolicyError
+from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
+
+HAND_POINTS = 2 * KEYPOINTS_PER_HAND
+
+
+class PolicyInputError(ValueError):
+    """An observation the policy cannot use (NaN in observed points, wrong shapes)."""
+
+
+@dataclass
+class Rollout:
+    hands: np.ndarray  # (T,2,21,3)
+    objects: np.ndarray  # (T,K,3)
+    tactile: np.ndarray  # (T,2,R) predicted (zeros without the tactile modality)
+    memory: np.ndarray  # (T,size) reservoir activations (empty without memory)
+
+
+@dataclass
+class SceneObs:
+    """One observed scene (what recon publishes), in arrays."""
+
+    hands: np.ndarray  # (2,21,3)
+    hand_mask: np.ndarray  # (2,21)
+    objects: np.ndarray  # (K,3)
+    object_mask: np.ndarray  # (K,)
+    tactile: np.ndarray | None = None  # (2,R) kPa
+    tactile_mask: np.ndarray | None = None  # (2,R)
+
+    @classmethod
+    def from_msg(cls, msg) -> SceneObs:
+        n_obj = len(msg.object_names)
+        tact = np.asarray(msg.tactile, float)
+        tmask = np.asarray(msg.tactile_mask, bool)
+        return cls(np.asarray(msg.hand_keypoints, float).reshape(2, KEYPOINTS_PER_HAND, 3),
+                   np.asarray(msg.hand_mask, bool).reshape(2, KEYPOINTS_PER_HAND),
+                   np.asarray(msg.object_keypoints, float).reshape(n_obj, 3), np.asarray(msg.object_mask, bool),
+                   tact.reshape(2, -1) if tact.size else None, tmask.reshape(2, -1) if tmask.size else None)
+
+
+def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects: np.ndarray | None = None) -> Rollout:
+    """Recursive neural simulation for ``steps`` samples (the first is the start state)."""
+    if model.net is None:
+        raise PolicyError("the model is not trained or loaded")
+    model.net.eval()
+    state = model.initial_state(start_state) if isinstance(start_state, Demo) else dict(start_state)
+    if observed_objects is not None:
+        observed_objects = np.asarray(observed_objects, float)
+        if observed_objects.shape[1:] != (model.K, 3) or len(observed_objects) < steps:
+            raise PolicyInputError(f"observed_objects must be ({steps},{model.K},3), got {observed_objects.shape}")
+        if not np.isfinite(observed_objects[:steps]).all():
+            raise PolicyInputError("observed_objects contains NaN")
+    solver = model.solver()
+    P = len(state["pos"])
+    pos = np.empty((steps, P, 3))
+    tact = np.zeros((steps, 2, len(TACTILE_REGIONS)))
+    mem = np.zeros((steps, len(state.get("H", []))))
+    pos[0], tact[0] = state["pos"], state["tactile"]
+    if "H" in state:
+        mem[0] = state["H"]
+    for t in range(1, steps):
+        state = model.step(state, solver, None if observed_objects is None else observed_objects[t])
+        pos[t], tact[t] = state["pos"], state["tactile"]
+        if "H" in state:
+            mem[t] = state["H"]
+    return Rollout(pos[:, :HAND_POINTS].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), pos[:, HAND_POINTS:], tact, mem)
+
+
+class PolicyRunner:
+    """The policy as the service runs it: observations in, next positions and horizons out."""
+
+    def __init__(self, model: Ours) -> None:
+        if model.net is None:
+            raise PolicyError("the model is not trained or loaded")
+        self.model = model
+        self.model.net.eval()
+        self.solver = model.solver()
+        self.state: dict | None = None
+        self.efforts = np.zeros((2, len(TACTILE_REGIONS)))  # predicted tactile, kPa (7.2.10)
+        self.scene: SceneObs | None = None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> PolicyRunner:
+        return cls(Ours.load(str(path)))
+
+    def reset(self) -> None:
+        self.state = None
+
+    def observe(self, scene: SceneObs) -> dict:
+        """Merges an observation into the running state (occluded or NaN points keep their prediction)."""
+        m = self.model
+        if scene.objects.shape != (m.K, 3) or scene.hands.shape != (2, KEYPOINTS_PER_HAND, 3):
+            raise PolicyInputError(f"scene has hands {scene.hands.shape} and objects {scene.objects.shape}; "
+                                   f"the policy was trained with (2,21,3) and ({m.K},3)")
+        pos = np.concatenate([scene.hands.reshape(-1, 3), scene.objects]).astype(float)
+        mask = np.concatenate([np.asarray(scene.hand_mask, bool).ravel(), np.asarray(scene.object_mask, bool)])
+        finite = np.isfinite(pos).all(-1)
+        mask &= finite
+        if self.state is None:
+            if not finite.all():
+                raise PolicyInputError(f"first scene has NaN keypoints at {np.flatnonzero(~finite).tolist()}; "
+                                       f"cannot start from it")
+            start = {"pos": pos, "vel": np.zeros_like(pos), "mask": mask if m.cfg.masks else np.ones_like(mask),
+                     "tactile": np.zeros((2, len(TACTILE_REGIONS))), "tmask": np.zeros((2, len(TACTILE_REGIONS)), bool)}
+            if m.cfg.memory:
+                start["H"] = ((m.net.H0 - m.net.H_mean) / m.net.H_std).numpy().astype(float)
+            if m.cfg.recurrent:
+                start["rec"] = np.zeros(m.cfg.rec_hidden)
+            self.state = start
+        else:
+            prev = self.state["pos"]
+            merged = np.where(mask[:, None], pos, prev)
+            self.state = dict(self.state, pos=merged, vel=(merged - prev) / m.dt,
+                              mask=mask if m.cfg.masks else np.ones_like(mask))
+        if scene.tactile is not None and scene.tactile_mask is not None:
+            t, tm = np.asarray(scene.tactile, float), np.asarray(scene.tactile_mask, bool)
+            tm &= np.isfinite(t)
+            self.state["tactile"] = np.where(tm, np.nan_to_num(t), self.state["tactile"])
+            self.state["tmask"] = tm
+        self.scene = scene
+        return self.state
+
+    def step(self, scene_obs: SceneObs) -> np.ndarray:
+        """Observe, then one policy step: next positions (P,3) of hands then objects. The memory
+        advances with the step, so call it once per observation."""
+        state = self.observe(scene_obs)
+        nxt = self.model.step(state, self.solver)
+        self._check(nxt["pos"])
+        self.state = dict(state, H=nxt["H"]) if "H" in nxt else state
+        if "rec" in nxt:
+            self.state["rec"] = nxt["rec"]
+        self.efforts = nxt["tactile"]
+        return nxt["pos"]
+
+    def horizon(self, scene_obs: SceneObs | None, steps: int) -> np.ndarray:
+        """Rollout of ``steps`` samples from the latest observation (steps, P, 3); the running
+        memory is not advanced by the look-ahead."""
+        if scene_obs is not None:
+            self.observe(scene_obs)
+        if self.state is None:
+            raise PolicyInputError("no scene observed yet")
+        state = dict(self.state)
+        out = np.empty((steps, len(state["pos"]), 3))
+        for t in range(steps):
+            state = self.model.step(state, self.solver)
+            out[t] = state["pos"]
+        self._check(out)
+        return out
+
+    @staticmethod
+    def _check(x: np.ndarray) -> None:
+        if not np.isfinite(x).all():
+            raise PolicyError("policy output contains NaN")
+
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="xm simulate", description="Roll a trained policy out from the start "
-                                     "state of a teacher demonstration; writes the rollout (.npz) and a plot.")
+    parser = argparse.ArgumentParser(prog="xm simulate", description="Neural simulation of a trained policy from "
+                                     "the start state of a teacher demonstration; writes rollout.npz and rollout.png.")
     parser.add_argument("checkpoint", help="policy.pt written by xm train")
     parser.add_argument("--seed", type=int, default=1234, help="layout seed of the start state")
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--out", default="runs/simulate")
     args = parser.parse_args(argv)
     if not Path(args.checkpoint).exists():
-        print(f"error: {args.checkpoint} not found (train one with `xm train --teacher 3`)", file=sys.stderr)
+        print(f"error: {args.checkpoint} not found (train one with `xm train --teacher 0`)", file=sys.stderr)
         return 2
+    import torch
+
     from services.policy.metrics import trajectory_scores
-    from services.policy.ours import Ours
     from services.world.teacher import generate_demo
 
-    method = Ours.load(args.checkpoint)
+    torch.set_num_threads(2)
+    model = Ours.load(args.checkpoint)
     start = generate_demo("assembly", args.seed)
-    steps = int(args.seconds / method.dt)
-    hands, objects = method.rollout(start, steps)
+    steps = int(round(args.seconds / model.dt))
+    try:
+        roll = simulate(model, start, steps)
+    except (PolicyError, PolicyInputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out / "rollout.npz", hands=hands, objects=objects, object_names=start.object_names)
-    scores = trajectory_scores(hands, objects, start)
+    np.savez_compressed(out / "rollout.npz", hands=roll.hands, objects=roll.objects, tactile=roll.tactile,
+                        memory=roll.memory, object_names=np.array(start.object_names))
+    scores = trajectory_scores(roll.hands, roll.objects, start)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -39,13 +211,14 @@ def main(argv: list[str] | None = None) -> int:
 
     fig, ax = plt.subplots(figsize=(6, 6))
     for h, color in ((0, "tab:red"), (1, "tab:blue")):
-        ax.plot(hands[:, h, 8, 0], hands[:, h, 8, 1], color=color, label=f"{('left', 'right')[h]} index (policy)")
+        ax.plot(roll.hands[:, h, 8, 0], roll.hands[:, h, 8, 1], color=color, label=f"{('left', 'right')[h]} index")
         ax.plot(start.hands[:, h, 8, 0], start.hands[:, h, 8, 1], "--", color=color, alpha=0.5, label="teacher")
-    ax.plot(objects[:, :, 0], objects[:, :, 1], "g.", ms=1)
+    ax.plot(roll.objects[:, :, 0], roll.objects[:, :, 1], "g.", ms=1)
     ax.axis("equal")
     ax.legend(fontsize=7)
-    ax.set_title(f"neural simulation: hand {scores['hand'] * 1e3:.0f} mm, object {scores['object'] * 1e3:.0f} mm")
+    ax.set_title(f"neural simulation: hand {scores['hand'] * 1e3:.1f} mm, object {scores['object'] * 1e3:.1f} mm")
     fig.savefig(out / "rollout.png", dpi=110)
+    plt.close(fig)
     print(f"wrote {out / 'rollout.npz'} and {out / 'rollout.png'}; distance to the teacher: "
           f"hand {scores['hand'] * 1e3:.1f} mm, object {scores['object'] * 1e3:.1f} mm")
     return 0

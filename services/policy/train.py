@@ -1,83 +1,201 @@
-"""`xm train`: fit the chapter-7 policy from recordings (or from teacher demonstrations)."""
+"""Training of the chapter-7 policy, and `xm train`.
+
+``train(config, train_demos, val_demos, out_dir)``: Adam with a cosine schedule, a tqdm bar, every
+``eval_every`` steps a neural-simulation rollout from each validation start state scored with the
+Table 7.1 distance; the best checkpoint (state_dict + JSON config, loads with
+``torch.load(weights_only=True)``) is kept, with a loss-curve PNG and train.json.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from shared.demo import Demo
 
 
-def main(argv: list[str] | None = None) -> int:
-    from services.policy.ours import PRESETS
+@dataclass
+class TrainResult:
+    checkpoint: Path | None  # best weights (None when no out_dir)
+    best_step: int
+    best_score: float  # mean hand + object distance (m) of the selection rollouts
+    seconds: float  # wall time of the whole training
+    seconds_to_best: float  # wall time until the best checkpoint was reached
+    losses: list[float] = field(default_factory=list)
+    evals: list[dict] = field(default_factory=list)
 
-    parser = argparse.ArgumentParser(prog="xm train", description="Train the denoising keypoint policy of thesis "
-                                     "chapter 7 and write a checkpoint (torch.load(weights_only=True)).")
-    parser.add_argument("recordings", nargs="*", help="MCAP recordings (scene + session keys)")
-    parser.add_argument("--teacher", type=int, default=0, metavar="N",
-                        help="instead: N scripted teacher demonstrations of the assembly task")
-    parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
-    parser.add_argument("--steps", type=int, default=2500, help="optimizer steps")
-    parser.add_argument("--out", default="runs/policy", help="output directory")
-    args = parser.parse_args(argv)
-    demos = []
-    if args.recordings:
-        from services.policy.dataset import DatasetError, demos_from_mcap
 
-        for rec in args.recordings:
-            if not Path(rec).exists():
-                print(f"error: {rec} not found", file=sys.stderr)
-                return 2
+def selection_score(method, demos: list[Demo]) -> dict[str, float]:
+    """Mean Table 7.1 distances of rollouts from the demos' start states (training mode left off)."""
+    from services.policy.metrics import trajectory_scores
+
+    scores = []
+    for d in demos:
+        hands, objects = method.rollout(d, d.steps)
+        scores.append(trajectory_scores(hands, objects, d))
+    res = {k: float(np.mean([s[k] for s in scores])) for k in ("hand", "object")}
+    res["score"] = res["hand"] + res["object"]
+    return res
+
+
+def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, progress: bool = True,
+              out_dir: Path | None = None) -> TrainResult:
+    """Trains ``method`` (an ours.Ours) in place; leaves it holding the best weights."""
+    from tqdm import tqdm
+
+    from services.policy.ours import PolicyError
+
+    cfg = method.cfg
+    t0 = time.perf_counter()
+    data = method.setup(train_demos)
+    net = method.net
+    rng = np.random.default_rng(cfg.seed)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    warm = max(1, cfg.steps // 20)
+
+    def schedule(s: int) -> float:  # linear warm-up, cosine decay to 2 %
+        return min(1.0, (s + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(s, cfg.steps) / cfg.steps)))
+
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
+    select = val_demos if val_demos else train_demos
+    best = {"score": np.inf, "step": 0, "state": None, "t": 0.0}
+    evals: list[dict] = []
+    bar = tqdm(range(1, cfg.steps + 1), desc=f"train {cfg.name}", disable=not progress, leave=False)
+    for step in bar:
+        net.train()
+        if cfg.recurrent:  # 7.2.7: trajectories with integrated positions and resets
+            loss, _ = method.sequence_loss(data, rng)
+        else:
+            loss, _ = method.loss(method.make_batch(data, rng, cfg.batch))
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        opt.step()
+        sched.step()
+        method.losses.append(loss.item())
+        if not np.isfinite(method.losses[-1]):
+            raise PolicyError(f"training loss became {method.losses[-1]} at step {step}")
+        if step % 50 == 0:
+            bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            net.eval()
             try:
-                found, warnings = demos_from_mcap(rec)
-            except DatasetError as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                return 2
-            for w in warnings:
-                print(f"warning: {w}", file=sys.stderr)
-            demos += found
-    elif args.teacher:
-        from services.world.teacher import generate_demo
+                sc = selection_score(method, select)
+            except PolicyError:
+                sc = {"hand": np.inf, "object": np.inf, "score": np.inf}
+            sc["step"], sc["seconds"] = step, time.perf_counter() - t0
+            evals.append(sc)
+            if sc["score"] < best["score"]:
+                best = {"score": sc["score"], "step": step, "t": sc["seconds"],
+                        "state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
+            if progress:
+                bar.write(f"step {step}: rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
+    if best["state"] is not None:
+        net.load_state_dict(best["state"])
+    net.eval()
+    seconds = time.perf_counter() - t0
+    method.train_seconds = seconds
+    result = TrainResult(None, best["step"], float(best["score"]), seconds, best["t"], list(method.losses), evals)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        result.checkpoint = out_dir / "policy.pt"
+        method.save(str(result.checkpoint))
+        (out_dir / "config.json").write_text(cfg.to_json())
+        (out_dir / "train.json").write_text(json.dumps(
+            {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(select),
+             "best_step": best["step"], "best_score_m": result.best_score, "seconds": seconds,
+             "seconds_to_best": best["t"], "evals": evals}, indent=2, default=float))
+        plot_losses(np.array(method.losses), evals, out_dir / "loss.png")
+    return result
 
-        demos = [generate_demo("assembly", 9000 + i, index=i) for i in range(args.teacher)]
-    if not demos:
-        print("error: no demonstrations: give recordings or --teacher N", file=sys.stderr)
-        return 2
-    import torch
 
+def train(config, train_demos: list[Demo], val_demos: list[Demo] | None, out_dir: str | Path | None,
+          progress: bool = True) -> TrainResult:
+    """Trains a fresh policy (config: PolicyConfig or preset name) with best-on-validation selection."""
     from services.policy.ours import Ours
 
-    torch.set_num_threads(2)
-    cfg = PRESETS[args.preset]
-    method = Ours(type(cfg)(**{**cfg.__dict__, "steps": args.steps}))
-    method.fit(demos, progress=True)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    method.save(str(out / "policy.pt"))
-    losses = np.array(method.losses)
-    (out / "train.json").write_text(json.dumps({"demos": len(demos), "steps": args.steps, "preset": args.preset,
-                                                "seconds": method.train_seconds,
-                                                "final_loss": float(losses[-100:].mean())}, indent=2))
-    _plot_losses(losses, out / "loss.png")
-    print(f"wrote {out / 'policy.pt'} ({len(demos)} demonstrations, {method.train_seconds:.0f} s); "
-          f"loss curve {out / 'loss.png'}")
-    return 0
+    method = Ours(config)
+    result = fit_model(method, train_demos, val_demos, progress, Path(out_dir) if out_dir else None)
+    result.method = method  # type: ignore[attr-defined]  (handy for callers; not serialized)
+    return result
 
 
-def _plot_losses(losses: np.ndarray, path: Path) -> None:
+def plot_losses(losses: np.ndarray, evals: list[dict], path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.semilogy(losses, lw=0.5, alpha=0.4)
-    k = max(1, len(losses) // 50)
-    ax.semilogy(np.convolve(losses, np.ones(k) / k, mode="valid"), lw=1.5)
+    fig, ax = plt.subplots(figsize=(6.5, 3.5))
+    ax.semilogy(losses, lw=0.5, alpha=0.35, label="batch loss")
+    k = max(1, len(losses) // 60)
+    if len(losses) >= k:
+        ax.semilogy(np.arange(k - 1, len(losses)), np.convolve(losses, np.ones(k) / k, mode="valid"), lw=1.5,
+                    label="smoothed")
     ax.set_xlabel("step")
-    ax.set_ylabel("masked MSE")
+    ax.set_ylabel("training loss")
+    if evals:
+        ax2 = ax.twinx()
+        ax2.plot([e["step"] for e in evals], [e["score"] * 1e3 for e in evals], "o-", color="tab:red",
+                 label="rollout distance")
+        ax2.set_ylabel("rollout hand+object (mm)", color="tab:red")
+    ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from services.policy.network import PRESETS
+
+    parser = argparse.ArgumentParser(prog="xm train", description="Train the denoising keypoint policy of thesis "
+                                     "chapter 7; writes policy.pt (torch.load(weights_only=True)), config.json, "
+                                     "train.json and loss.png.")
+    parser.add_argument("recordings", nargs="*", help="MCAP recordings (scene + session keys)")
+    parser.add_argument("--teacher", type=int, default=None, metavar="SEED",
+                        help="instead: the 15-demonstration assembly protocol of this seed (3 train, 12 validation)")
+    parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
+    parser.add_argument("--steps", type=int, default=None, help="optimizer steps (default: the preset's)")
+    parser.add_argument("--val", type=int, default=0, help="recordings: hold out this many demonstrations")
+    parser.add_argument("--out", default="runs/policy", help="output directory")
+    args = parser.parse_args(argv)
+    from services.policy.dataset import DatasetError, demos_from_mcap, split_demos
+
+    if args.recordings:
+        demos = []
+        for rec in args.recordings:
+            report: list[str] = []
+            try:
+                demos += demos_from_mcap(rec, report=report)
+            except DatasetError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
+            for line in report:
+                print(f"warning: {line}", file=sys.stderr)
+        train_d, val_d = (demos[:-args.val], demos[-args.val:]) if args.val else (demos, [])
+    elif args.teacher is not None:
+        from services.world.teacher import assembly_protocol
+
+        train_d, val_d = split_demos(assembly_protocol(args.teacher))
+    else:
+        print("error: no demonstrations: give recordings or --teacher SEED", file=sys.stderr)
+        return 2
+    if not train_d:
+        print("error: no training demonstrations left", file=sys.stderr)
+        return 2
+    torch.set_num_threads(2)
+    cfg = PRESETS[args.preset]
+    if args.steps:
+        cfg = cfg.replace(steps=args.steps)
+    res = train(cfg, train_d, val_d or None, args.out)
+    print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, best at step {res.best_step} "
+          f"after {res.seconds_to_best:.0f} s of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm)")
+    return 0

@@ -59,6 +59,6 @@ def test_nan_output_never_leaves_the_policy(demos):
     method = Ours(PolicyConfig(name="x", tactile=False, memory=False, steps=2, batch=8, hidden=(16,)))
     method.fit(demos[:1], progress=False)
     with torch.no_grad():
-        method.net.body[-1].bias.fill_(float("nan"))
+        method.net.head.bias.fill_(float("nan"))
     with pytest.raises(PolicyError):
         method.rollout(demos[1], 3)

@@ -1,0 +1,35 @@
+"""Baselines of thesis Table 7.1 behind the common ``Method`` interface (fit / rollout).
+
+One module per family: naive replay (10), DMP (5), ProMP (6, 7), Diffusion Policy (8, 9),
+state MLPs (3, 4). ``make(name, quick)`` builds one by its table name.
+"""
+
+from __future__ import annotations
+
+BASELINES = ("single_state", "time_window", "dmp", "promp_conditional", "promp_simple",
+             "diffusion_unet", "diffusion_transformer", "naive")
+
+
+def make(name: str, quick: bool = False, seed: int = 0):
+    """A fresh, unfitted baseline by its Table 7.1 name; ``quick`` shrinks training to a smoke test."""
+    if name == "naive":
+        from services.policy.baselines.naive import NaiveReplay
+
+        return NaiveReplay()
+    if name == "dmp":
+        from services.policy.baselines.dmp import DMPBaseline
+
+        return DMPBaseline()
+    if name in ("promp_conditional", "promp_simple"):
+        from services.policy.baselines.promp import ProMPBaseline
+
+        return ProMPBaseline(conditional=name == "promp_conditional")
+    if name in ("diffusion_unet", "diffusion_transformer"):
+        from services.policy.baselines.diffusion import DiffusionConfig, DiffusionPolicy
+
+        return DiffusionPolicy(DiffusionConfig.preset(name.split("_")[1], quick=quick, seed=seed))
+    if name in ("single_state", "time_window"):
+        from services.policy.baselines.mlp import make_state_policy
+
+        return make_state_policy(name, quick=quick, seed=seed)
+    raise KeyError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")

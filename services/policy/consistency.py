@@ -1,0 +1,78 @@
+"""Consistency constraints at inference (thesis 7.3-7.5, 7.8-7.10, 7.15) as least squares, pure numpy.
+
+Every step, the next positions P minimize
+
+    sum_i |(P_i - P_prev,i)/dt - V_i|^2                                  (7.5, every point)
+  + w_pair sum_jk |(P_j - P_k - P_jk) eps / (|P_jk|^2 + eps)|^2 * dt^-2  (7.8, anchor pairs)
+
+with object velocities first reconciled with the dynamics constraint (7.15)
+
+    V_o = argmin |V_o - V_o,net|^2 + w_dyn |V_o - J_D V_pinch|^2
+
+and the reservoir activations with 7.9-7.10: H = argmin |H - H_P|^2 + |H - H_prev - dH_P dt|^2.
+
+All constraints are linear in the unknowns; x, y and z share one normal matrix. Points that are
+not anchors only carry 7.5, so their solution is the exact integral. The anchor system is
+(A x A) with A = 12 + K: its constant part is precomputed and each step adds the pair weights to
+a small dense matrix solved by Cholesky. Masked pairs (7.2.5) drop out of the sum.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from services.policy.network import Layout
+
+
+class ConsistencySolver:
+    def __init__(self, layout: Layout, dt: float, w_pair: float = 1.0, w_dyn: float = 1.0,
+                 pair_eps: float = 0.0025) -> None:
+        self.layout, self.dt = layout, float(dt)
+        self.w_pair, self.w_dyn, self.eps = float(w_pair), float(w_dyn), float(pair_eps)
+        A = len(layout.anchors)
+        # incidence of pair (j - k) on anchors: D (pairs x A); the normal matrix is
+        # I/dt^2 + D^T W D, assembled as a weighted graph Laplacian.
+        self.A = A
+        self._eye = np.eye(A) / self.dt ** 2
+        self._flat_jj = layout.pair_j * A + layout.pair_j
+        self._flat_ii = layout.pair_i * A + layout.pair_i
+        self._flat_ij = layout.pair_i * A + layout.pair_j
+        self._flat_ji = layout.pair_j * A + layout.pair_i
+
+    def velocities(self, v_hands: np.ndarray, v_objects: np.ndarray, J: np.ndarray | None) -> np.ndarray:
+        """Reconciles object velocities with 7.15; returns all point velocities (P,3).
+        v_hands (42,3), v_objects (K,3), J (K,2) or None."""
+        if J is not None and self.w_dyn > 0:
+            pinch = v_hands[self.layout.pinch].mean(axis=1)  # (2,3) pinch-point velocities
+            v_objects = (v_objects + self.w_dyn * (J @ pinch)) / (1.0 + self.w_dyn)
+        return np.concatenate([v_hands, v_objects], axis=0)
+
+    def positions(self, prev: np.ndarray, vel: np.ndarray, pairs: np.ndarray | None = None,
+                  pair_mask: np.ndarray | None = None) -> np.ndarray:
+        """prev, vel (P,3); pairs (n_pairs,3) predicted next P_j - P_k (j > k) or None."""
+        nxt = prev + vel * self.dt  # 7.5 alone: exact
+        if pairs is None or self.w_pair <= 0:
+            return nxt
+        lay = self.layout
+        # 7.8's normalization times eps^2: at contact a pair weighs w_pair position constraints
+        w = self.w_pair * (self.eps / (np.einsum("ij,ij->i", pairs, pairs) + self.eps)) ** 2 / self.dt ** 2
+        if pair_mask is not None:
+            w = w * pair_mask
+        N = self._eye.copy().ravel()
+        np.add.at(N, self._flat_jj, w)
+        np.add.at(N, self._flat_ii, w)
+        np.add.at(N, self._flat_ij, -w)
+        np.add.at(N, self._flat_ji, -w)
+        N = N.reshape(self.A, self.A)
+        wp = w[:, None] * pairs
+        rhs = nxt[lay.anchors] / self.dt ** 2
+        np.add.at(rhs, lay.pair_j, wp)
+        np.add.at(rhs, lay.pair_i, -wp)
+        nxt[lay.anchors] = cho_solve(cho_factor(N, check_finite=False), rhs, check_finite=False)
+        return nxt
+
+    @staticmethod
+    def memory(H_pred: np.ndarray, H_prev: np.ndarray, dH: np.ndarray, dt: float) -> np.ndarray:
+        """7.9 + 7.10 with equal weights: the mean of the two estimates."""
+        return 0.5 * (H_pred + H_prev + dH * dt)

@@ -1,0 +1,235 @@
+"""Chapter-7 policy: data augmentation, the consistency solve, every config switch, checkpoints, guards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from services.policy import dataset as D
+from services.policy.consistency import ConsistencySolver
+from services.policy.network import Layout, PolicyConfig, preset
+from services.policy.ours import Ours, PolicyError
+from services.policy.reservoir import Reservoir
+from services.policy.simulate import PolicyInputError, PolicyRunner, SceneObs, simulate
+from shared.demo import Demo
+
+K = 4
+
+
+def synthetic_demo(seed: int, T: int = 40, grasp: str = "left", glove: str = "left") -> Demo:
+    """A hand reaching to an object and carrying it; tactile on while carrying (tests only)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, T)[:, None]
+    obj0 = np.array([0.05, 0.0, 0.0]) + rng.normal(0, 0.02, 3)
+    shape = rng.normal(0, 0.03, (21, 3))
+    g = 0 if grasp == "left" else 1
+    hands = np.zeros((T, 2, 21, 3))
+    start = np.array([[-0.1, 0.3, 0.15], [-0.1, -0.3, 0.15]])
+    reach = np.clip(2 * t, 0, 1)
+    carry = np.clip(2 * t - 1, 0, 1)
+    pinch = start[g] + (obj0 - start[g]) * reach + np.array([0.0, 0.0, 0.1]) * carry
+    hands[:, g] = pinch[:, None] + shape
+    hands[:, 1 - g] = start[1 - g] + shape + 0.01 * np.sin(6 * t)[:, None]
+    local = rng.normal(0, 0.01, (K, 3))
+    objects = np.where(carry[:, None] > 0, pinch[:, None], obj0) + local
+    tactile = np.zeros((T, 2, 6))
+    tactile[:, g, :2] = 20.0 * (carry > 0)
+    tmask = np.zeros((T, 2, 6), np.uint8)
+    tmask[:, 0 if glove == "left" else 1] = 1
+    hmask = np.ones((T, 2, 21), np.uint8)
+    hmask[5:8, 0, 3] = 0
+    return Demo(dt=0.02, hands=hands.astype(np.float32), hand_mask=hmask, object_names=[f"o/{i}" for i in range(K)],
+                objects=objects.astype(np.float32), object_mask=np.ones((T, K), np.uint8),
+                tactile=(tactile * tmask).astype(np.float32), tactile_mask=tmask, phase=["x"] * T,
+                meta={"task": "synthetic", "demo": seed, "grasp_hand": grasp, "tactile_hand": glove})
+
+
+@pytest.fixture(scope="module")
+def demos():
+    return [synthetic_demo(1), synthetic_demo(2, grasp="right", glove="left"), synthetic_demo(3)]
+
+
+def tiny(cfg: PolicyConfig, **kw) -> PolicyConfig:
+    return cfg.replace(hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6, seq_len=4, **kw)
+
+
+def test_mirror_swaps_hands_and_preserves_distances(demos):
+    d = demos[0]
+    m = D.mirror(d)
+    assert m.meta["grasp_hand"] == "right" and m.meta["tactile_hand"] == "right"
+    np.testing.assert_allclose(m.hands[:, 1, :, 1], -d.hands[:, 0, :, 1])
+    np.testing.assert_array_equal(m.tactile[:, 1], d.tactile[:, 0])
+    dist = np.linalg.norm(d.hands[:, 0, 8] - d.objects[:, 0], axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(m.hands[:, 1, 8] - m.objects[:, 0], axis=-1), dist, rtol=1e-5)
+    assert D.mirror(m).meta["grasp_hand"] == "left"
+
+
+def test_rotation_about_gravity_preserves_distances_and_heights():
+    p = np.random.default_rng(0).normal(size=(5, 3))
+    r = D.rotate_z(p, 0.7)
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+    np.testing.assert_allclose(np.linalg.norm(r[:, None] - r[None], axis=-1), d, atol=1e-12)
+    np.testing.assert_allclose(r[:, 2], p[:, 2])
+    assert not np.allclose(r, p)
+
+
+def test_reservoir_components_equal_rerun_on_rotated_velocities():
+    rng = np.random.default_rng(1)
+    v, mask = rng.normal(size=(30, 5, 3)), rng.random((30, 5)) > 0.2
+    res = Reservoir(5, 8, 0.95, seed=2)
+    a = 1.1
+    np.testing.assert_allclose(Reservoir.rotated(res.components(v, mask), a), res.run(D.rotate_z(v, a), mask),
+                               atol=1e-9)
+
+
+def test_hand_sampling_is_sixty_forty():
+    left = np.array([True] * 10 + [False] * 30)
+    p = D.hand_weights(left, 0.6)
+    assert p[left].sum() == pytest.approx(0.6) and p.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(D.hand_weights(np.ones(4, bool)), 0.25)
+
+
+def test_split_by_demonstration(demos):
+    splits = ("train", "validation", "train")
+    tagged = [Demo(**{**d.__dict__, "meta": {**d.meta, "split": s}}) for d, s in zip(demos, splits, strict=True)]
+    tr, va = D.split_demos(tagged)
+    assert [d.meta["demo"] for d in tr] == [1, 3] and [d.meta["demo"] for d in va] == [2]
+
+
+def test_consistency_solve_is_exact_integral_when_unconstrained():
+    lay = Layout(K)
+    rng = np.random.default_rng(0)
+    prev, v = rng.normal(0, 0.1, (lay.P, 3)), rng.normal(0, 0.3, (lay.P, 3))
+    s = ConsistencySolver(lay, 0.02, w_pair=0.0, w_dyn=0.0)
+    nxt = s.positions(prev, s.velocities(v[:42], v[42:], None), None)
+    np.testing.assert_allclose((nxt - prev) / 0.02 - v, 0.0, atol=1e-12)  # 7.5 exactly
+    # consistent pair predictions leave the exact solution unchanged; inconsistent ones pull anchors
+    s2 = ConsistencySolver(lay, 0.02, w_pair=5.0)
+    a = nxt[lay.anchors]
+    pairs = a[lay.pair_j] - a[lay.pair_i]
+    np.testing.assert_allclose(s2.positions(prev, v, pairs), nxt, atol=1e-10)
+    moved = s2.positions(prev, v, pairs + 0.01)
+    assert np.abs(moved - nxt).max() > 1e-4
+    np.testing.assert_allclose(np.delete(moved, lay.anchors, 0), np.delete(nxt, lay.anchors, 0))
+
+
+def test_dynamics_constraint_moves_objects_with_the_pinch():
+    lay = Layout(K)
+    s = ConsistencySolver(lay, 0.02, w_pair=0.0, w_dyn=1.0)
+    vh = np.zeros((42, 3))
+    vh[[4, 8]] = [0.1, 0.0, 0.0]
+    J = np.zeros((K, 2))
+    J[:, 0] = 1.0
+    v = s.velocities(vh, np.zeros((K, 3)), J)
+    np.testing.assert_allclose(v[42:], [[0.05, 0.0, 0.0]] * K)  # halfway: equal weights
+
+
+def test_memory_solve_is_least_squares_of_7_9_and_7_10():
+    Hp, Hprev, dH = np.array([1.0]), np.array([0.0]), np.array([10.0])
+    H = ConsistencySolver.memory(Hp, Hprev, dH, 0.02)
+    grad = (H - Hp) + (H - Hprev - dH * 0.02)
+    np.testing.assert_allclose(grad, 0.0, atol=1e-12)
+
+
+SWITCHES = {
+    "multimodal": {},
+    "no_tactile": {"tactile": False},
+    "single_state": {"tactile": False, "memory": False},
+    "no_denoise": {"denoise": False},
+    "no_masks": {"masks": False},
+    "no_pairs": {"pair_outputs": False},
+    "no_dynamics": {"dynamics": False},
+    "tactile_model": {"tactile_model": True},
+    "object_model": {"object_model": True},
+    "recurrent": {"recurrent": True, "memory": False},
+    "recurrent_memory": {"recurrent": True},
+    "no_rotate_no_mirror": {"rotate": False, "mirror": False},
+}
+
+
+@pytest.mark.parametrize("switch", sorted(SWITCHES))
+def test_every_switch_trains_and_rolls_out_finite(demos, switch):
+    torch.set_num_threads(1)
+    cfg = tiny(preset("multimodal"), **SWITCHES[switch])
+    method = Ours(cfg)
+    method.fit(demos[:2], progress=False)
+    assert len(method.losses) == 3 and np.isfinite(method.losses).all()
+    hands, objects = method.rollout(demos[2], 12)
+    assert hands.shape == (12, 2, 21, 3) and objects.shape == (12, K, 3)
+    assert np.isfinite(hands).all() and np.isfinite(objects).all()
+    np.testing.assert_allclose(hands[0], demos[2].hands[0], atol=1e-6)
+
+
+def test_training_reduces_the_loss(demos):
+    torch.set_num_threads(1)
+    method = Ours(preset("single_state", hidden=(64, 64), steps=150, batch=64, eval_every=10 ** 6, lr=3e-3))
+    method.fit(demos[:2], progress=False)
+    assert np.mean(method.losses[-20:]) < 0.5 * np.mean(method.losses[:20])
+
+
+def test_checkpoint_round_trip_weights_only(demos, tmp_path):
+    torch.set_num_threads(1)
+    from services.policy.train import train
+
+    res = train(tiny(preset("multimodal")), demos[:2], demos[2:], tmp_path / "run", progress=False)
+    assert res.checkpoint.exists() and (tmp_path / "run" / "loss.png").exists()
+    ckpt = torch.load(res.checkpoint, weights_only=True)
+    again = Ours.from_state(ckpt)
+    assert again.cfg == res.method.cfg
+    h1, o1 = res.method.rollout(demos[2], 10)
+    h2, o2 = again.rollout(demos[2], 10)
+    np.testing.assert_allclose(h2, h1, atol=1e-6)
+    np.testing.assert_allclose(o2, o1, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def trained(demos):
+    torch.set_num_threads(1)
+    method = Ours(tiny(preset("multimodal")))
+    method.fit(demos[:2], progress=False)
+    return method
+
+
+def test_nan_network_output_raises(trained, demos):
+    with torch.no_grad():
+        bias = trained.net.head.bias.clone()
+        trained.net.head.bias.fill_(float("nan"))
+    try:
+        with pytest.raises(PolicyError):
+            trained.rollout(demos[2], 3)
+    finally:
+        with torch.no_grad():
+            trained.net.head.bias.copy_(bias)
+
+
+def scene_of(d: Demo, t: int) -> SceneObs:
+    return SceneObs(d.hands[t].astype(float), d.hand_mask[t], d.objects[t].astype(float), d.object_mask[t],
+                    d.tactile[t], d.tactile_mask[t])
+
+
+def test_runner_steps_horizons_and_guards_nan(trained, demos):
+    d = demos[2]
+    runner = PolicyRunner(trained)
+    with pytest.raises(PolicyInputError):
+        runner.horizon(None, 5)
+    bad = scene_of(d, 0)
+    bad.hands[0, 3] = np.nan
+    with pytest.raises(PolicyInputError):
+        runner.step(bad)
+    nxt = runner.step(scene_of(d, 0))
+    assert nxt.shape == (42 + K, 3) and np.isfinite(nxt).all()
+    occluded = scene_of(d, 1)
+    occluded.hands[1, 5] = np.nan  # NaN later on: kept from the prediction, never propagated
+    assert np.isfinite(runner.step(occluded)).all()
+    plan = runner.horizon(scene_of(d, 2), 7)
+    assert plan.shape == (7, 42 + K, 3) and np.isfinite(plan).all()
+    assert runner.efforts.shape == (2, 6)
+
+
+def test_simulate_follows_observed_objects(trained, demos):
+    d = demos[2]
+    roll = simulate(trained, d, 10, observed_objects=d.objects[:10])
+    np.testing.assert_allclose(roll.objects[1:], d.objects[1:10], atol=1e-6)
+    with pytest.raises(PolicyInputError):
+        simulate(trained, d, 10, observed_objects=np.full((10, K, 3), np.nan))
