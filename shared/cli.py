@@ -14,7 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("services.policy.train:main", "train the policy from recordings or teacher demos"),
     "simulate": ("services.policy.simulate:main", "neural simulation of a trained policy"),
     "eval": ("services.policy.evaluate:main", "Table 7.1 evaluation against the baselines"),
-    "glove": ("services.glove.cli:main", "glove tools: calibrate"),
+    "glove": ("services.glove.cli:main", "glove tools: calibrate, register"),
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
 }
 

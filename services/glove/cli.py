@@ -1,4 +1,5 @@
-"""`xm glove calibrate RECORDING.mcap`: per-cell calibration from paired raw readings and forces.
+"""`xm glove calibrate RECORDING.mcap`: per-cell calibration from paired raw readings and forces;
+`xm glove register NAME [VALUE]`: the readout module's registers through the running glove service.
 
 Pairs each raw impedance frame of a glove (`xm/glove/<hand>/raw`) with the nearest reference
 force (`xm/world/sim/truth` contact forces in the simulation; a force sensor's channel on the
@@ -19,7 +20,9 @@ import numpy as np
 from services.glove.calibration import Calibration, fit_linear, fit_rational, rational, report
 from services.glove.layout import CELL_MASK, CELL_REGION, pressure_from_forces, region_means
 from shared import msgs
+from shared.client import add_connection_args, connect
 from shared.demo import HAND_NAMES
+from shared.protocols import tactile
 
 TRUTH = "xm/world/sim/truth"
 
@@ -91,7 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     cal.add_argument("recording")
     cal.add_argument("--hand", default="left", choices=list(HAND_NAMES))
     cal.add_argument("-o", "--output", help="calibration JSON (default calibration/glove-<hand>.json)")
+    reg = sub.add_parser("register", help="read or write a register of a running glove's readout module",
+                         description="Reads (no VALUE) or writes a configuration register of the readout module "
+                                     "through the running glove service (names: docs/protocols/tactile.md), "
+                                     "e.g. `xm glove register --hand left rx_enable 0x3f`.")
+    reg.add_argument("name", help=f"register: {', '.join(tactile.REGISTER_NAMES.values())}")
+    reg.add_argument("value", nargs="?", type=lambda v: int(v, 0), help="value to write (decimal or 0x...)")
+    reg.add_argument("--hand", default="left", choices=list(HAND_NAMES))
+    add_connection_args(reg)
     args = parser.parse_args(argv)
+    if args.cmd == "register":
+        return register_main(args)
     path = Path(args.recording)
     if not path.exists():
         print(f"error: {path} not found", file=sys.stderr)
@@ -110,6 +123,28 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(readings)} paired frames; rational model: correlation {rat['correlation']:.4f}, relative "
           f"non-linearity {rat['relative_nonlinearity']:.3f}; linear model: correlation {lin['correlation']:.4f}")
     print(f"wrote {out}, {out.with_suffix('.report.json')} and {out.with_suffix('.png')}")
+    return 0
+
+
+def register_main(args: argparse.Namespace) -> int:
+    session, _, _ = connect(args)
+    if session is None:
+        return 2
+    try:
+        request = {"name": args.name, **({"value": args.value} if args.value is not None else {})}
+        replies = [json.loads(r.ok.payload.to_bytes()) for r in
+                   session.get(f"xm/glove/{args.hand}/@cmd/register", payload=json.dumps(request), timeout=3.0)
+                   if r.ok is not None]
+    finally:
+        session.close()
+    if not replies:
+        print(f"error: no glove service for the {args.hand} hand answered (is the workcell up?)", file=sys.stderr)
+        return 2
+    reply = replies[0]
+    if not reply.get("ok"):
+        print(f"error: {reply.get('error') or reply.get('status')}", file=sys.stderr)
+        return 1
+    print(f"{reply['name']} (0x{reply['address']:04x}) = {reply['value']} (0x{reply['value']:x})")
     return 0
 
 

@@ -5,6 +5,7 @@ The same code reads the world's simulated readout module (a pty) and the real ra
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import Callable
 
@@ -14,6 +15,18 @@ from services.glove.calibration import Calibration
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
 from shared.serial_link import SerialLink
+
+
+class RegisterError(RuntimeError):
+    """A register access that could not be made or was refused."""
+
+
+def register_address(name: str) -> int:
+    """Address of a register by its spec name (docs/protocols/tactile.md), e.g. "window", "freq3"."""
+    by_name = {v: k for k, v in tactile.REGISTER_NAMES.items()}
+    if name not in by_name:
+        raise RegisterError(f"unknown register {name!r}; known: {', '.join(by_name)}")
+    return by_name[name]
 
 
 class DeviceClock:
@@ -47,6 +60,7 @@ class GloveDriver:
         self.on_frame = on_frame
         self.log = log
         self.last_sequence: int | None = None
+        self._pending: dict[int, list[asyncio.Future]] = {}  # register address -> waiting requests
         self.link = SerialLink(port, self._on_bytes, baudrate)
 
     def _on_bytes(self, data: bytes) -> None:
@@ -54,6 +68,28 @@ class GloveDriver:
             if isinstance(item, tactile.TactileFrame):
                 pressure = self.calibration.pressure(item.impedance)
                 self.on_frame(item, pressure, self.clock.stamp(item.timestamp_us))
+            else:
+                waiting = self._pending.get(item.address)
+                if waiting:
+                    fut = waiting.pop(0)
+                    if not fut.done():
+                        fut.set_result(item)
+
+    async def register(self, name: str, value: int | None = None, timeout: float = 0.5) -> tactile.RegisterReply:
+        """Reads (value None) or writes one configuration register by name; RegisterError when the
+        name is unknown, the port is down or the module does not answer within ``timeout``."""
+        address = register_address(name)
+        fut = asyncio.get_running_loop().create_future()
+        self._pending.setdefault(address, []).append(fut)
+        try:
+            if not self.link.write(tactile.encode_command(address, value)):
+                raise RegisterError(f"glove port {self.link.port} is not connected")
+            return await asyncio.wait_for(fut, timeout)
+        except TimeoutError:
+            raise RegisterError(f"no reply for register {name} within {timeout} s") from None
+        finally:
+            if fut in self._pending.get(address, []):
+                self._pending[address].remove(fut)
 
     async def run(self) -> None:
         await self.link.run()

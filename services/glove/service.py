@@ -7,10 +7,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.glove.driver import DeviceClock, GloveDriver
+from services.glove.driver import DeviceClock, GloveDriver, RegisterError
 from services.glove.layout import CELL_MASK
 from shared import msgs
+from shared.protocols import tactile
 from shared.runtime import Node
+
+
+def line_bits(mask: int) -> np.ndarray:
+    """0/1 per line (16) of a line mask."""
+    return (mask >> np.arange(16)) & 1
 
 
 class GloveService:
@@ -33,14 +39,16 @@ class GloveService:
         self.tactile_pub = node.publisher("tactile")
         self.raw_pub = node.publisher("raw") if params.publish_raw else None
         self.imu_pub = node.publisher("imu") if params.publish_imu else None
-        self.mask = CELL_MASK.astype(np.uint8).ravel()
+        node.queryable("register", self.cmd_register)
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats)}
 
     def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:
         header = msgs.header(stamp, f"glove_{self.hand}")
+        enabled = np.outer(line_bits(frame.tx_mask), line_bits(frame.rx_mask))  # cells of lines not read: masked
+        mask = (CELL_MASK & enabled).astype(np.uint8).ravel()
         self.tactile_pub.put(msgs.make(
             "xm_msgs/msg/Tactile", header=header, hand=self.hand, rows=16, cols=16,
-            pressure=pressure.astype(np.float32).ravel(), mask=self.mask, sequence=frame.sequence))
+            pressure=np.where(mask, pressure.ravel(), 0.0).astype(np.float32), mask=mask, sequence=frame.sequence))
         if self.raw_pub is not None:
             z = frame.impedance.ravel()
             self.raw_pub.put(msgs.make("xm_msgs/msg/TactileRaw", header=header, hand=self.hand, rows=16, cols=16,
@@ -50,6 +58,22 @@ class GloveService:
             imu = np.asarray(frame.imu, np.float32)
             self.imu_pub.put(msgs.make("xm_msgs/msg/Imu", header=header, hand=self.hand,
                                        accel=imu[:, :3].ravel(), gyro=imu[:, 3:6].ravel()))
+
+    async def cmd_register(self, request: dict) -> dict:
+        """``{"name": "window"}`` reads, ``{"name": "window", "value": 128}`` writes a register of the
+        readout module (names in docs/protocols/tactile.md)."""
+        name, value = request.get("name"), request.get("value")
+        if not isinstance(name, str) or (value is not None and (not isinstance(value, int) or value < 0)):
+            return {"ok": False, "error": "request {\"name\": str, \"value\": non-negative int (omit to read)}"}
+        try:
+            reply = await self.driver.register(name, value)
+        except RegisterError as exc:
+            self.node.stats.count("register_error")
+            return {"ok": False, "error": str(exc)}
+        status = {tactile.REPLY_OK: "ok", tactile.REPLY_BAD_ADDRESS: "bad_address",
+                  tactile.REPLY_READ_ONLY: "read_only"}.get(reply.status, str(reply.status))
+        return {"ok": reply.status == tactile.REPLY_OK, "name": name, "address": reply.address,
+                "value": reply.value, "status": status}
 
     async def run(self) -> None:
         await self.driver.run()

@@ -15,8 +15,8 @@ import zenoh
 from services.recorder.service import Recording, check_pattern, default_path
 from services.recorder.writer import RecordingError, check_mcap, is_complete, read_messages, repair
 from shared import keys
-from shared.config import ConfigError, load_deployment
-from shared.runtime import Node, open_client
+from shared.client import add_connection_args, connect
+from shared.runtime import Node
 from shared.runtime.logs import setup_logging
 
 EXIT_ERROR = 2
@@ -25,32 +25,6 @@ EXIT_ERROR = 2
 def _fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return EXIT_ERROR
-
-
-def _add_connection(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--deployment", default="deploy/sim.toml",
-                        help="deployment whose router to connect to (default: %(default)s)")
-    parser.add_argument("--router", metavar="ENDPOINT", help="router endpoint, e.g. tcp/127.0.0.1:7447 "
-                        "(overrides the deployment's)")
-
-
-def _connect(args: argparse.Namespace) -> tuple[zenoh.Session | None, str, str]:
-    """(session or None, router, deployment name); on failure the message is already printed."""
-    name = ""
-    router = args.router
-    if router is None:
-        try:
-            deployment = load_deployment(args.deployment)
-        except ConfigError as exc:
-            _fail(str(exc))
-            return None, "", ""
-        router, name = deployment.router, deployment.name
-    try:
-        return open_client(router), router, name
-    except Exception as exc:
-        _fail(f"no router reachable at {router} ({str(exc).split(' at ')[0].strip()}); start the workcell "
-              f"first (`xm up {args.deployment}`) or give --deployment/--router")
-        return None, router, name
 
 
 # --- record ----------------------------------------------------------------------------------
@@ -72,7 +46,7 @@ def record_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repair", metavar="CUT_FILE",
                         help="instead of recording: rewrite a recording cut by a crash into -o "
                         "(default CUT_FILE with .repaired.mcap)")
-    _add_connection(parser)
+    add_connection_args(parser)
     args = parser.parse_args(argv)
     if args.repair:
         return _repair(Path(args.repair), Path(args.output) if args.output else None, args.force)
@@ -106,7 +80,7 @@ def _repair(src: Path, dst: Path | None, force: bool) -> int:
 
 
 async def _record(args: argparse.Namespace, out: Path) -> int:
-    session, router, name = _connect(args)
+    session, router, name = connect(args)
     if session is None:
         return EXIT_ERROR
     log = setup_logging("record", "WARNING")  # the terminal is for the progress line
@@ -180,7 +154,7 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keys", default="xm/**", metavar="PATTERN",
                         help="replay only keys matching this Zenoh pattern (default: %(default)s)")
     parser.add_argument("--loop", action="store_true", help="start over at the end until Ctrl-C")
-    _add_connection(parser)
+    add_connection_args(parser)
     args = parser.parse_args(argv)
     if not args.rate > 0:
         parser.error("--rate must be positive")
@@ -189,7 +163,7 @@ def replay_main(argv: list[str] | None = None) -> int:
         check_mcap(path)
     except (RecordingError, OSError) as exc:
         return _fail(str(exc))
-    session, _, _ = _connect(args)
+    session, _, _ = connect(args)
     if session is None:
         return EXIT_ERROR
     publishers: dict[str, zenoh.Publisher] = {}

@@ -15,23 +15,94 @@ from services.robot.board_sim import BoardSim
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
 
+GRAVITY = np.array([0.0, 0.0, -9.81])
+
+
+def hand_frame(keypoints: np.ndarray) -> np.ndarray:
+    """Rotation (columns x, y, z in world) of the back of a hand from its wrist, index and little
+    finger bases (keypoints 0, 5, 17): x toward the fingers, z out of the palm plane."""
+    wrist, index, little = keypoints[0], keypoints[5], keypoints[17]
+    x = (index + little) / 2 - wrist
+    x = x / max(np.linalg.norm(x), 1e-9)
+    z = np.cross(x, index - little)
+    z = z / max(np.linalg.norm(z), 1e-9)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+class ImuModel:
+    """SIMULATED wrist IMU: specific force and angular rate in the hand frame from the teacher's
+    keypoints, by finite differences at the readout rate (no noise: the protocol's LSBs quantize)."""
+
+    def __init__(self) -> None:
+        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, wrist, R)
+
+    def sample(self, t: float, keypoints: np.ndarray) -> np.ndarray:
+        R = hand_frame(keypoints)
+        self.history = [*self.history[-2:], (t, keypoints[0].astype(float), R)]
+        accel, gyro = -GRAVITY, np.zeros(3)
+        if len(self.history) == 3:
+            (t0, p0, _), (t1, p1, R1), (t2, p2, R2) = self.history
+            if t2 > t1 > t0:
+                v1, v2 = (p1 - p0) / (t1 - t0), (p2 - p1) / (t2 - t1)
+                accel = 2 * (v2 - v1) / (t2 - t0) - GRAVITY
+                dR = R1.T @ R2  # body-frame increment; its skew part / dt is the rate
+                gyro = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (2 * (t2 - t1))
+        return np.concatenate([R.T @ accel, gyro]).astype(np.float32)
+
 
 class GloveDevice:
+    """SIMULATED glove readout module: registers over the same wire as the FPGA core (replies to
+    host reads and writes with tactile.RegisterFile semantics), frames only while control.run is
+    set, only the enabled lines, and a wrist IMU sample per frame while imu_enable is set.
+
+    The frame rate stays the world's glove_rate_hz: the window/tick_div registers are stored and
+    read back but do not change the simulated rate (2 cores cannot render 1 kHz x 2 gloves)."""
+
     def __init__(self, port: str, hand: str, seed: int = 0) -> None:
         self.hand = hand
         self.pty = PtyDevice(port)
         self.model = GloveSensorModel(seed)
+        self.registers = tactile.RegisterFile()
+        self.commands = tactile.CommandDecoder()
+        self.imu = ImuModel()
         self.sequence = 0
+        self.replies = 0
+        self._config_changed = False
 
-    def emit(self, t: float, region_forces: np.ndarray) -> None:
+    def poll(self) -> None:
+        """Answers pending register commands (the world calls this every tick)."""
+        data = self.pty.read()
+        if not data:
+            return
+        for cmd in self.commands.feed(data):
+            reply = self.registers.handle(cmd)
+            if cmd.value is not None and reply.status == tactile.REPLY_OK:
+                self._config_changed = True
+            self.pty.write(tactile.encode_reply(reply.address, reply.value, reply.status))
+            self.replies += 1
+
+    def emit(self, t: float, region_forces: np.ndarray, hand_keypoints: np.ndarray | None = None) -> None:
+        """One readout window ending at ``t``: a frame, if the module is running."""
+        self.poll()
+        regs = self.registers.values
+        imu = self.imu.sample(t, hand_keypoints) if hand_keypoints is not None else None
+        if not regs[tactile.REG_CONTROL] & 1:
+            return
+        tx, rx = regs[tactile.REG_TX_ENABLE], regs[tactile.REG_RX_ENABLE]
         impedance = self.model.impedance(np.asarray(region_forces, float), t)
+        status = tactile.STATUS_CONFIG_CHANGED if self._config_changed else 0
+        self._config_changed = False
         frame = tactile.TactileFrame(sequence=self.sequence & 0xFFFFFFFF, timestamp_us=int(t * 1e6),
-                                     impedance=impedance, imu=None)
+                                     impedance=impedance,
+                                     imu=imu[None] if imu is not None and regs[tactile.REG_IMU_ENABLE] else None,
+                                     tx_mask=tx, rx_mask=rx, status=status)
         self.pty.write(tactile.encode_frame(frame))
         self.sequence += 1
+        regs[tactile.REG_FRAME_COUNT] = frame.sequence
 
     def stats(self) -> dict:
-        return {"frames": self.sequence, "dropped_bytes": self.pty.dropped_bytes}
+        return {"frames": self.sequence, "register_replies": self.replies, "dropped_bytes": self.pty.dropped_bytes,
+                **{f"rx_{k}": v for k, v in self.commands.stats.items()}}
 
     def close(self) -> None:
         self.pty.close()

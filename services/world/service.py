@@ -114,9 +114,12 @@ class WorldService:
             self.clock_pub.put(msgs.make("rosgraph_msgs/msg/Clock", clock=msgs.stamp(t)))
         if t >= due["glove"] and self.gloves:
             due["glove"] = t + 1.0 / self.p.glove_rate_hz - 1e-9
-            forces = self.sim.region_forces()
+            forces, hands = self.sim.region_forces(), self.sim.hand_keypoints()
             for i, glove in enumerate(self.gloves):
-                glove.emit(t, forces[i])
+                glove.emit(t, forces[i], hands[i])
+        else:
+            for glove in self.gloves:
+                glove.poll()
         if t >= due["truth"]:
             due["truth"] = t + 1.0 / self.p.truth_rate_hz - 1e-9
             self.truth_pub.put(self._truth(t))

@@ -173,3 +173,56 @@ def test_world_board_brakes_within_10ms_of_the_last_command_100_of_100(router, t
         assert min(latencies) > 0.010 - 1e-6
     finally:
         assert world.stop() in (0, -15), world.output()
+
+
+def test_glove_registers_masks_and_imu_through_the_worlds_readout_module(router, tmp_path):
+    """The world's simulated readout module answers register commands on its pty like the FPGA
+    core; the glove service exposes them as @cmd/register and honours masks, run bit and IMU."""
+    endpoint, session = router
+    run = tmp_path / "run"
+    port = str(run / "glove-left")
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {
+        "world": {"sim": {"glove_ports": [port]}},
+        "glove": {"left": {"port": port, "publish_imu": True}}}, clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    got: list = []
+    imu: list = []
+    _subs = [subscribe(session, "xm/glove/left/tactile", "xm_msgs/msg/Tactile", got),
+             subscribe(session, "xm/glove/left/imu", "xm_msgs/msg/Imu", imu)]
+    try:
+        assert wait_for(lambda: (run / "glove-left").exists(), 30), world.output()
+        glove = ServiceProcess("glove", dep, "left", tmp_path / "glove.log")
+        try:
+            def register(name: str, value: int | None = None) -> dict:
+                replies = query_json(session, "xm/glove/left/@cmd/register",
+                                     {"name": name, **({"value": value} if value is not None else {})}, timeout=3)
+                return replies[0] if replies else {}
+
+            assert wait_for(lambda: got, 30), glove.output()
+            assert register("id") == {"ok": True, "name": "id", "address": tactile.REG_ID,
+                                      "value": tactile.DEVICE_ID, "status": "ok"}
+            assert register("id", 5)["status"] == "read_only"
+            assert "unknown register" in register("bogus")["error"]
+            assert register("window", 128)["value"] == 128 and register("window")["value"] == 128
+            # Only reception lines 0 and 1: every other column is masked.
+            assert register("rx_enable", 0b11)["ok"]
+            assert wait_for(lambda: got and not np.asarray(got[-1].mask).reshape(16, 16)[:, 2:].any(), 5)
+            assert np.asarray(got[-1].mask).reshape(16, 16)[:, :2].any()
+            assert register("frame_count")["value"] >= got[-1].sequence
+            # IMU on: samples of a moving hand under gravity.
+            assert register("imu_enable", 1)["ok"]
+            assert wait_for(lambda: len(imu) >= 20, 10), glove.output()
+            accel = np.array([np.asarray(m.accel)[:3] for m in imu[5:]])
+            assert np.all(np.isfinite(accel)) and 5.0 < np.median(np.linalg.norm(accel, axis=1)) < 15.0
+            # Run bit off: the stream stops; on: it resumes.
+            assert register("control", 0)["ok"]
+            time.sleep(0.5)
+            n = len(got)
+            time.sleep(0.5)
+            assert len(got) == n, "frames kept coming with control.run = 0"
+            assert register("control", 1)["ok"]
+            assert wait_for(lambda: len(got) > n + 5, 5)
+        finally:
+            assert glove.stop() in (0, -15), glove.output()
+    finally:
+        assert world.stop() in (0, -15), world.output()
