@@ -1,12 +1,18 @@
 """policy node: publish keypoint plans over a horizon at a fixed rate from the latest scene.
 
-The method is a deployment parameter; the naive replay baseline needs no training, the learned
-methods load a checkpoint written by `xm train`.
+``method = "learned"`` (the default deployment): the chapter-7 network from a checkpoint written by
+`xm train`, stepped at its own sample rate (observed points replace predicted ones as scenes
+arrive; between scenes it runs on its own predictions, the interactive neural simulation of
+7.6.1) and rolled out over the horizon for every plan. ``method = "naive"``: the thesis's baseline
+(10), the nearest training demonstration replayed time-aligned. A missing or unloadable
+checkpoint falls back to naive and says so in @health; a NaN output is counted and never
+published.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -16,54 +22,128 @@ from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 from shared.runtime import Node, latest
 
-POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
 
 
 class PolicyService:
     @dataclass
     class Params:
-        method: str = "naive"
-        rate_hz: float = 10.0
+        method: str = "naive"  # naive | learned
+        checkpoint: str = "runs/policy/policy.pt"  # learned: written by `xm train` (`make policy`)
+        rate_hz: float = 10.0  # plans per second
         horizon_s: float = 1.0
-        plan_dt: float = 0.1
+        plan_dt: float = 0.1  # naive: sample spacing of the plan (learned: the network's own dt)
         task: str = "assembly"
         train_seeds: tuple[int, ...] = (9000, 9001, 9002)  # teacher demos the naive replay draws from
 
     def __init__(self, node: Node, params: Params) -> None:
-        if params.method != "naive":
-            raise ValueError(f"policy method {params.method!r}: this build serves 'naive' only")
+        if params.method not in ("naive", "learned"):
+            raise ValueError(f"policy method {params.method!r}: use 'learned' or 'naive'")
         self.node = node
         self.p = params
-        self.method = NaiveReplay()
-        self.method.fit([generate_demo(params.task, s, index=i) for i, s in enumerate(params.train_seeds)])
+        self.runner = None
+        if params.method == "learned":
+            self.runner = self._load_runner(Path(params.checkpoint))
+        self.naive = NaiveReplay()
+        if self.runner is None:
+            self.naive.fit([generate_demo(params.task, s, index=i) for i, s in enumerate(params.train_seeds)])
         self.scene = None
+        self.fresh_scene = False
         self.episode: tuple[int, float] | None = None  # (demo index, start time)
         self.pub = node.publisher("xm/policy/main/plan")
         node.subscribe("xm/recon/main/scene", self.on_scene, latest(1))
         node.subscribe("xm/world/sim/session", self.on_session, latest(1))
 
+    def _load_runner(self, path: Path):
+        from services.policy.ours import PolicyError
+        from services.policy.simulate import PolicyRunner
+
+        if not path.exists():
+            self.node.set_status("degraded", f"no policy checkpoint at {path}: serving the naive baseline; "
+                                 f"train one with `make policy`")
+            return None
+        try:
+            import torch
+
+            torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
+            return PolicyRunner.from_checkpoint(path)
+        except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
+            self.node.set_status("degraded", f"policy checkpoint {path} unusable ({exc}): serving the naive "
+                                 f"baseline")
+            return None
+
+    @property
+    def method_name(self) -> str:
+        return f"learned:{self.runner.model.cfg.name}" if self.runner is not None else "naive"
+
     def on_scene(self, msg) -> None:
         self.scene = msg
+        self.fresh_scene = True
 
     def on_session(self, msg) -> None:
         if self.episode is None or self.episode[0] != msg.demo:
             self.episode = (msg.demo, msgs.stamp_seconds(msg.header.stamp))
-            self.method.chosen = None
+            self.naive.chosen = None
+            if self.runner is not None:
+                self.runner.reset()
 
     async def run(self) -> None:
+        if self.runner is not None:
+            await self._run_learned()
+        else:
+            await self._run_naive()
+
+    async def _run_naive(self) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
             if self.scene is None or self.episode is None:
                 continue
-            if self.method.chosen is None:
+            if self.naive.chosen is None:
                 objects = np.asarray(self.scene.object_keypoints, float).reshape(-1, 3)
-                self.method.start(objects, np.asarray(self.scene.object_mask, bool))
-            hands, _ = self.method.plan(t - self.episode[1], steps, self.p.plan_dt)
-            points = hands.reshape(steps, -1, 3)
-            if not np.isfinite(points).all():  # never let NaN reach trajopt
-                self.node.stats.count("nan_plan")
+                self.naive.start(objects, np.asarray(self.scene.object_mask, bool))
+            hands, _ = self.naive.plan(t - self.episode[1], steps, self.p.plan_dt)
+            self._publish(t, hands.reshape(steps, -1, 3), HAND_POINT_NAMES, self.p.plan_dt)
+
+    async def _run_learned(self) -> None:
+        from services.policy.ours import PolicyError
+        from services.policy.simulate import PolicyInputError, SceneObs
+
+        runner = self.runner
+        dt = runner.model.dt
+        every = max(1, int(round(1.0 / (self.p.rate_hz * dt))))  # network steps per plan
+        steps = max(2, int(round(self.p.horizon_s / dt)))
+        names = HAND_POINT_NAMES + [f"object/{n}" for n in runner.model.object_names]
+        tick = 0
+        async for t in self.node.clock.ticks(1.0 / dt):
+            if self.scene is None:
                 continue
-            self.pub.put(msgs.make(
-                "xm_msgs/msg/Plan", header=msgs.header(t, "world"), policy=self.method.name, dt=self.p.plan_dt,
-                steps=steps, point_names=POINT_NAMES, positions=points.astype(np.float32).ravel(),
-                mask=np.ones(points.shape[:2], np.uint8).ravel(), efforts=np.zeros(0, np.float32)))
+            try:
+                obs = SceneObs.from_msg(self.scene) if self.fresh_scene or runner.state is None else None
+                self.fresh_scene = False
+                runner.step(obs)
+                if tick % every == 0:
+                    self._publish(t, runner.horizon(None, steps), names, dt)
+            except PolicyInputError as exc:
+                self.node.stats.count("bad_scene")
+                self.node.log.warning("scene unusable: %s", exc)
+                runner.reset()
+            except PolicyError:
+                self.node.stats.count("nan_plan")  # never let NaN reach trajopt
+                runner.reset()
+            tick += 1
+
+    def _publish(self, t: float, points: np.ndarray, names: list[str], dt: float) -> None:
+        if not np.isfinite(points).all():
+            self.node.stats.count("nan_plan")
+            return
+        steps = len(points)
+        self.pub.put(msgs.make(
+            "xm_msgs/msg/Plan", header=msgs.header(t, "world"), policy=self.method_name, dt=dt, steps=steps,
+            point_names=names, positions=points.astype(np.float32).ravel(),
+            mask=np.ones(points.shape[:2], np.uint8).ravel(), efforts=self._efforts()))
+
+    def _efforts(self) -> np.ndarray:
+        """Predicted tactile per horizon step, hand and region (7.2.10), kPa; empty without tactile."""
+        if self.runner is None or not self.runner.model.cfg.tactile:
+            return np.zeros(0, np.float32)
+        return np.asarray(self.runner.horizon_tactile, np.float32).ravel()

@@ -98,6 +98,7 @@ class PolicyRunner:
         self.solver = model.solver()
         self.state: dict | None = None
         self.efforts = np.zeros((2, len(TACTILE_REGIONS)))  # predicted tactile, kPa (7.2.10)
+        self.horizon_tactile = np.zeros((0, 2, len(TACTILE_REGIONS)))  # of the last horizon()
         self.scene: SceneObs | None = None
 
     @classmethod
@@ -141,10 +142,13 @@ class PolicyRunner:
         self.scene = scene
         return self.state
 
-    def step(self, scene_obs: SceneObs) -> np.ndarray:
-        """Observe, then one policy step: next positions (P,3) of hands then objects. The memory
-        advances with the step, so call it once per observation."""
-        state = self.observe(scene_obs)
+    def step(self, scene_obs: SceneObs | None) -> np.ndarray:
+        """Observe (None: no new observation, run on the last prediction), then one policy step:
+        next positions (P,3) of hands then objects. The memory advances with the step, so call it
+        once per network sample period."""
+        if scene_obs is None and self.state is None:
+            raise PolicyInputError("no scene observed yet")
+        state = self.observe(scene_obs) if scene_obs is not None else self.state
         nxt = self.model.step(state, self.solver)
         self._check(nxt["pos"])
         self.state = dict(state, H=nxt["H"]) if "H" in nxt else state
@@ -162,10 +166,12 @@ class PolicyRunner:
             raise PolicyInputError("no scene observed yet")
         state = dict(self.state)
         out = np.empty((steps, len(state["pos"]), 3))
+        tactile = np.empty((steps, *np.shape(state["tactile"])))
         for t in range(steps):
             state = self.model.step(state, self.solver)
-            out[t] = state["pos"]
+            out[t], tactile[t] = state["pos"], state["tactile"]
         self._check(out)
+        self.horizon_tactile = tactile
         return out
 
     @staticmethod

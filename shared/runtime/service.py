@@ -46,7 +46,8 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
     impl: Any = None
     try:
         impl = cls(node, params)
-        node.set_status("ok")
+        if node.status == "starting":  # the service may already have reported itself degraded
+            node.set_status("ok")
         main = node.spawn(impl.run() if hasattr(impl, "run") else stop.wait(), name="run")
         stopper = asyncio.ensure_future(stop.wait())
         await asyncio.wait({main, stopper}, return_when=asyncio.FIRST_COMPLETED)

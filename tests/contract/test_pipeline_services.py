@@ -166,6 +166,60 @@ def test_policy_and_trajopt_turn_a_scene_into_a_plan_and_a_joint_trajectory(rout
         trajopt.stop()
 
 
+def _scene_msg(demo, k: int, now: float, hide: int | None = None):
+    mask = np.ones(42, np.uint8)
+    hands = demo.hands[k].reshape(42, 3).copy()
+    if hide is not None:  # an occluded point arrives as NaN with mask 0
+        mask[hide], hands[hide] = 0, np.nan
+    return msgs.serialize(msgs.make(
+        "xm_msgs/msg/Scene", header=msgs.header(now), hand_names=["left", "right"],
+        hand_keypoints=hands.ravel(), hand_mask=mask, object_names=demo.object_names,
+        object_keypoints=demo.objects[k].ravel(), object_mask=np.ones(len(demo.object_names), np.uint8),
+        tactile_regions=[], tactile=np.zeros(0, np.float32), tactile_mask=np.zeros(0, np.uint8)))
+
+
+def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(router, tmp_path):
+    """method = "learned": horizons of the network (hands and objects) at the plan rate; a missing
+    checkpoint degrades to the naive baseline and says so."""
+    from services.policy.ours import Ours, preset
+    from services.world.teacher import generate_demo
+
+    endpoint, session = router
+    demos = [generate_demo("assembly", s, index=i) for i, s in enumerate((11, 12))]
+    model = Ours(preset("no_tactile", steps=20, hidden=(64, 64), batch=32, eval_every=10_000))
+    model.fit(demos, progress=False)
+    model.save(str(tmp_path / "policy.pt"))
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {
+        "main": {"method": "learned", "checkpoint": str(tmp_path / "policy.pt"), "rate_hz": 5.0},
+        "other": {"method": "learned", "checkpoint": str(tmp_path / "missing.pt")}}})
+    learned = ServiceProcess("policy", dep, "main", tmp_path / "policy.log")
+    fallback = ServiceProcess("policy", dep, "other", tmp_path / "other.log")
+    try:
+        plans, _a = collect(session, "xm/policy/main/plan", "xm_msgs/msg/Plan")
+        assert wait_for(lambda: query_json(session, "xm/policy/main/@health"), 60), learned.output()
+        deadline = time.time() + 20
+        k = 0
+        while time.time() < deadline and len([p for p in plans if p.policy.startswith("learned")]) < 3:
+            session.put("xm/recon/main/scene", _scene_msg(demos[0], k, time.time(), hide=8 if k % 2 else None))
+            k += 1
+            time.sleep(0.1)
+        ours = [p for p in plans if p.policy == "learned:no_tactile"]
+        assert len(ours) >= 3, learned.output()
+        p = ours[-1]
+        n_obj = len(demos[0].object_names)
+        assert len(p.point_names) == 42 + n_obj and p.point_names[42].startswith("object/")
+        assert p.steps == 50 and abs(p.dt - 0.02) < 1e-9
+        pos = np.asarray(p.positions).reshape(p.steps, -1, 3)
+        assert np.isfinite(pos).all()
+        assert np.abs(pos[0, 42:] - demos[0].objects[k - 1]).max() < 0.2  # starts near the observed objects
+        health = query_json(session, "xm/policy/other/@health")
+        assert health and health[0]["status"] == "degraded" and "missing.pt" in health[0]["message"]
+        assert "nan_plan" not in query_json(session, "xm/policy/main/@health")[0]["errors"]
+    finally:
+        learned.stop()
+        fallback.stop()
+
+
 def test_recorder_records_on_command_and_skips_unregistered_keys(router, tmp_path):
     endpoint, session = router
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"recorder": {"main": {"directory": str(tmp_path)}}})
