@@ -4,12 +4,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEPLOYMENT ?= deploy/sim.toml
+# The network the policy service serves: trained here on first use (a few minutes, progress bar),
+# from the world's scripted teacher; nothing is downloaded.
+POLICY_PRESET ?= no_tactile
+POLICY := runs/policy/policy.pt
 
-.PHONY: run test test-fast bench lint clean help
+.PHONY: run test test-fast bench lint clean help policy
 
 help:
 	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
 	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
+	@echo "make policy - train the network the policy service serves (runs/policy/policy.pt)"
 	@echo "make bench  - benchmarks, results in .bench/*.json"
 	@echo "make lint   - ruff"
 
@@ -21,8 +26,13 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e '.[dev,baselines]'
 	touch $(STAMP)
 
-run: $(STAMP)
+run: $(STAMP) $(POLICY)
 	$(BIN)/xm up $(DEPLOYMENT) --open
+
+policy: $(POLICY)
+
+$(POLICY): $(STAMP)
+	$(BIN)/xm train --teacher 0 --preset $(POLICY_PRESET) --out $(dir $(POLICY))
 
 test: $(STAMP)
 	$(BIN)/ruff check .

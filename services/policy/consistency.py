@@ -76,3 +76,29 @@ class ConsistencySolver:
     def memory(H_pred: np.ndarray, H_prev: np.ndarray, dH: np.ndarray, dt: float) -> np.ndarray:
         """7.9 + 7.10 with equal weights: the mean of the two estimates."""
         return 0.5 * (H_pred + H_prev + dH * dt)
+
+
+def object_groups(object_names: list[str]) -> np.ndarray:
+    """Body index per object keypoint from names "<object>/<point>"."""
+    bodies: dict[str, int] = {}
+    return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
+
+
+def rigid_velocities(v: np.ndarray, p: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """Point velocities (K,3) projected onto rigid-body motions, one per group: the least-squares
+    (v_c, w) with v_i = v_c + w x (p_i - c); keypoints of one object cannot move apart."""
+    out = np.empty_like(v)
+    for g in np.unique(groups):
+        idx = np.flatnonzero(groups == g)
+        c = p[idx].mean(axis=0)
+        r = p[idx] - c
+        vc = v[idx].mean(axis=0)
+        if len(idx) < 2:
+            out[idx] = vc
+            continue
+        # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T)
+        M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
+        b = np.cross(r, v[idx] - vc).sum(axis=0)
+        w = np.linalg.lstsq(M, b, rcond=None)[0]
+        out[idx] = vc + np.cross(w, r)
+    return out

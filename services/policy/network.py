@@ -46,6 +46,8 @@ class PolicyConfig:
     recurrent: bool = False  # recurrent branch (7.2.6) trained on trajectories (7.2.7)
     denoise: bool = True  # 7.2.2
     masks: bool = True  # masked inputs/losses, masks predicted (7.2.5)
+    velocity_input: bool = True  # current velocities as inputs (off: positions and memory only)
+    rigid_objects: bool = False  # inference: object keypoint velocities projected onto rigid motions
     pair_outputs: bool = True  # pairwise translation outputs and constraint (7.8)
     dynamics: bool = True  # object dynamics J_D, plausibility loss, constraint (7.13-7.15)
     tactile_model: bool = False  # 7.2.9 model-based tactile
@@ -206,7 +208,8 @@ class PolicyNet(nn.Module):
         feats = torch.cat([torch.cat([local, pairs, a[:, :, 2]], dim=1) * POS_SCALE, vel.reshape(B, -1) * VEL_SCALE,
                            mask], dim=1)
         fmask = torch.cat([mask[:, self.m_local] * mask[:, self.m_wrist], mask[:, self.m_pi] * mask[:, self.m_pj],
-                           mask[:, self.anchors], vmask[:, self.m_vel], torch.ones_like(mask)], dim=1)
+                           mask[:, self.anchors], vmask[:, self.m_vel] * float(self.cfg.velocity_input),
+                           torch.ones_like(mask)], dim=1)
         return feats, fmask
 
     def inputs(self, pos: torch.Tensor, vel: torch.Tensor, mask: torch.Tensor, vmask: torch.Tensor,

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from services.policy import dataset as D
-from services.policy.consistency import ConsistencySolver
+from services.policy.consistency import ConsistencySolver, object_groups, rigid_velocities
 from services.policy.network import PAIR_SCALE, PRESETS, TACTILE_SCALE, VEL_SCALE, PolicyConfig, PolicyNet, preset
 from services.policy.reservoir import Reservoir
 from shared.demo import KEYPOINTS_PER_HAND, Demo
@@ -281,6 +281,9 @@ class Ours:
         J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
         v = np.clip(solver.velocities(v[:2 * KEYPOINTS_PER_HAND], v[2 * KEYPOINTS_PER_HAND:], J),
                     -cfg.max_speed, cfg.max_speed)
+        if cfg.rigid_objects:
+            n = 2 * KEYPOINTS_PER_HAND
+            v[n:] = rigid_velocities(v[n:], state["pos"][n:], object_groups(self.object_names))
         pairs, pmask = None, None
         if cfg.pair_outputs:
             lay = self.net.layout

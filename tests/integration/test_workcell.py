@@ -51,6 +51,9 @@ def workcell(tmp_path_factory):
     router = f"tcp/127.0.0.1:{free_port()}"
     text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
     text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
+    # The same cell whether or not this checkout has trained a policy: the naive fallback (the
+    # learned service has its own contract test).
+    text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
     text = re.sub(r"port = 8080", f"port = {free_port()}", text)
     text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
     deployment = tmp / "sim.toml"
