@@ -204,7 +204,7 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
            "next_pos": rotate_z(data.next_pos[idx], a3), "next_vel": rotate_z(data.next_vel[idx], a3),
            "vmask": data.vmask[idx], "mask": data.mask[idx], "next_vmask": data.next_vmask[idx],
            "next_mask": data.next_mask[idx], "tactile": data.tactile[idx], "next_tactile": data.next_tactile[idx],
-           "tmask": data.tmask[idx], "angle": angle, "index": idx}
+           "tmask": data.tmask[idx], "angle": angle, "index": idx, "phase": data.step_index[idx] * data.dt}
     if data.H is not None:
         from services.policy.reservoir import Reservoir
 

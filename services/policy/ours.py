@@ -116,7 +116,8 @@ class Ours:
         mask = b["mask"] if self.cfg.masks else np.ones_like(b["mask"])
         vmask = b["vmask"] if self.cfg.masks else np.ones_like(b["vmask"])
         return self.net.inputs(_t(b["pos"]), _t(b["vel"]), _t(mask), _t(vmask), _t(b["tactile"]),
-                               _t(b["tmask"]), _t(b["H_in"]) if "H_in" in b else None)
+                               _t(b["tmask"]), _t(b["H_in"]) if "H_in" in b else None,
+                               _t(b["phase"]) if self.cfg.phase_input else None)
 
     def loss(self, b: dict, rec: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
         """Masked losses of every active output for one batch (denoising targets)."""
@@ -260,7 +261,8 @@ class Ours:
             vm = s["mask"].astype(np.float32) if self.cfg.masks else np.ones(len(s["mask"]), np.float32)
             x, _, _ = net.inputs(_t(s["pos"][None]), _t(s["vel"][None]), _t(vm[None]), _t(vm[None]),
                                  _t(s["tactile"][None]), _t(s["tmask"][None].astype(np.float32)),
-                                 _t(s["H"][None]) if self.cfg.memory else None)
+                                 _t(s["H"][None]) if self.cfg.memory else None,
+                                 _t(np.array([s.get("t", 0.0)])) if self.cfg.phase_input else None)
             out, rec = net(x, _t(s["rec"][None]) if self.cfg.recurrent else None)
         res = {k: v[0].numpy().astype(np.float64) for k, v in out.items()}
         if rec is not None:
@@ -298,6 +300,7 @@ class Ours:
         if observed_objects is not None:
             pos[2 * KEYPOINTS_PER_HAND:] = observed_objects
         nxt = dict(state)
+        nxt["t"] = state.get("t", 0.0) + self.dt
         nxt["vel"] = (pos - state["pos"]) / self.dt
         nxt["pos"] = pos
         if cfg.masks:
