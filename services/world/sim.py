@@ -51,6 +51,12 @@ class WorldSim:
         self._start_demo()
         mujoco.mj_forward(self.model, self.data)
 
+    def start_demo(self, index: int) -> None:
+        """Jumps to demonstration ``index`` of this seed's sequence (its layout and hands)."""
+        self.demo = int(index)
+        self._start_demo()
+        mujoco.mj_forward(self.model, self.data)
+
     def _start_demo(self) -> None:
         grasp = "left" if self.demo % 2 == 0 else "right"
         tactile = grasp if self.demo % 3 != 2 else ("right" if grasp == "left" else "left")
