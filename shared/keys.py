@@ -55,7 +55,16 @@ BY_KEY: dict[str, KeySpec] = {spec.key: spec for spec in REGISTRY}
 OPTIONAL: dict[str, str] = {
     "xm/glove/*/raw": "xm_msgs/msg/TactileRaw",
     "xm/glove/*/imu": "xm_msgs/msg/Imu",
+    # The robot service publishes on its own instance's key, named after the robot model
+    # (robot_state_key): xm/robot/workcell/state above, xm/robot/hand_arm/state in deploy/hand_arm.toml.
+    "xm/robot/*/state": "sensor_msgs/msg/JointState",
 }
+
+
+def robot_state_key(robot: str) -> str:
+    """Where the measured state of robot model ``robot`` is published: the robot service's instance
+    carries the model's name (``[services.robot.<robot>]``), so trajopt and panel find it from theirs."""
+    return service_key("robot", robot, "state")
 
 
 def msgtype_of(key: str) -> str | None:

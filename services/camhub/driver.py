@@ -41,8 +41,10 @@ class SimRig:
         if not ok:
             raise RigError(f"no answer from {SNAPSHOT_KEY} within {self._timeout}s (is the world running?)")
         snap = Snapshot.from_json(ok[0].payload.to_bytes())
-        if self._renderer is None or self._renderer.task != snap.task:
-            self._renderer = SceneRenderer(snap.task, *self._size)
+        if self._renderer is None or (self._renderer.task, self._renderer.robot) != (snap.task, snap.robot):
+            if self._renderer is not None:
+                self._renderer.close()
+            self._renderer = SceneRenderer(snap.task, *self._size, robot=snap.robot)
         images = self._renderer.render(snap)
         return snap.time, [CameraFrame(c.name, c.K, c.world_T_cam, img)
                            for c, img in zip(self._renderer.cameras, images, strict=True)]

@@ -21,11 +21,10 @@ import viser
 from services.panel import view
 from shared import msgs
 from shared.geometry import wxyz
-from shared.keys import CAMERAS, GLOVES
+from shared.keys import CAMERAS, GLOVES, robot_state_key
 from shared.kinematics import RobotModel, URDFError, load_robot
 from shared.runtime import EndpointError, Node, latest
 
-STATE_KEY = "xm/robot/workcell/state"
 SCENE_KEY = "xm/recon/main/scene"
 PLAN_KEY = "xm/policy/main/plan"
 SESSION_KEY = "xm/world/sim/session"
@@ -51,6 +50,7 @@ class PanelService:
         self.node = node
         self.p = params
         check_port(params.host, params.port)
+        self.state_key = robot_state_key(params.robot)  # the deployment's robot, whatever its model
         self.robot: RobotModel | None = None
         self.robot_problem = ""
         try:
@@ -71,7 +71,7 @@ class PanelService:
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        for key in (STATE_KEY, SCENE_KEY, PLAN_KEY, SESSION_KEY):
+        for key in (self.state_key, SCENE_KEY, PLAN_KEY, SESSION_KEY):
             node.subscribe(key, self._keep, latest(1))
         node.subscribe("xm/glove/*/tactile", self._keep, latest(len(GLOVES)))
         node.subscribe("xm/camhub/*/info", self._keep, latest(len(CAMERAS)))
@@ -183,7 +183,7 @@ class PanelService:
         return self.latest.pop(key, None)
 
     def _draw(self, now: float) -> None:
-        self._draw_robot(self._pop(STATE_KEY))
+        self._draw_robot(self._pop(self.state_key))
         self._draw_scene(self._pop(SCENE_KEY))
         self._draw_plan(self._pop(PLAN_KEY))
         for cam in CAMERAS:

@@ -42,9 +42,16 @@ DEFAULT_DT = 0.001
 BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE = (int(m) for m in Mode)  # ints: fast array compares
 
 
+ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")  # hand_arm.urdf
+HAND_FINGERS = ("thumb_", "index_", "middle_", "ring_")
+
+
 def encoder_lsb(name: str) -> float:
     """Resolution of the 15-bit absolute encoder on the motor shaft, at the joint (thesis 6.2):
-    linear axes 40 mm of belt per motor turn (Z axes geared 2:1), wrist and gripper 5:1."""
+    linear axes 40 mm of belt per motor turn (Z axes geared 2:1), wrist and gripper 5:1; the
+    hand-arm's arm joints behind 101:1 harmonic drives, its finger joints 5:1."""
+    if name in ARM_JOINTS:
+        return 2 * np.pi / 101 / 2 ** 15
     if name.endswith("_z"):
         return 0.020 / 2 ** 15
     if name.endswith(("_x", "_y")):
@@ -68,7 +75,15 @@ class AxisParams:
 
 
 def axis_params(name: str) -> AxisParams:
-    if "finger" in name:
+    if name in ARM_JOINTS:
+        # Hand-arm: inertias include the drives' reflected inertia (services/world/model.py); the
+        # integral carries the arm's weight (up to ~90 N m at the shoulder with the arm stretched out).
+        if name.startswith(("shoulder", "elbow")):
+            return AxisParams(3000.0, 100.0, 10000.0, 150.0, 300.0, 2000.0, 10.0, 330.0 if name != "elbow" else 150.0,
+                              2.0)
+        return AxisParams(500.0, 20.0, 2000.0, 20.0, 50.0, 300.0, 2.0, 56.0 if name != "wrist_3" else 28.0, 0.3)
+    if name.startswith(HAND_FINGERS):
+        return AxisParams(5.0, 0.1, 20.0, 0.2, 0.5, 0.5, 0.05, 2.0, 0.002)
         return AxisParams(300.0, 6.0, 0.0, 0.0, 30.0, 20.0, 0.5, 40.0, 0.05)
     if name.endswith("wrist"):
         return AxisParams(30.0, 1.0, 5.0, 0.5, 5.0, 2.0, 0.08, 5.0, 0.01)

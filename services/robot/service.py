@@ -12,6 +12,7 @@ from services.robot.driver import BoardDriver
 from services.robot.safety import CommandRejectedError, Limits, check_finite, limit_step
 from services.robot.tracking import TrajectoryFollower
 from shared import msgs
+from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
 from shared.runtime import Node, latest
@@ -34,7 +35,10 @@ class RobotService:
         self.limits = Limits.from_model(model)
         self.follower = TrajectoryFollower(self.joint_names)
         self.driver = BoardDriver(params.port, params.baudrate, self.joint_names, node.log)
-        self.state_pub = node.publisher("xm/robot/workcell/state")
+        if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
+            node.log.warning("robot instance %r runs model %r: its state goes to %s, not %s", node.instance,
+                             params.robot, node.key("state"), robot_state_key(params.robot))
+        self.state_pub = node.publisher(node.key("state"))
         self.rejections: dict[str, int] = {}
         self.target: np.ndarray | None = None
         node.subscribe("xm/trajopt/main/trajectory", self.on_trajectory, latest(1))

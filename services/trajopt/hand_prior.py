@@ -22,6 +22,12 @@ CHAINS = {
 MIN_STD = 0.05  # rad: a joint the teacher never moved still gets a finite deviation
 
 
+def has_hand(model) -> bool:
+    """Whether a RobotModel has the finger joints this prior is about (the hand-arm does, the gantry not)."""
+    names = set(model.joint_names)
+    return any(f"{finger}_j{k}" in names for finger in CHAINS for k in (1, 2, 3))
+
+
 def flexion(hands: np.ndarray, a: int, b: int, c: int) -> np.ndarray:
     """Angle between bone a->b and bone b->c (0 = straight), for keypoints (..., 21, 3)."""
     u = hands[..., b, :] - hands[..., a, :]
@@ -40,3 +46,11 @@ def hand_pose_prior(demos: list[Demo], hand: int = 1) -> tuple[dict[str, float],
             mean[f"{finger}_j{k}"] = float(angles.mean())
             std[f"{finger}_j{k}"] = float(max(angles.std(), MIN_STD))
     return mean, std
+
+
+def teacher_prior(task: str = "assembly", demos: int = 2, hand: int = 1) -> tuple[dict[str, float], dict[str, float]]:
+    """hand_pose_prior of the SIMULATED scripted teacher's demonstrations (seeds 1..demos), what the
+    trajopt service uses for the hand-arm when no recorded demonstrations are given."""
+    from services.world.teacher import generate_demo  # the script is pure: no simulator needed
+
+    return hand_pose_prior([generate_demo(task, seed) for seed in range(1, demos + 1)], hand)

@@ -8,9 +8,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.trajopt.hand_prior import has_hand, teacher_prior
 from services.trajopt.mapping import goals_for_horizon, plan_arrays
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from shared import msgs
+from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.runtime import Node, latest
 
@@ -24,13 +26,25 @@ class TrajoptService:
         horizon_s: float = 1.0
         fixed_knots: int = 2
         max_iterations: int = 3
+        # 7.22 hand-pose regulariser, for models with finger joints (hand_arm): prior from the scripted
+        # teacher's finger flexion over `prior_demos` demonstrations of `prior_task`.
+        pose_weight: float = 1e-6
+        prior_task: str = "assembly"
+        prior_demos: int = 2
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
         self.model = load_robot(params.robot)
-        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(knots=params.knots, fixed_knots=params.fixed_knots,
-                                                                 max_iterations=params.max_iterations))
+        mean, std = {}, {}
+        if has_hand(self.model) and params.pose_weight > 0:
+            mean, std = teacher_prior(params.prior_task, params.prior_demos)
+            node.log.info("hand-pose prior (7.22) over %d joints from %d %s demonstrations, weight %g", len(mean),
+                          params.prior_demos, params.prior_task, params.pose_weight)
+        self.pose_prior = bool(mean)
+        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(
+            knots=params.knots, fixed_knots=params.fixed_knots, max_iterations=params.max_iterations,
+            pose_mean=mean, pose_std=std, pose_weight=params.pose_weight if mean else 0.0))
         self.dt = params.horizon_s / params.knots
         self.plan = None
         self.state: np.ndarray | None = None
@@ -39,7 +53,7 @@ class TrajoptService:
         self.last_result = None
         self.pub = node.publisher("xm/trajopt/main/trajectory")
         node.subscribe("xm/policy/main/plan", self.on_plan, latest(1))
-        node.subscribe("xm/robot/workcell/state", self.on_state, latest(1))
+        node.subscribe(robot_state_key(params.robot), self.on_state, latest(1))
         node.health_extra = self._health
 
     def on_plan(self, msg) -> None:
@@ -59,10 +73,11 @@ class TrajoptService:
 
     def _health(self) -> dict:
         r = self.last_result
+        out = {"robot": self.p.robot, "pose_prior": self.pose_prior}
         if r is None:
-            return {}
-        return {"solve_time_ms": round(r.solve_time_s * 1e3, 3), "iterations": r.iterations,
-                "max_violation": r.max_violation, "last_status": r.status, "reason": r.reason}
+            return out
+        return out | {"solve_time_ms": round(r.solve_time_s * 1e3, 3), "iterations": r.iterations,
+                      "max_violation": r.max_violation, "last_status": r.status, "reason": r.reason}
 
     async def run(self) -> None:
         async for t in self.node.clock.ticks(self.p.rate_hz):

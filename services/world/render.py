@@ -28,28 +28,30 @@ class Snapshot:
     qpos: np.ndarray
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
+    robot: str = "workcell"
 
     def to_json(self) -> str:
-        return json.dumps({"task": self.task, "time": self.time, "qpos": self.qpos.tolist(),
+        return json.dumps({"task": self.task, "robot": self.robot, "time": self.time, "qpos": self.qpos.tolist(),
                            "mocap_pos": self.mocap_pos.tolist(), "mocap_quat": self.mocap_quat.tolist()})
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Snapshot:
         d = json.loads(text)
         return cls(d["task"], float(d["time"]), np.array(d["qpos"]), np.array(d["mocap_pos"]),
-                   np.array(d["mocap_quat"]))
+                   np.array(d["mocap_quat"]), d.get("robot", "workcell"))
 
 
-def snapshot(task: str, data: mujoco.MjData) -> Snapshot:
-    return Snapshot(task, float(data.time), data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy())
+def snapshot(task: str, data: mujoco.MjData, robot: str = "workcell") -> Snapshot:
+    return Snapshot(task, float(data.time), data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy(), robot)
 
 
 class SceneRenderer:
-    """All cameras of the rig for one task; create and use it on one thread."""
+    """All cameras of the rig for one task and robot; create and use it on one thread."""
 
-    def __init__(self, task: str, width: int = 320, height: int = 240) -> None:
+    def __init__(self, task: str, width: int = 320, height: int = 240, robot: str = "workcell") -> None:
         self.task = task
-        self.model = build_model(task, width, height)
+        self.robot = robot
+        self.model = build_model(task, width, height, robot)
         self.data = mujoco.MjData(self.model)
         self.cameras = camera_specs(width, height)
         try:

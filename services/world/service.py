@@ -28,6 +28,7 @@ class WorldService:
     @dataclass
     class Params:
         task: str = "assembly"
+        robot: str = "workcell"  # shared/robots/<robot>.urdf: "workcell" (gantry) or "hand_arm"
         seed: int = 0
         realtime_factor: float = 1.0
         glove_ports: tuple[str, ...] = ()
@@ -40,7 +41,7 @@ class WorldService:
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
-        self.sim = WorldSim(task=params.task, seed=params.seed)
+        self.sim = WorldSim(task=params.task, seed=params.seed, robot=params.robot)
         self.physics_dt = float(self.sim.model.opt.timestep)
         self.substeps = max(1, round(params.tick_s / self.physics_dt))
         self.gloves = [GloveDevice(port, hand, seed=i)  # glove i: seed i, matching its factory calibration
@@ -80,7 +81,7 @@ class WorldService:
 
     def _answer_snapshot(self, query) -> None:
         try:
-            query.reply(SNAPSHOT_KEY, snapshot(self.sim.task, self.sim.data).to_json())
+            query.reply(SNAPSHOT_KEY, snapshot(self.sim.task, self.sim.data, self.sim.robot_name).to_json())
         finally:
             query.drop()
 

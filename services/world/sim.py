@@ -10,7 +10,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from services.world.model import PHYSICS_DT, build_model, camera_specs
+from services.world.model import PHYSICS_DT, ROBOT_HOME, build_model, camera_specs
 from services.world.teacher import Teacher, occlusion
 from shared.demo import HAND_NAMES, TACTILE_REGIONS
 from shared.kinematics import load_robot
@@ -20,17 +20,21 @@ TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 1 kHz
 
 
 class WorldSim:
-    def __init__(self, task: str = "assembly", seed: int = 0, width: int = 320, height: int = 240) -> None:
+    def __init__(self, task: str = "assembly", seed: int = 0, width: int = 320, height: int = 240,
+                 robot: str = "workcell") -> None:
         self.task = task
         self.base_seed = seed
         self.width, self.height = width, height
-        self.model = build_model(task, width, height)
+        self.robot_name = robot
+        self.model = build_model(task, width, height, robot)
         self.model.opt.timestep = PHYSICS_DT
         self.data = mujoco.MjData(self.model)
-        self.robot = load_robot("workcell")
+        self.robot = load_robot(robot)
         self.joint_names = self.robot.joint_names
         m = self.model
         self._qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in self.joint_names])
+        home = ROBOT_HOME.get(robot, {})
+        self._home = self.robot.couple(np.array([home.get(n, 0.0) for n in self.joint_names])) if home else None
         self._dadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in self.joint_names])
         self._act = {m.actuator(i).name: i for i in range(m.nu)}
         self._act_index = [self._act.get(n, -1) for n in self.joint_names]
@@ -47,6 +51,8 @@ class WorldSim:
         if seed is not None:
             self.base_seed = seed
         mujoco.mj_resetData(self.model, self.data)
+        if self._home is not None:
+            self.data.qpos[self._qadr] = self._home
         self.demo = 0
         self._start_demo()
         mujoco.mj_forward(self.model, self.data)

@@ -2,7 +2,8 @@
 lengths and a humanoid hand (thumb + index, middle, ring) whose middle and distal finger joints are
 mechanically coupled (``<finger>_j3`` mimics ``<finger>_j2``, as in the Shadow hands).
 
-Arm zero pose: straight up. The palm's +z continues the last link, its -y is the palm side; fingers
+The root link ``base`` is the workcell frame (table centre, z up, as in workcell.urdf); the arm
+stands at MOUNT_XYZ beside the table's right edge. Arm zero pose: straight up. The palm's +z continues the last link, its -y is the palm side; fingers
 extend along their local +z and flex about their local +x towards the palm. Links are capsule-like
 (thesis 7.4): cylinders along the bones, spheres at the tips.
 
@@ -17,9 +18,13 @@ from pathlib import Path
 from shared.robots.urdf_writer import HEADER, MATERIALS, joint, link, point
 
 HERE = Path(__file__).parent
+# Where the arm stands in the workcell (the root link "base" is the cell frame: table centre, z up):
+# on the table's right edge (-y), its pan frame turned so that shoulder_lift > 0 leans over the table.
+MOUNT_XYZ, MOUNT_YAW = (0.0, -0.5, 0.0), pi / 2
 # name, parent link, origin xyz, axis, limit (rad), velocity (rad/s), effort (Nm), link shape
 ARM = [
-    ("shoulder_pan", "base", "0 0 0.128", "0 0 1", pi, 2.0, 330, ("cylinder", "0 0 0", (0.075, 0.17))),
+    ("shoulder_pan", "base", f"{MOUNT_XYZ[0]:g} {MOUNT_XYZ[1]:g} {MOUNT_XYZ[2] + 0.128:g}", "0 0 1", pi, 2.0, 330,
+     ("cylinder", "0 0 0", (0.075, 0.17))),
     ("shoulder_lift", "shoulder_pan_link", "0 0.176 0", "0 1 0", pi, 2.0, 330,
      ("cylinder", "0 0 0.306", (0.06, 0.612))),
     ("elbow", "shoulder_lift_link", "0 -0.137 0.612", "0 1 0", 2.9, 3.0, 150,
@@ -69,7 +74,8 @@ def urdf() -> str:
     out += '  <mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco>\n'
     out += '  <link name="base"/>\n'
     for name, parent, xyz, axis, lim, vel, eff, shape in ARM:
-        out += joint(name, "revolute", parent, f"{name}_link", xyz, axis, -lim, lim, vel, eff)
+        out += joint(name, "revolute", parent, f"{name}_link", xyz, axis, -lim, lim, vel, eff,
+                     rpy=f"0 0 {MOUNT_YAW:.5f}" if parent == "base" else "0 0 0")
         out += link(f"{name}_link", 3.0 if name.startswith(("shoulder", "elbow")) else 1.2, [shape], "alu",
                     rpy="0 0 0" if shape[1].startswith("0 0") or name == "wrist_2" else f"{pi / 2:.5f} 0 0")
     # palm +z continues wrist_3's +y axis

@@ -175,6 +175,98 @@ def test_world_board_brakes_within_10ms_of_the_last_command_100_of_100(router, t
         assert world.stop() in (0, -15), world.output()
 
 
+def test_world_with_the_hand_arm_serves_its_board_and_follows_a_position_command(router, tmp_path):
+    """A world built with robot="hand_arm" hosts the board for the hand-arm's 19 joints on its pty:
+    the test, as the host, commands a new arm and finger pose and sees the feedback get there, with
+    each coupled distal joint following its middle joint; a frame for the gantry's 10 joints is refused."""
+    import serial
+
+    endpoint, session = router
+    run = tmp_path / "run"
+    dep = write_deployment(tmp_path / "d.toml", endpoint,
+                           {"world": {"sim": {"robot": "hand_arm", "robot_port": str(run / "board")}}}, clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    try:
+        assert wait_for(lambda: (run / "board").exists(), 30), world.output()
+        port = serial.Serial(str(run / "board"), timeout=0)
+        names = load_robot("hand_arm").joint_names
+        n = len(names)
+        decoder = rb.StreamDecoder()
+        feedback: list = []
+
+        def pump(cmd: rb.CommandFrame | None, seconds: float) -> None:
+            t_end = time.time() + seconds
+            while time.time() < t_end:
+                if cmd is not None:
+                    port.write(rb.encode_command(cmd))
+                    cmd.sequence += 1
+                feedback.extend(m for m in decoder.feed(port.read(65536)) if isinstance(m, rb.FeedbackFrame))
+                time.sleep(0.004)
+
+        pump(None, 0.5)
+        assert feedback and len(feedback[-1].position) == n, world.output()
+        start = feedback[-1].position.copy()
+        target = start.copy()
+        target[names.index("elbow")] -= 0.2
+        target[names.index("wrist_3")] += 0.3
+        for finger in ("index", "middle"):
+            target[names.index(f"{finger}_j2")] = target[names.index(f"{finger}_j3")] = 0.7
+        mode = np.full(n, rb.Mode.POSITION, np.uint8)
+        pump(rb.CommandFrame(0, mode, target, np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)), 4.0)
+        last = feedback[-1]
+        assert not last.watchdog_expired and last.last_command_sequence > 0
+        np.testing.assert_allclose(last.position, target, atol=0.01)
+        for finger in ("index", "middle"):
+            assert abs(last.position[names.index(f"{finger}_j3")] - last.position[names.index(f"{finger}_j2")]) < 0.01
+        gantry = len(load_robot("workcell").joint_names)
+        pump(rb.CommandFrame(0, np.full(gantry, rb.Mode.POSITION, np.uint8), *np.zeros((5, gantry))), 0.2)
+        assert feedback[-1].flags & rb.COMMAND_REJECTED
+        port.close()
+        health = query_json(session, "xm/world/sim/@health")[0]
+        assert health["devices"]["robot"]["feedback_frames"] > 100
+    finally:
+        assert world.stop() in (0, -15), world.output()
+
+
+def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(router, tmp_path):
+    """The robot service, instance hand_arm, on the world's simulated hand-arm board: it publishes
+    xm/robot/hand_arm/state with the 19 joints, holds the arm where it stands, and follows a trajectory."""
+    endpoint, session = router
+    run = tmp_path / "run"
+    port = str(run / "board")
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {
+        "world": {"sim": {"robot": "hand_arm", "robot_port": port}},
+        "robot": {"hand_arm": {"robot": "hand_arm", "port": port}}}, clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
+    names = load_robot("hand_arm").joint_names
+    states: list = []
+    _sub = subscribe(session, "xm/robot/hand_arm/state", "sensor_msgs/msg/JointState", states)
+    try:
+        assert wait_for(lambda: (run / "board").exists(), 30), world.output()
+        robot = ServiceProcess("robot", dep, "hand_arm", tmp_path / "robot.log")
+        try:
+            assert wait_for(lambda: len(states) > 20, 30), robot.output()
+            assert list(states[-1].name) == names
+            held = np.asarray(states[-1].position)
+            time.sleep(1.0)
+            assert np.abs(np.asarray(states[-1].position) - held).max() < 0.01, "the arm holds where it stands"
+            goal = held.copy()
+            goal[names.index("shoulder_pan")] += 0.2
+            goal[names.index("index_j2")] = goal[names.index("index_j3")] = 0.5
+            points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=goal, velocities=np.zeros(0),
+                                accelerations=np.zeros(0), effort=np.zeros(0),
+                                time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=k, nanosec=0))
+                      for k in range(3)]
+            clock = query_json(session, "xm/robot/hand_arm/@health")[0]["clock"]
+            session.put("xm/trajopt/main/trajectory", msgs.serialize(msgs.make(
+                "trajectory_msgs/msg/JointTrajectory", header=msgs.header(clock), joint_names=names, points=points)))
+            assert wait_for(lambda: np.abs(np.asarray(states[-1].position) - goal).max() < 0.01, 15), robot.output()
+        finally:
+            assert robot.stop() in (0, -15), robot.output()
+    finally:
+        assert world.stop() in (0, -15), world.output()
+
+
 def test_glove_registers_masks_and_imu_through_the_worlds_readout_module(router, tmp_path):
     """The world's simulated readout module answers register commands on its pty like the FPGA
     core; the glove service exposes them as @cmd/register and honours masks, run bit and IMU."""

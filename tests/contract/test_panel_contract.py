@@ -154,12 +154,13 @@ def test_without_a_robot_model_the_panel_draws_joint_markers(router, tmp_path):
     try:
         h = wait_for(lambda: health_of(session), 30)
         assert h and h["status"] == "ok" and h["robot_model"] is False, panel.output()
-        pub, payload = session.declare_publisher("xm/robot/workcell/state"), msgs.serialize(joint_state())
+        # the state of the robot the deployment names (xm/robot/<robot>/state), model file or not
+        pub, payload = session.declare_publisher("xm/robot/no_such/state"), msgs.serialize(joint_state())
 
         def drawn() -> dict | None:
             pub.put(payload)
             r = health_of(session)
-            return r if r and r["frames_drawn"] > 3 and "xm/robot/workcell/state" in r["received_hz"] else None
+            return r if r and r["frames_drawn"] > 3 and "xm/robot/no_such/state" in r["received_hz"] else None
 
         with viser_client(port):
             h = wait_for(drawn, 20)

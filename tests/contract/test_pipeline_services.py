@@ -166,6 +166,61 @@ def test_policy_and_trajopt_turn_a_scene_into_a_plan_and_a_joint_trajectory(rout
         trajopt.stop()
 
 
+def test_trajopt_runs_the_hand_arm_from_its_own_state_key_with_the_hand_pose_prior(router, tmp_path):
+    """robot = "hand_arm": trajopt reads xm/robot/hand_arm/state (not the gantry's key), tracks the
+    right hand's wrist and fingertips of a plan with coupled finger joints, and says that the 7.22
+    prior is on."""
+    from services.trajopt.optimizer import HAND_ARM_MAP
+    from services.world.model import ROBOT_HOME
+
+    endpoint, session = router
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"trajopt": {"main": {"robot": "hand_arm"}}})
+    trajopt = ServiceProcess("trajopt", dep, "main", tmp_path / "trajopt.log")
+    model = load_robot("hand_arm")
+    names = model.joint_names
+    q0 = model.couple(np.array([ROBOT_HOME["hand_arm"].get(n, 0.0) for n in names]))
+    target = q0.copy()
+    target[names.index("elbow")] -= 0.15
+    for finger in ("index", "middle", "ring"):
+        target[names.index(f"{finger}_j2")] = target[names.index(f"{finger}_j3")] = 0.6
+    frames = list(HAND_ARM_MAP.values())
+    goal = np.array([model.fk(target)[f][:3, 3] for f in frames])
+    start_error = np.linalg.norm(np.array([model.fk(q0)[f][:3, 3] for f in frames]) - goal, axis=1).max()
+    try:
+        trajs, _a = collect(session, "xm/trajopt/main/trajectory", "trajectory_msgs/msg/JointTrajectory")
+        assert wait_for(lambda: query_json(session, "xm/trajopt/main/@health"), 60), trajopt.output()
+        deadline = time.time() + 30
+        error = np.inf
+        while time.time() < deadline and error > start_error / 3:
+            now = time.time()
+            session.put("xm/robot/hand_arm/state", msgs.serialize(msgs.make(
+                "sensor_msgs/msg/JointState", header=msgs.header(now), name=names, position=q0,
+                velocity=np.zeros(len(q0)), effort=np.zeros(len(q0)))))
+            session.put("xm/robot/workcell/state", msgs.serialize(msgs.make(  # another robot: not ours
+                "sensor_msgs/msg/JointState", header=msgs.header(now), name=["left_x"], position=np.zeros(1),
+                velocity=np.zeros(1), effort=np.zeros(1))))
+            session.put("xm/policy/main/plan", msgs.serialize(msgs.make(
+                "xm_msgs/msg/Plan", header=msgs.header(now), policy="test", dt=0.1, steps=21,
+                point_names=list(HAND_ARM_MAP), positions=np.tile(goal.ravel(), 21).astype(np.float32),
+                mask=np.ones(21 * len(frames), np.uint8), efforts=np.zeros(0, np.float32))))
+            time.sleep(0.2)
+            if trajs:
+                q = np.asarray(trajs[-1].points[-1].positions)
+                error = np.linalg.norm(np.array([model.fk(q)[f][:3, 3] for f in frames]) - goal, axis=1).max()
+        assert trajs, trajopt.output()
+        assert list(trajs[-1].joint_names) == names
+        assert error < start_error / 3, (error, start_error, trajopt.output())
+        for finger in ("thumb", "index", "middle", "ring"):
+            assert q[names.index(f"{finger}_j3")] == pytest.approx(q[names.index(f"{finger}_j2")])
+        health = query_json(session, "xm/trajopt/main/@health")[0]
+        assert health["robot"] == "hand_arm" and health["pose_prior"] is True
+        received = health["received_hz"]
+        assert "xm/robot/hand_arm/state" in received and "xm/robot/workcell/state" not in received
+        assert "state_missing_joint" not in health["errors"] and health["status"] == "ok"
+    finally:
+        trajopt.stop()
+
+
 def _scene_msg(demo, k: int, now: float, hide: int | None = None):
     mask = np.ones(42, np.uint8)
     hands = demo.hands[k].reshape(42, 3).copy()

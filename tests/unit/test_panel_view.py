@@ -121,6 +121,22 @@ def test_link_boxes_follow_forward_kinematics():
     np.testing.assert_allclose(moved[rail].pose, boxes[rail].pose)
 
 
+def test_link_boxes_draw_the_hand_arm_with_coupled_fingers():
+    """The panel draws whichever model the deployment names: the hand-arm's cylinders and spheres get
+    boxes, and a state that leaves out the coupled distal joints still bends them with their master."""
+    robot = load_robot("hand_arm")
+    names = robot.joint_names
+    q = view.joint_vector(names, ["index_j2"], [1.0])  # index_j3 missing from the message
+    boxes = {b.name: b for b in view.link_boxes(robot, q)}
+    assert len(boxes) == len(robot.shapes)
+    straight = {b.name: b for b in view.link_boxes(robot, np.zeros(len(names)))}
+    i = next(i for i, s in enumerate(robot.shapes) if s.link == "index_distal")
+    flexed, flat = boxes[f"index_distal_{i}"].pose, straight[f"index_distal_{i}"].pose
+    # the distal bone turned by j2 + j3 (coupled) = 2 rad relative to the straight finger
+    assert np.degrees(np.arccos(np.clip((np.trace(flat[:3, :3].T @ flexed[:3, :3]) - 1) / 2, -1, 1))) == \
+        pytest.approx(np.degrees(2.0), abs=1e-6)
+
+
 def test_joint_markers_bar_height_is_the_joint_magnitude():
     bars = view.joint_markers([0.2, -0.4, 0.0], gain=1.0)
     assert bars.shape == (3, 2, 3)

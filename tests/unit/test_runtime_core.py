@@ -48,6 +48,29 @@ def test_sim_deployment_loads_and_covers_every_publishing_service():
     assert dep.params("glove", "left")["port"] == "/tmp/xm-sim/glove-left"
 
 
+def test_hand_arm_deployment_names_one_robot_everywhere():
+    """deploy/hand_arm.toml: world, trajopt, robot and panel all run the hand-arm model, the robot
+    service's instance carries the model's name (so its state key is the one trajopt and panel read),
+    and every parameter is one the services know."""
+    from services.panel.service import PanelService
+    from services.robot.service import RobotService
+    from services.trajopt.service import TrajoptService
+    from services.world.service import WorldService
+
+    dep = load_deployment("deploy/hand_arm.toml")
+    assert {spec.service for spec in keys.REGISTRY} <= set(dep.services)
+    classes = {"world": WorldService, "trajopt": TrajoptService, "robot": RobotService, "panel": PanelService}
+    robots = {}
+    for service, cls in classes.items():
+        (instance,) = dep.services[service]
+        params = parse_params(cls.Params, dep.params(service, instance), f"{service}.{instance}")
+        robots[service] = params.robot
+    assert set(robots.values()) == {"hand_arm"} and list(dep.services["robot"]) == ["hand_arm"]
+    assert keys.robot_state_key("hand_arm") == "xm/robot/hand_arm/state"
+    assert keys.msgtype_of(keys.robot_state_key("hand_arm")) == "sensor_msgs/msg/JointState"
+    assert keys.robot_state_key("workcell") in keys.BY_KEY  # the default deployment's key is unchanged
+
+
 def test_bad_deployments_name_file_key_and_type(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[deployment]\nname = 3\n')

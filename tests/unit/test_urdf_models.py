@@ -80,3 +80,51 @@ def test_hand_arm_has_coupled_fingers_and_tip_keypoints():
     q2[model.joint_names.index("index_j2")] = 1.0
     d = model.fk(q2)["index_tip"][:3, 3] - model.fk(q)["index_tip"][:3, 3]
     assert palm[:3, 1] @ d < -0.01
+
+
+def test_world_builds_the_hand_arm_with_motors_equalities_and_matching_kinematics():
+    """The world's MuJoCo model of the hand-arm (services/world/model.py, robot="hand_arm"): a motor per
+    independent joint limited to the URDF effort, an equality per mimic joint, forward kinematics of
+    every body and keypoint equal to shared/kinematics, and the coupling held under the board's control."""
+    from services.robot.board_sim import BoardSim
+    from services.world.sim import WorldSim
+    from shared.protocols import robot_board as rb
+
+    sim = WorldSim(robot="hand_arm")
+    m, d, model = sim.model, sim.data, sim.robot
+    assert sim.joint_names == model.joint_names
+    motors = {m.actuator(i).name: m.actuator_ctrlrange[i][1] for i in range(m.nu)}
+    assert motors == {j.name: j.effort for j in model.actuated}
+    assert m.neq == 4 and all(m.eq_type[i] == mujoco.mjtEq.mjEQ_JOINT for i in range(m.neq))
+    rng = np.random.default_rng(3)
+    frames = [j.child for j in model.joints]  # links and keypoint frames
+    for _ in range(3):
+        q = model.couple(rng.uniform(model.lower, model.upper))
+        d.qpos[sim._qadr] = q
+        mujoco.mj_kinematics(m, d)
+        poses = model.fk(q)
+        for f in frames:
+            np.testing.assert_allclose(d.xpos[m.body(f).id], poses[f][:3, 3], atol=1e-9, err_msg=f)
+            np.testing.assert_allclose(d.xmat[m.body(f).id].reshape(3, 3), poses[f][:3, :3], atol=1e-9, err_msg=f)
+    # From the home pose, the board flexes the fingers; every distal joint follows its middle joint.
+    sim.reset(0)
+    sim.set_robot_mode("robot")
+    names, n = sim.joint_names, len(sim.joint_names)
+    q0, _ = sim.joint_state()
+    assert model.fk(q0)["wrist_point"][2, 3] > 0.1  # the home pose stands over the table
+    target = q0.copy()
+    for finger in ("thumb", "index", "middle", "ring"):
+        target[names.index(f"{finger}_j2")] = target[names.index(f"{finger}_j3")] = 0.8
+    target[names.index("elbow")] -= 0.2
+    board = BoardSim(names)
+    cmd = rb.CommandFrame(0, np.full(n, rb.Mode.POSITION, np.uint8), target, *np.zeros((4, n)))
+    for step in range(1000):
+        if step % 4 == 0:
+            board.receive(cmd, sim.time)
+        q, qd = sim.joint_state()
+        sim.set_efforts(board.step(sim.time, q, qd, sim.physics_dt)[0])
+        sim.step(1)
+    q, _ = sim.joint_state()
+    np.testing.assert_allclose(q, target, atol=5e-3)
+    for finger in ("thumb", "index", "middle", "ring"):
+        assert q[names.index(f"{finger}_j3")] == pytest.approx(q[names.index(f"{finger}_j2")], abs=1e-3)
