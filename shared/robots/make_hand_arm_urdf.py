@@ -3,9 +3,10 @@ lengths and a humanoid hand (thumb + index, middle, ring) whose middle and dista
 mechanically coupled (``<finger>_j3`` mimics ``<finger>_j2``, as in the Shadow hands).
 
 The root link ``base`` is the workcell frame (table centre, z up, as in workcell.urdf); the arm
-stands at MOUNT_XYZ beside the table's right edge. Arm zero pose: straight up. The palm's +z continues the last link, its -y is the palm side; fingers
-extend along their local +z and flex about their local +x towards the palm. Links are capsule-like
-(thesis 7.4): cylinders along the bones, spheres at the tips.
+stands at MOUNT_XYZ beside the table's right edge. Arm zero pose: straight up. The palm's +z
+continues the last link, its -y is the palm side; fingers extend along their local +z and flex
+about their local +x towards the palm. Links are capsule-like (thesis 7.4): cylinders along the
+bones, spheres at the tips.
 
 Run: .venv/bin/python -m shared.robots.make_hand_arm_urdf  (writes hand_arm.urdf)
 """
