@@ -444,11 +444,14 @@ def main() -> None:
     model = load_robot("workcell")
     load0 = os.getloadavg()
     seq = record_sequence(model, args.steps)
-    workdir = Path(tempfile.mkdtemp(prefix="trajopt_jit_"))
+    workdir = Path(tempfile.mkdtemp(prefix="trajopt_bench_"))
+    here = Path.cwd()
+    os.chdir(workdir)  # the FATROP conic plugin writes debug_fatrop_*.mtx files into the working directory
     try:
         res = measure(alternatives(model, args.compare, args.jit, args.jit_flags.split(), workdir), seq,
                       Checker(model))
     finally:
+        os.chdir(here)
         shutil.rmtree(workdir, ignore_errors=True)
     load1 = os.getloadavg()
     ref = res["plain_opti_ipopt"]
