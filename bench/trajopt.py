@@ -5,7 +5,7 @@ IPOPT formulation of the same problem, both warm-started, measured in the same r
 Writes .bench/trajopt.json. Target: p95 <= 10 ms and >= 3x faster than the plain formulation.
 
 The scenario: the left gripper circles over the table while the right finger sweeps towards it
-and back, so a third of the solves have the carriages and hands within a few centimetres. The kept
+and back, so the arms come within a few centimetres in the middle of the sequence. The kept
 solver runs it in closed loop once; that fixes the sequence of problems (executing trajectory =
 warm start, goals, separating planes from the same GJK/EPA call). Every alternative then solves
 exactly that sequence, interleaved (problem k by every alternative before problem k+1, so a change
