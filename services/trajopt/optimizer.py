@@ -70,7 +70,7 @@ class TrajoptConfig:
 @dataclass
 class TrajoptResult:
     q: np.ndarray  # (knots, n joints), full joint order (mimic joints included)
-    status: str  # solved | max_iterations | unreachable | infeasible | bad_input
+    status: str  # solved | max_iterations | unreachable | infeasible | qp_failed | bad_input
     ok: bool
     solve_time_s: float
     iterations: int
@@ -360,8 +360,8 @@ class TrajectoryOptimizer:
     def solve(self, current_traj: np.ndarray, goals: np.ndarray, goal_mask: np.ndarray, dt: float) -> TrajoptResult:
         """current_traj: (knots, n) executing trajectory (its first fixed_knots rows are kept);
         goals: (knots, points, 3) in ``point_names`` order; goal_mask: (knots, points), False = ignore.
-        Never raises on bad values (NaN, unreachable, infeasible): returns ok=False, the executing
-        trajectory unchanged and a reason. Wrong shapes raise TrajoptInputError."""
+        Never raises on bad values (NaN, unreachable, infeasible, a failed QP): returns ok=False, the
+        executing trajectory unchanged and a reason. Wrong shapes raise TrajoptInputError."""
         t0 = time.perf_counter()
         cfg, na, K, F = self.cfg, self.na, self.cfg.knots, self.cfg.fixed_knots
         P = len(self.frames)
@@ -409,11 +409,14 @@ class TrajectoryOptimizer:
             args = dict(h=H, g=grad, a=G, lbx=lbx, ubx=ubx, lba=lbg - g, uba=self._ubg - g)
             if self._warm is not None:
                 args.update(self._warm)
-            sol = self._qp(**args)
-            dz = np.array(sol["x"]).ravel()
-            if not np.isfinite(dz).all():
+            sol = self._solve_qp(args)
+            if isinstance(sol, str):  # a failed QP is never read as a (converged) step: keep the executing one
                 self._warm = None
-                return self._fail(current, "infeasible", f"QP ({cfg.qp_solver}) failed in SQP iteration {it}", t0, it)
+                v, what = self._violation(z, g, lbg, dmin, pair, lo_z, hi_z)  # a likely cause
+                why = f"{sol}; the iterate violates {what} by {v:.4g}" if v > cfg.violation_tolerance else sol
+                return self._fail(current, "qp_failed", f"kept the executing trajectory: QP ({cfg.qp_solver}) "
+                                                         f"failed in SQP iteration {it}: {why}", t0, it, v)
+            dz = np.array(sol["x"]).ravel()
             self._warm = dict(lam_x0=sol["lam_x"], lam_a0=sol["lam_a"])
             decrease = -float(sol["cost"])  # the Gauss-Newton model's predicted cost decrease
             predicted_cost = float(cost) - decrease
@@ -440,6 +443,23 @@ class TrajectoryOptimizer:
         qa = z[self.q_index].reshape(K - F, na)
         q = np.vstack([current[:F], qa @ self.M.T + self.c])
         return TrajoptResult(q, status, True, time.perf_counter() - t0, it, violation, "", float(cost))
+
+    def _solve_qp(self, args: dict) -> dict | str:
+        """The QP's solution, or why it failed: the plugin's own verdict (``stats()["success"]``, its
+        return status), an exception, or a non-finite step. Plugins run with error_on_fail=False, so
+        a failed solve returns some vector (often small, or the initial guess), which the SQP would
+        otherwise take for a converged step."""
+        try:
+            sol = self._qp(**args)
+        except RuntimeError as exc:
+            lines = str(exc).strip().splitlines()
+            return f"raised {lines[-1][:200] if lines else type(exc).__name__}"
+        stats = self._qp.stats()
+        if not stats.get("success", False):
+            return str(stats.get("return_status") or stats.get("unified_return_status") or "no success flag")
+        if not np.isfinite(np.array(sol["x"])).all():
+            return "non-finite step"
+        return sol
 
     def _violation(self, z, g, lbg, dmin, pair, lo_z, hi_z) -> tuple[float, str]:
         """Largest constraint violation at z and what it is: the rows evaluated at z (separation

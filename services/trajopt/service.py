@@ -51,6 +51,7 @@ class TrajoptService:
         self.current: np.ndarray | None = None  # the trajectory being executed, (knots, n)
         self.t_current = 0.0  # time of its first knot
         self.last_result = None
+        self.last_rejection: dict | None = None  # the latest rejected solve, kept after later successes
         self.pub = node.publisher("xm/trajopt/main/trajectory")
         node.subscribe("xm/policy/main/plan", self.on_plan, latest(1))
         node.subscribe(robot_state_key(params.robot), self.on_state, latest(1))
@@ -73,7 +74,7 @@ class TrajoptService:
 
     def _health(self) -> dict:
         r = self.last_result
-        out = {"robot": self.p.robot, "pose_prior": self.pose_prior}
+        out = {"robot": self.p.robot, "pose_prior": self.pose_prior, "last_rejection": self.last_rejection}
         if r is None:
             return out
         return out | {"solve_time_ms": round(r.solve_time_s * 1e3, 3), "iterations": r.iterations,
@@ -81,29 +82,35 @@ class TrajoptService:
 
     async def run(self) -> None:
         async for t in self.node.clock.ticks(self.p.rate_hz):
-            if self.state is None:
-                continue
-            if self.current is None:
-                self.current = np.repeat(self.state[None], self.p.knots, axis=0)
-            if self.plan is None:  # no plan yet: hold (every goal masked)
-                points = len(self.opt.point_names)
-                goals, mask = np.zeros((self.p.knots, points, 3)), np.zeros((self.p.knots, points), bool)
-            else:
-                goals, mask = goals_for_horizon(self.plan, self.opt.point_names, t, self.dt, self.p.knots)
-            # Shift the executing trajectory by the elapsed knots: its first knots stay fixed (continuity).
-            shift = max(0, min(self.p.knots - 1, round((t - self.t_current) / self.dt))) if self.t_current else 0
-            if shift:
-                self.current = np.concatenate([self.current[shift:], np.repeat(self.current[-1:], shift, 0)])
-            self.t_current = t
-            result = await asyncio.to_thread(self.opt.solve, self.current, goals, mask, self.dt)
-            self.last_result = result
-            if result.ok:
-                self.current = result.q
-                self.node.set_status("ok")
-            else:
-                self.node.stats.count("solve_rejected")
-                self.node.set_status("degraded", f"kept last safe trajectory: {result.reason}")
-            self.pub.put(self._trajectory_msg(t, self.current))
+            await self.tick(t)
+
+    async def tick(self, t: float) -> None:
+        """One control cycle at time t: solve from the latest plan and state, publish the trajectory
+        being executed (the new one, or the last safe one when the solve was rejected)."""
+        if self.state is None:
+            return
+        if self.current is None:
+            self.current = np.repeat(self.state[None], self.p.knots, axis=0)
+        if self.plan is None:  # no plan yet: hold (every goal masked)
+            points = len(self.opt.point_names)
+            goals, mask = np.zeros((self.p.knots, points, 3)), np.zeros((self.p.knots, points), bool)
+        else:
+            goals, mask = goals_for_horizon(self.plan, self.opt.point_names, t, self.dt, self.p.knots)
+        # Shift the executing trajectory by the elapsed knots: its first knots stay fixed (continuity).
+        shift = max(0, min(self.p.knots - 1, round((t - self.t_current) / self.dt))) if self.t_current else 0
+        if shift:
+            self.current = np.concatenate([self.current[shift:], np.repeat(self.current[-1:], shift, 0)])
+        self.t_current = t
+        result = await asyncio.to_thread(self.opt.solve, self.current, goals, mask, self.dt)
+        self.last_result = result
+        if result.ok:
+            self.current = result.q
+            self.node.set_status("ok")
+        else:  # result.q is the executing trajectory: keep it (e.g. a failed QP is not a solution)
+            self.node.stats.count("solve_rejected")
+            self.last_rejection = {"t": t, "status": result.status, "reason": result.reason}
+            self.node.set_status("degraded", f"kept last safe trajectory: {result.reason}")
+        self.pub.put(self._trajectory_msg(t, self.current))
 
     def _trajectory_msg(self, t: float, q: np.ndarray):
         points = []

@@ -143,14 +143,92 @@ def test_bad_input_keeps_the_executing_trajectory_and_says_why(workcell, case):
     assert r.status == status and words in r.reason
 
 
-def test_an_executing_trajectory_in_collision_is_reported_infeasible(workcell):
+def test_an_executing_trajectory_in_collision_is_rejected_with_the_violated_pair(workcell):
     _, opt = workcell
     opt.reset()
     q0 = home(left_y=0.0, right_y=0.0)  # carriages inside each other: no step can separate them
     cur = np.repeat(q0[None], K, 0)
     r = opt.solve(cur, np.repeat(opt.points(q0)[None], K, 0), np.ones((K, 3), bool), DT)
-    assert not r.ok and r.status == "infeasible" and "violated by" in r.reason
+    # the linearised separation cannot be met inside the trust region: ipqp stops at its iteration
+    # limit (it does not detect infeasibility), and the reason names what the iterate violates
+    assert not r.ok and r.status == "qp_failed" and "QP (ipqp) failed" in r.reason, r.reason
+    assert "violates separation left_carriage-right_carriage" in r.reason and r.max_violation > 0.04
     np.testing.assert_array_equal(r.q, cur)
+
+
+def test_a_failed_qp_is_rejected_and_not_read_as_convergence(workcell):
+    """With error_on_fail=False a QP plugin that fails still returns a vector (ipqp stopped by its
+    iteration limit returns a small, finite step): the SQP must not take it for a converged step."""
+    model, good = workcell
+    opt = TrajectoryOptimizer(model, TrajoptConfig(qp_options={"max_iter": 3}))  # ipqp cannot finish
+    q0 = home()
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    goals[:, 2, 0] += 0.05
+    r = opt.solve(cur, goals, np.ones((K, 3), bool), DT)
+    assert not r.ok and r.status == "qp_failed", (r.status, r.reason)
+    assert "QP (ipqp) failed in SQP iteration 1: Maximum number of iterations reached" in r.reason
+    np.testing.assert_array_equal(r.q, cur)  # the executing trajectory, unchanged
+    good.reset()
+    assert good.solve(cur, goals, np.ones((K, 3), bool), DT).ok  # the same problem is fine for a working QP
+
+
+class _Node:
+    """What TrajoptService uses of a runtime Node, without Zenoh."""
+
+    def __init__(self) -> None:
+        import logging
+
+        from shared.runtime.node import Stats
+
+        self.stats, self.log, self.health_extra = Stats(), logging.getLogger("test"), None
+        self.status, self.message, self.published = "starting", "", []
+
+    def publisher(self, key: str):
+        return type("Pub", (), {"put": lambda _self, msg: self.published.append(msg)})()
+
+    def subscribe(self, *args) -> None:
+        pass
+
+    def set_status(self, status: str, message: str = "") -> None:
+        self.status, self.message = status, message
+
+
+def test_service_publishes_the_last_safe_trajectory_and_reports_a_failed_qp_in_health():
+    import asyncio
+    from types import SimpleNamespace
+
+    from services.trajopt.mapping import PlanArrays
+    from services.trajopt.service import TrajoptService
+
+    node = _Node()
+    svc = TrajoptService(node, TrajoptService.Params(robot="workcell"))
+    q0 = home()
+    svc.on_state(SimpleNamespace(name=svc.model.joint_names, position=q0))
+    target = q0.copy()
+    target[6] += 0.05  # right finger 5 cm forward
+    points = svc.opt.points(target)
+    svc.plan = PlanArrays(100.0, 0.1, svc.opt.point_names, np.repeat(points[None], 30, 0), np.ones((30, 3), bool))
+    published = lambda: np.array([p.positions for p in node.published[-1].points])  # noqa: E731
+    for t in (100.0, 100.1, 100.2):
+        asyncio.run(svc.tick(t))
+        assert svc.last_result.ok, svc.last_result.reason
+    safe = published()
+    assert np.abs(safe[-1] - q0).max() > 0.01  # it is moving towards the goal
+    working = svc.opt
+    svc.opt = TrajectoryOptimizer(svc.model, TrajoptConfig(max_iterations=3, qp_options={"max_iter": 3}))
+    asyncio.run(svc.tick(100.3))  # 2 knots later: the QP fails
+    shifted = np.concatenate([safe[2:], np.repeat(safe[-1:], 2, 0)])
+    np.testing.assert_array_equal(published(), shifted)  # the last safe trajectory, where it is now
+    health = svc._health()
+    assert health["last_status"] == "qp_failed" and "QP (ipqp) failed" in health["reason"]
+    assert node.status == "degraded" and "QP (ipqp) failed" in node.message
+    assert node.stats.errors["solve_rejected"] == 1
+    svc.opt = working
+    asyncio.run(svc.tick(100.4))
+    health = svc._health()
+    assert health["last_status"] != "qp_failed" and node.status == "ok"
+    assert health["last_rejection"]["status"] == "qp_failed" and health["last_rejection"]["t"] == 100.3
 
 
 def test_wrong_shapes_raise(workcell):
