@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[2]
 HDL = ROOT / "hdl" / "tactile"
 NTX = NRX = 4
 UART_DIV = 4
-SOURCES = ["tactile_core.v", "tactile_packer.v", "tactile_regs.v", "tactile_cmd.v", "uart.v", "crc32.v"]
+SOURCES = ["tactile_core.v", "tactile_packer.v", "tactile_regs.v", "tactile_cmd.v", "tactile_framer.v", "uart.v",
+           "crc32.v"]
 WINDOW = 1024
 CYCLES = [3, 5, 7, 11]  # cycles per window: high oversampling, as the real modulators run at MHz
 
@@ -38,7 +39,7 @@ def test_core_registers_and_impedances(tmp_path):
     results = runner.test(hdl_toplevel="tactile_core", test_module="test_tactile_core", build_dir=tmp_path,
                           test_dir=tmp_path, extra_env=env)
     total, failed = get_results(results)
-    assert total == 2 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
+    assert total == 3 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
 
 
 # ---- cocotb side (runs inside the simulator; no test_ prefix so pytest does not collect it) ----
@@ -60,7 +61,7 @@ if cocotb is not None:
                 dut.uart_rx.value = bit
                 await Timer(BIT_NS, unit="ns")
 
-    async def uart_monitor(dut, decoder: tactile.StreamDecoder, out: list) -> None:
+    async def uart_monitor(dut, decoder: tactile.StreamDecoder, out: list, raw: bytearray | None = None) -> None:
         while True:
             await FallingEdge(dut.uart_tx)
             await Timer(BIT_NS // 2, unit="ns")
@@ -69,19 +70,24 @@ if cocotb is not None:
                 await Timer(BIT_NS, unit="ns")
                 byte |= int(dut.uart_tx.value) << i
             await Timer(BIT_NS, unit="ns")
+            if raw is not None:
+                raw.append(byte)
             out.extend(decoder.feed(bytes([byte])))
 
-    async def start(dut):
+    async def start(dut, raw: bytearray | None = None):
         cocotb.start_soon(Clock(dut.clk, 10, unit="ns").start())
         dut.rst.value = 1
         dut.uart_rx.value = 1
         dut.adc_cmp.value = 0
+        dut.imu_valid.value = 0
+        dut.imu_first.value = 0
+        dut.imu_data.value = 0
         for _ in range(4):
             await RisingEdge(dut.clk)
         dut.rst.value = 0
         decoder = tactile.StreamDecoder()
         out: list = []
-        cocotb.start_soon(uart_monitor(dut, decoder, out))
+        cocotb.start_soon(uart_monitor(dut, decoder, out, raw))
         return decoder, out
 
     async def command(dut, out: list, address: int, value: int | None = None) -> tactile.RegisterReply:
@@ -144,6 +150,87 @@ if cocotb is not None:
         dut._log.info("relative error %.4f; recovered\n%s\nmodel\n%s", err, np.round(est, 4), np.round(Y, 4))
         assert err < 0.05, err
         assert np.all(f.impedance[NTX:, :] == 0)
+
+    @cocotb.test()
+    async def imu_samples_in_frames(dut) -> None:
+        """IMU words in on imu_*: no samples in frames until imu_enable is set, then every completed
+        sample in exactly one frame, in order, with the frame bytes equal to encode_frame's; more than
+        8 in a window keeps the last 8 and sets status bit 3."""
+        raw = bytearray()
+        decoder, out = await start(dut, raw)
+        await command(dut, out, tactile.REG_TICK_DIV, 20)
+        await command(dut, out, tactile.REG_WINDOW, 512)  # 102 us windows; a frame with 8 samples: 76 us
+        rng = np.random.default_rng(11)
+        samples = rng.integers(-32768, 32768, (40, 6))
+        samples[0] = [-32768, 32767, 0, -1, 1, 2048]
+        sent = []  # index into samples of each sample completed while imu_enable was set
+
+        async def push(i: int, gaps: bool) -> None:
+            for w in range(6):  # inputs change between clock edges, as from a synchronous source
+                await FallingEdge(dut.clk)
+                dut.imu_data.value = int(samples[i, w]) & 0xFFFF
+                dut.imu_first.value = int(w == 0)
+                dut.imu_valid.value = 1
+                await FallingEdge(dut.clk)
+                dut.imu_valid.value = 0
+                dut.imu_first.value = 0
+                if gaps:  # words need not come on consecutive clocks
+                    for _ in range(int(rng.integers(0, 4))):
+                        await FallingEdge(dut.clk)
+
+        async def frames_seen() -> list:
+            return [o for o in out if isinstance(o, tactile.TactileFrame)]
+
+        await push(0, True)  # imu_enable is 0: ignored
+        for _ in range(250):  # until a frame without samples went out
+            await Timer(1, unit="us")
+            if await frames_seen():
+                break
+        assert all(f.imu is None for f in await frames_seen())
+        await command(dut, out, tactile.REG_IMU_ENABLE, 1)
+        i = 1
+        for _ in range(10):  # one sample every 35 us: about three per window
+            await push(i, True)
+            sent.append(i)
+            i += 1
+            await Timer(35, unit="us")
+        for _ in range(11):  # a burst within one window: 11 samples, the frame keeps the last 8
+            await push(i, False)
+            sent.append(i)
+            i += 1
+        for _ in range(3):
+            await Timer(35, unit="us")
+            await push(i, True)
+            sent.append(i)
+            i += 1
+        await Timer(250, unit="us")
+        frames = await frames_seen()
+        assert decoder.stats["crc_errors"] == 0 and decoder.stats["bytes_discarded"] == 0
+        assert all(not f.status & tactile.STATUS_FRAME_DROPPED for f in frames)
+        got = []  # (frame, sample indices)
+        for f in frames:
+            if f.imu is None:
+                continue
+            ints = np.rint(np.asarray(f.imu, np.float64) / tactile.IMU_SCALE).astype(int)
+            idx = [int(np.flatnonzero((samples == row).all(axis=1))[0]) for row in ints]
+            got.append((f, idx))
+            # the frame's bytes are exactly what the Python encoder makes of it
+            want = tactile.encode_frame(tactile.TactileFrame(f.sequence, f.timestamp_us, f.impedance,
+                                                             samples[idx] * tactile.IMU_SCALE, f.tx_mask,
+                                                             f.rx_mask, f.status))
+            assert want in raw, f"frame {f.sequence}: bytes differ from encode_frame"
+        assert got and sum(len(idx) for _, idx in got) >= 12, [idx for _, idx in got]
+        expected = 0  # position in `sent` of the next sample
+        for f, idx in got:
+            first = sent.index(idx[0])
+            assert idx == sent[first:first + len(idx)], idx
+            if f.status & tactile.STATUS_IMU_OVERFLOW:
+                assert len(idx) == 8 and first > expected
+            else:
+                assert first == expected, (first, expected)
+            expected = first + len(idx)
+        assert expected == len(sent), "every sample sent was carried"
+        assert any(f.status & tactile.STATUS_IMU_OVERFLOW for f, _ in got)
 
     async def analog(dut, G: np.ndarray, C: np.ndarray) -> None:
         """Per sample tick: DAC bits -> 2-pole RC -> cell currents -> ADC integrators -> comparators."""
