@@ -24,7 +24,7 @@ module tactile_packer (
                NORM = 8, EXPO = 9, EMIT_A = 10, EMIT_L = 11, EMIT_S = 12, EMIT_B = 13;
     reg [3:0] state;
     reg [31:0] r_seq; reg [63:0] r_ts; reg [15:0] r_tx, r_rx; reg [7:0] r_status; reg [3:0] r_n;
-    reg [8:0] c, c0, c_end;  // cell {k, j}; 256 = past the end
+    reg [8:0] c, c0;         // cell {k, j}; 256 = past the end; first cell of the block
     reg [3:0] cnt, cnt2;     // cells in this block (<= 8), cells emitted
     reg [10:0] len;          // payload length (counted before the header), then payload bytes left
     reg [4:0] idx;           // header byte
@@ -99,9 +99,24 @@ module tactile_packer (
         default: head = {4'd0, r_n};
     endcase
 
+    reg [7:0] byte_out;  // the byte the current state sends
+    always @* case (state)
+        HEAD: byte_out = head;
+        IMU_B: byte_out = hi ? imu_data[15:8] : imu_data[7:0];
+        EXPO: byte_out = nz ? {{3{e[4]}}, e} : 8'h80;
+        default: byte_out = hi ? m[15:8] : m[7:0];
+    endcase
+    // Sending: the byte is presented (out_valid) in the state's first clock, taken on out_ready.
+    always @(posedge clk) begin
+        if (rst) begin out_valid <= 1'b0; out_last <= 1'b0; end
+        else if (!out_valid && (state == HEAD || state == IMU_B || state == EXPO || state == EMIT_B)) begin
+            out_data <= byte_out; out_valid <= 1'b1; out_last <= (state != HEAD || idx >= 3) && (len == 11'd1);
+        end else if (fire) out_valid <= 1'b0;
+    end
+
     always @(posedge clk) begin
         if (rst) begin
-            state <= IDLE; out_valid <= 1'b0; out_last <= 1'b0;
+            state <= IDLE;
         end else case (state)
             IDLE: if (start) begin
                 r_seq <= seq; r_ts <= ts; r_tx <= tx_mask; r_rx <= rx_mask; r_status <= status;
@@ -116,20 +131,15 @@ module tactile_packer (
                 if (enabled) begin len <= len_next; cnt <= cnt + 1; end
                 c <= c + 1;
             end
-            HEAD: if (!out_valid) begin
-                out_data <= head; out_valid <= 1'b1; out_last <= (idx >= 3) && (len == 11'd1);
-            end else if (out_ready) begin
-                out_valid <= 1'b0;
+            HEAD: if (fire) begin
                 if (idx >= 3) len <= len_next;
                 idx <= idx + 1;
                 if (out_last) state <= IDLE;
                 else if (idx == 20) state <= (r_n != 0) ? IMU_A : SCAN_A;
             end
             IMU_A: state <= IMU_B;  // address out, word in next clock
-            IMU_B: if (!out_valid) begin
-                out_data <= hi ? imu_data[15:8] : imu_data[7:0]; out_valid <= 1'b1; out_last <= (len == 11'd1);
-            end else if (out_ready) begin
-                out_valid <= 1'b0; len <= len_next; hi <= !hi;
+            IMU_B: if (fire) begin
+                len <= len_next; hi <= !hi;
                 if (out_last) state <= IDLE;
                 else if (hi) begin
                     if (wrd == 3'd5) begin
@@ -140,9 +150,7 @@ module tactile_packer (
                     end
                 end
             end
-            SCAN_A: if (c[8] || cnt == 4'd8) begin
-                c_end <= c; state <= NORM;
-            end else if (enabled) state <= SCAN_R;
+            SCAN_A: if (c[8] || cnt == 4'd8) state <= NORM; else if (enabled) state <= SCAN_R;
             else c <= c + 1;
             SCAN_R, SCAN_I: begin  // part 0, then 1
                 if (gt) begin ps <= sgn; nz <= 1'b1; end
@@ -156,14 +164,12 @@ module tactile_packer (
             end else if (nz && cond_l) begin
                 e <= e - 1; sh <= sh + 1;
             end else state <= EXPO;
-            EXPO: if (!out_valid) begin
-                out_data <= nz ? {{3{e[4]}}, e} : 8'h80; out_valid <= 1'b1; out_last <= 1'b0;
-            end else if (out_ready) begin
-                out_valid <= 1'b0; len <= len_next;
+            EXPO: if (fire) begin
+                len <= len_next;
                 c <= c0; cnt2 <= 0; ps <= 1'b0; state <= EMIT_A;
             end
-            EMIT_A: if (cnt2 == cnt) begin  // block done: the next one starts where its scan stopped
-                c0 <= c_end; c <= c_end; cnt <= 0; ps <= 0; nz <= 0; e <= 0; sh <= 1; left <= 1;
+            EMIT_A: if (cnt2 == cnt) begin  // block done: the next one starts after its last cell
+                c0 <= c; cnt <= 0; ps <= 0; nz <= 0; e <= 0; sh <= 1; left <= 1;
                 state <= SCAN_A;
             end else if (enabled) state <= EMIT_L;
             else c <= c + 1;
@@ -173,10 +179,8 @@ module tactile_packer (
             EMIT_S: if (sc != 0) begin
                 sc <= sc - 1;
             end else state <= EMIT_B;
-            EMIT_B: if (!out_valid) begin
-                out_data <= hi ? m[15:8] : m[7:0]; out_valid <= 1'b1; out_last <= (len == 11'd1);
-            end else if (out_ready) begin
-                out_valid <= 1'b0; len <= len_next; hi <= !hi;
+            EMIT_B: if (fire) begin
+                len <= len_next; hi <= !hi;
                 if (out_last) state <= IDLE;
                 else if (hi) begin
                     part <= !part;

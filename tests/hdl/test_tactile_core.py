@@ -39,7 +39,7 @@ def test_core_registers_and_impedances(tmp_path):
     results = runner.test(hdl_toplevel="tactile_core", test_module="test_tactile_core", build_dir=tmp_path,
                           test_dir=tmp_path, extra_env=env)
     total, failed = get_results(results)
-    assert total == 3 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
+    assert total == 4 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
 
 
 # ---- cocotb side (runs inside the simulator; no test_ prefix so pytest does not collect it) ----
@@ -90,9 +90,10 @@ if cocotb is not None:
         cocotb.start_soon(uart_monitor(dut, decoder, out, raw))
         return decoder, out
 
-    async def command(dut, out: list, address: int, value: int | None = None) -> tactile.RegisterReply:
+    async def command(dut, out: list, address: int, value: int | None = None,
+                      timeout_us: int = 20) -> tactile.RegisterReply:
         await uart_send(dut, tactile.encode_command(address, value))
-        for _ in range(200):
+        for _ in range(10 * timeout_us):
             replies = [o for o in out if isinstance(o, tactile.RegisterReply)]
             if replies:
                 out.remove(replies[0])
@@ -231,6 +232,59 @@ if cocotb is not None:
             expected = first + len(idx)
         assert expected == len(sent), "every sample sent was carried"
         assert any(f.status & tactile.STATUS_IMU_OVERFLOW for f, _ in got)
+
+    @cocotb.test()
+    async def dropped_frames_keep_their_data(dut) -> None:
+        """A window shorter than a frame on the link: every other frame is dropped (sequence gap,
+        status bit 2 on the next one), and the frames that do go out hold one window each.
+        Comparator bits: pattern A in even windows, B in odd ones, the same sequence in every window
+        of a kind; every line makes whole cycles in the 128-tick window, so windows of a kind have
+        equal sums. Reference sums of reception line 0 from short frames (rx_enable 1, nothing
+        dropped), then all lines: a frame that mixed two windows would differ from the reference."""
+        decoder, out = await start(dut)
+        rng = np.random.default_rng(9)
+        patterns = rng.integers(0, 1 << NRX, (2, 128))
+
+        async def comparators() -> None:
+            w, n = 0, 0  # window number, tick in the window
+            while True:
+                await RisingEdge(dut.clk)
+                if int(dut.win_end.value):  # the next tick is the first of a window
+                    w, n = w + 1, 0
+                    await FallingEdge(dut.clk)
+                    dut.adc_cmp.value = int(patterns[w % 2, 0])
+                elif int(dut.strobe.value):  # tick n started: bits for tick n + 1
+                    await FallingEdge(dut.clk)
+                    dut.adc_cmp.value = int(patterns[w % 2, (n + 1) % 128])
+                    n += 1
+
+        async def collect(count: int) -> list:
+            out.clear()
+            for _ in range(800):
+                await Timer(1, unit="us")
+                frames = [o for o in out if isinstance(o, tactile.TactileFrame)]
+                if len(frames) >= count:
+                    return frames
+            raise AssertionError(f"{len(frames)} frames, expected {count}")
+
+        cocotb.start_soon(comparators())
+        await command(dut, out, tactile.REG_TICK_DIV, 20)
+        await command(dut, out, tactile.REG_WINDOW, 128)  # 25.6 us
+        await command(dut, out, tactile.REG_RX_ENABLE, 0x1, timeout_us=60)  # 4 cells: 18 us on the link
+        short = (await collect(7))[3:]
+        assert all(not f.status for f in short), [f.status for f in short]
+        ref = {f.sequence % 2: f.impedance[:NTX, 0] for f in short}
+        assert len(ref) == 2 and not np.array_equal(ref[0], ref[1])
+        for f in short:
+            assert np.array_equal(f.impedance[:NTX, 0], ref[f.sequence % 2])
+        await command(dut, out, tactile.REG_RX_ENABLE, 0xF, timeout_us=60)  # 16 cells: 37 us on the link
+        full = (await collect(8))[2:]
+        assert decoder.stats["crc_errors"] == 0
+        for prev, f in zip(full[:-1], full[1:], strict=True):
+            assert f.sequence > prev.sequence + 1 and f.status & tactile.STATUS_FRAME_DROPPED, (prev, f)
+        for f in full:
+            assert np.array_equal(f.impedance[:NTX, 0], ref[f.sequence % 2]), f"frame {f.sequence} mixes windows"
+        assert np.abs(full[0].impedance[:NTX, :NRX]).min() > 0
 
     async def analog(dut, G: np.ndarray, C: np.ndarray) -> None:
         """Per sample tick: DAC bits -> 2-pole RC -> cell currents -> ADC integrators -> comparators."""
