@@ -14,9 +14,9 @@ module tactile_cmd (
     localparam HUNT0 = 0, HUNT1 = 1, BODY = 2, EXEC = 3, REPLY = 4;
     reg [2:0] state;
     reg [3:0] idx;  // byte after the sync word: type, len(2), address(2), value(4), crc(4)
-    reg [31:0] crc;
-    wire [31:0] crc_next;
-    crc32_byte u_crc (.crc_in(crc), .data(rx_data), .crc_out(crc_next));
+    wire [31:0] crc;  // over type, length and payload; done before the next byte (10 clocks apart)
+    crc32_serial u_crc (.clk(clk), .rst(rst), .init(state == HUNT1), .load(state == BODY && rx_valid && idx < 9),
+        .data(rx_data), .crc(crc), .busy());
     reg is_write, type_ok, len_ok, crc_ok;
     reg [31:0] value;  // reply: the register's value after the command
     reg [1:0] rstat;   // reply status (0 ok, 1 bad address, 2 read-only)
@@ -40,11 +40,6 @@ module tactile_cmd (
         4'd9: rbyte = {6'd0, rstat};
         default: rbyte = 8'd0;
     endcase
-
-    // CRC register: set over enable (maps onto the flip-flops' own set input)
-    always @(posedge clk)
-        if (state == HUNT1) crc <= 32'hFFFFFFFF;
-        else if (state == BODY && rx_valid && idx < 9) crc <= crc_next;
 
     always @(posedge clk) begin
         bus_we <= 1'b0;

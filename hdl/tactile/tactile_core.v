@@ -49,14 +49,24 @@ module tactile_core #(
     uart_tx #(.DIV(UART_DIV)) u_tx (.clk(clk), .rst(rst), .data(tx_byte), .valid(tx_valid), .ready(tx_ready),
         .tx(uart_tx));
 
-    // ---- device time in microseconds ----
+    // ---- device time in microseconds: 8 bytes rotating (one byte a clock) through an 8-bit
+    // incrementer; a microsecond tick is added as the least significant byte passes (tph 0), the
+    // carry follows it through the other 7. The packer takes the bytes from the stream (ts_byte,
+    // least significant first from tph 0). Needs CLK_PER_US >= 8.
     localparam UW = (CLK_PER_US > 2) ? $clog2(CLK_PER_US) : 1;
-    reg [63:0] time_us; reg [UW-1:0] us_div;
+    reg [63:0] tsr; reg [2:0] tph; reg tcar, tinc; reg [UW-1:0] us_div;
+    wire us_tick = (us_div == CLK_PER_US - 1);
+    wire [8:0] tsum = {1'b0, tsr[7:0]} + {8'd0, (tph == 3'd0) ? tinc : tcar};
     always @(posedge clk) begin
-        if (rst) begin time_us <= 0; us_div <= 0; end
-        else if (us_div == CLK_PER_US - 1) begin us_div <= 0; time_us <= time_us + 1; end
-        else us_div <= us_div + 1;
+        if (rst) begin tsr <= 0; tph <= 0; tcar <= 0; tinc <= 0; us_div <= 0; end
+        else begin
+            tsr <= {tsum[7:0], tsr[63:8]}; tph <= tph + 1; tcar <= tsum[8];
+            us_div <= us_tick ? 0 : us_div + 1;
+            if (tph == 3'd0) tinc <= us_tick;
+            else if (us_tick) tinc <= 1'b1;
+        end
     end
+    initial if (CLK_PER_US < 8) $display("tactile_core: CLK_PER_US must be at least 8");
 
     // ---- sample ticks (div clocks) and windows (window ticks): down counters ----
     // A tick: clock 0 samples the comparators, cells run in clocks 1..NTX*NRX (stage 0), the last
@@ -204,8 +214,8 @@ module tactile_core #(
     end
     wire [15:0] tx_mask = tx_enable & ((17'd1 << NTX) - 17'd1);
     wire [15:0] rx_mask = rx_enable & ((17'd1 << NRX) - 17'd1);
-    tactile_packer u_pk (.clk(clk), .rst(rst), .start(pk_start), .seq(fc), .ts(time_us),
-        .tx_mask(tx_mask), .rx_mask(rx_mask), .status(pk_status), .imu_count(imu_n), .imu_base(imu_base),
-        .rd_addr(pk_addr), .rd_data(pk_q), .imu_addr(pk_iaddr), .imu_data(imu_q),
+    tactile_packer u_pk (.clk(clk), .rst(rst), .start(pk_start), .seq(fc), .ts_byte(tsum[7:0]),
+        .ts_first(tph == 3'd0), .tx_mask(tx_mask), .rx_mask(rx_mask), .status(pk_status), .imu_count(imu_n),
+        .imu_base(imu_base), .rd_addr(pk_addr), .rd_data(pk_q), .imu_addr(pk_iaddr), .imu_data(imu_q),
         .out_data(pk_data), .out_valid(pk_valid), .out_last(pk_last), .out_ready(pk_ready), .busy(pk_busy));
 endmodule

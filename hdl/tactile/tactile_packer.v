@@ -1,6 +1,8 @@
 // Frame packer: type, length, header, IMU samples, shared-exponent blocks of the enabled cells, as
 // shared/protocols/tactile.py encode_frame (byte-exact; checked against the vectors file). The framer
 // (tactile_framer.v) adds sync and CRC; out_last marks the last payload byte.
+// Timestamp: a byte stream (least significant byte with ts_first, then one byte a clock), taken at
+// the first ts_first after start into r_ts, a shift register that also sends it.
 // Frame memory: rd_addr = {excitation line, reception line}, rd_data = {im, re}, 28-bit signed each,
 // registered read (one clock). IMU memory: imu_addr = {slot, word}, 16-bit words, registered read; a
 // frame carries imu_count samples from slot imu_base on (mod 16), 6 words each.
@@ -12,7 +14,7 @@
 // the right (or 1 - e to the left) in the same register and rounded half up: m = (w + 1) >> 1.
 module tactile_packer (
     input  wire clk, input wire rst, input wire start,
-    input  wire [31:0] seq, input wire [63:0] ts,
+    input  wire [31:0] seq, input wire [7:0] ts_byte, input wire ts_first,
     input  wire [15:0] tx_mask, input wire [15:0] rx_mask, input wire [7:0] status,
     input  wire [3:0] imu_count, input wire [3:0] imu_base,
     output wire [7:0] rd_addr, input wire [55:0] rd_data,
@@ -28,6 +30,7 @@ module tactile_packer (
     reg [3:0] cnt, cnt2;     // cells in this block (<= 8), cells emitted
     reg [10:0] len;          // payload length (counted before the header), then payload bytes left
     reg [4:0] idx;           // header byte
+    reg [3:0] tcap;          // timestamp bytes still to take (8: waiting for ts_first)
     reg [3:0] slot; reg [2:0] wrd;  // IMU sample slot, word
     reg hi;                  // high byte of a 16-bit word next
     reg part;                // 0 real, 1 imaginary part
@@ -83,14 +86,7 @@ module tactile_packer (
         5'd4: head = r_seq[15:8];
         5'd5: head = r_seq[23:16];
         5'd6: head = r_seq[31:24];
-        5'd7: head = r_ts[7:0];
-        5'd8: head = r_ts[15:8];
-        5'd9: head = r_ts[23:16];
-        5'd10: head = r_ts[31:24];
-        5'd11: head = r_ts[39:32];
-        5'd12: head = r_ts[47:40];
-        5'd13: head = r_ts[55:48];
-        5'd14: head = r_ts[63:56];
+        5'd7, 5'd8, 5'd9, 5'd10, 5'd11, 5'd12, 5'd13, 5'd14: head = r_ts[7:0];
         5'd15: head = r_tx[7:0];
         5'd16: head = r_tx[15:8];
         5'd17: head = r_rx[7:0];
@@ -98,6 +94,16 @@ module tactile_packer (
         5'd19: head = r_status;
         default: head = {4'd0, r_n};
     endcase
+
+    // r_ts shifts a byte in while taking the timestamp and a byte out per timestamp byte sent
+    wire ts_take = (tcap != 4'd0) && (tcap != 4'd8 || ts_first);
+    wire ts_sent = (state == HEAD) && fire && (idx >= 5'd7) && (idx <= 5'd14);
+    always @(posedge clk) begin
+        if (ts_take || ts_sent) r_ts <= {ts_byte, r_ts[63:8]};
+        if (rst) tcap <= 4'd0;
+        else if (state == IDLE && start) tcap <= 4'd8;
+        else if (ts_take) tcap <= tcap - 1;
+    end
 
     reg [7:0] byte_out;  // the byte the current state sends
     always @* case (state)
@@ -119,7 +125,7 @@ module tactile_packer (
             state <= IDLE;
         end else case (state)
             IDLE: if (start) begin
-                r_seq <= seq; r_ts <= ts; r_tx <= tx_mask; r_rx <= rx_mask; r_status <= status;
+                r_seq <= seq; r_tx <= tx_mask; r_rx <= rx_mask; r_status <= status;
                 r_n <= imu_count; slot <= imu_base; wrd <= 0; hi <= 0;
                 len <= {3'd0, len0}; c <= 0; cnt <= 0;
                 state <= COUNT;

@@ -22,8 +22,11 @@ module tb_packer (
         if (imu_wr_en) imu_mem[imu_wr_addr] <= imu_wr_data;
         imu_rd <= imu_mem[imu_addr];
     end
+    reg [2:0] tph = 0;  // the timestamp as the core streams it: byte tph of ts, LSB with ts_first
+    always @(posedge clk) tph <= tph + 1;
     wire [7:0] pk_data; wire pk_valid, pk_last, pk_ready, pk_busy, fr_busy;
-    tactile_packer u (.clk(clk), .rst(rst), .start(start), .seq(seq), .ts(ts), .tx_mask(tx_mask),
+    tactile_packer u (.clk(clk), .rst(rst), .start(start), .seq(seq), .ts_byte(ts[8 * tph +: 8]),
+        .ts_first(tph == 3'd0), .tx_mask(tx_mask),
         .rx_mask(rx_mask), .status(status), .imu_count(imu_count), .imu_base(imu_base), .rd_addr(rd_addr),
         .rd_data(rd_data), .imu_addr(imu_addr), .imu_data(imu_rd), .out_data(pk_data), .out_valid(pk_valid),
         .out_last(pk_last), .out_ready(pk_ready), .busy(pk_busy));

@@ -47,6 +47,7 @@ try:
     import cocotb
     from cocotb.clock import Clock
     from cocotb.triggers import FallingEdge, ReadOnly, RisingEdge, Timer
+    from cocotb.utils import get_sim_time
 except ImportError:  # pragma: no cover
     cocotb = None
 
@@ -108,7 +109,13 @@ if cocotb is not None:
         for addr, value in [(tactile.REG_ID, None), (tactile.REG_ID, 5), (0x0002, None), (0x0200, 1),
                             (tactile.REG_FREQ_BASE + 4, None), (tactile.REG_TICK_DIV, 0x12345),
                             (tactile.REG_TICK_DIV, None), (tactile.REG_FREQ_BASE + 60, 0xDEADBEEF),
-                            (tactile.REG_FREQ_BASE + 60, None), (tactile.REG_RX_ENABLE, 0x3F)]:
+                            (tactile.REG_FREQ_BASE + 60, None), (tactile.REG_RX_ENABLE, 0x3F),
+                            # every kind of register: defaults, truncation, one-bit registers, bad addresses
+                            (tactile.REG_WINDOW, None), (tactile.REG_TX_ENABLE, None), (tactile.REG_TX_ENABLE, 0xABCDE),
+                            (tactile.REG_TX_ENABLE, None), (tactile.REG_RX_ENABLE, None), (tactile.REG_IMU_ENABLE, 3),
+                            (tactile.REG_IMU_ENABLE, None), (tactile.REG_CONTROL, None), (tactile.REG_FREQ_BASE, None),
+                            (tactile.REG_FREQ_BASE + 28, 0x89ABCDEF), (tactile.REG_FREQ_BASE + 28, None),
+                            (tactile.REG_FREQ_BASE + 32, None), (0x0101, None), (0x0140, 7), (0x0020, None)]:
             got = await command(dut, out, addr, value)
             want = model.handle(tactile.RegisterCommand(addr, value))
             assert (got.address, got.value, got.status) == (want.address, want.value, want.status), (got, want)
@@ -240,8 +247,10 @@ if cocotb is not None:
         Comparator bits: pattern A in even windows, B in odd ones, the same sequence in every window
         of a kind; every line makes whole cycles in the 128-tick window, so windows of a kind have
         equal sums. Reference sums of reception line 0 from short frames (rx_enable 1, nothing
-        dropped), then all lines: a frame that mixed two windows would differ from the reference."""
+        dropped), then all lines: a frame that mixed two windows would differ from the reference.
+        Timestamps: 256 us per window, device time since reset."""
         decoder, out = await start(dut)
+        t_reset = get_sim_time("ns")
         rng = np.random.default_rng(9)
         patterns = rng.integers(0, 1 << NRX, (2, 128))
 
@@ -284,6 +293,11 @@ if cocotb is not None:
             assert f.sequence > prev.sequence + 1 and f.status & tactile.STATUS_FRAME_DROPPED, (prev, f)
         for f in full:
             assert np.array_equal(f.impedance[:NTX, 0], ref[f.sequence % 2]), f"frame {f.sequence} mixes windows"
+        for prev, f in zip(short[:-1] + full[:-1], short[1:] + full[1:], strict=True):  # 128 x 20 clocks = 256 us
+            assert abs(f.timestamp_us - prev.timestamp_us - 256 * (f.sequence - prev.sequence)) <= 1, (prev, f)
+        # device time since reset (a device microsecond is CLK_PER_US = 10 clocks of 10 ns here)
+        elapsed = (get_sim_time("ns") - t_reset) / 100
+        assert 0 < elapsed - full[-1].timestamp_us < 1000, (elapsed, full[-1].timestamp_us)
         assert np.abs(full[0].impedance[:NTX, :NRX]).min() > 0
 
     async def analog(dut, G: np.ndarray, C: np.ndarray) -> None:
