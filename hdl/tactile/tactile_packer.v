@@ -49,7 +49,7 @@ module tactile_packer (
     wire [27:0] re = rd_data[27:0];
     wire [27:0] im = rd_data[55:28];
     wire sgn = part ? im[27] : re[27];
-    wire scanning = (state == SCAN_R) || (state == SCAN_I);
+    reg scanning;  // state is SCAN_R or SCAN_I (a flip-flop: the compare path starts at flip-flops)
     wire [27:0] x = (part ? im : re) ^ {28{scanning & sgn}};  // scan: |v| - sign; emit: v
     wire gt = {x[26:0], sgn} > {R[26:0], ps};
     wire hi_nz = |R[26:15];
@@ -122,7 +122,7 @@ module tactile_packer (
 
     always @(posedge clk) begin
         if (rst) begin
-            state <= IDLE;
+            state <= IDLE; scanning <= 1'b0;
         end else case (state)
             IDLE: if (start) begin
                 r_seq <= seq; r_tx <= tx_mask; r_rx <= rx_mask; r_status <= status;
@@ -156,13 +156,14 @@ module tactile_packer (
                     end
                 end
             end
-            SCAN_A: if (c[8] || cnt == 4'd8) state <= NORM; else if (enabled) state <= SCAN_R;
+            SCAN_A: if (c[8] || cnt == 4'd8) state <= NORM;
+            else if (enabled) begin state <= SCAN_R; scanning <= 1'b1; end
             else c <= c + 1;
             SCAN_R, SCAN_I: begin  // part 0, then 1
                 if (gt) begin ps <= sgn; nz <= 1'b1; end
                 part <= !part;
                 if (state == SCAN_R) state <= SCAN_I;
-                else begin cnt <= cnt + 1; c <= c + 1; state <= SCAN_A; end
+                else begin cnt <= cnt + 1; c <= c + 1; state <= SCAN_A; scanning <= 1'b0; end
             end
             NORM: if (cond_r) begin
                 ps <= ps | R[0]; e <= e + 1;

@@ -97,7 +97,7 @@ if cocotb is not None:
         await RisingEdge(dut.clk)
         dut.start.value = 0
         got = bytearray()
-        while True:  # consumer with random back-pressure
+        for _ in range(100_000):  # consumer with random back-pressure
             dut.out_ready.value = int(rng.random() < 0.7)
             await RisingEdge(dut.clk)
             if int(dut.out_valid.value) and int(dut.out_ready.value):
@@ -105,6 +105,8 @@ if cocotb is not None:
                 if int(dut.out_last.value):
                     break
             assert len(got) < 2000
+        else:
+            raise AssertionError(f"no last byte after 100000 clocks ({len(got)} bytes)")
         dut.out_ready.value = 0
         return bytes(got)
 
