@@ -1,6 +1,8 @@
 // UART command parser: host frames (types 10 write, 11 read, 6-byte payload, CRC-32) become bus
-// cycles; each well-formed command queues one reply frame (type 02). Bad frames are dropped and
-// counted (rejected). The parser then waits for its reply to be sent before taking the next one.
+// cycles; each well-formed command queues one reply (type 02: type, length and payload; the framer
+// adds sync and CRC). Bad frames are dropped and counted (rejected). The parser then waits for its
+// reply to be sent before taking the next one. Fields are taken on the fly (no frame buffer): the
+// address and value shift into bus_addr / bus_wdata, the CRC is compared byte by byte.
 module tactile_cmd (
     input  wire clk, input wire rst,
     input  wire [7:0] rx_data, input wire rx_valid,
@@ -11,26 +13,33 @@ module tactile_cmd (
 );
     localparam HUNT0 = 0, HUNT1 = 1, BODY = 2, EXEC = 3, REPLY = 4;
     reg [2:0] state;
-    reg [3:0] idx;
-    reg [7:0] buf_ [0:14];  // type, len(2), payload(6), crc(4)
-    reg [31:0] crc;
-    wire [31:0] crc_next;
-    reg [7:0] crc_byte;
-    crc32_byte u_crc (.crc_in(crc), .data(crc_byte), .crc_out(crc_next));
-    reg [55:0] reply;  // address(2), value(4), status(1)
-    reg [4:0] ridx;
+    reg [3:0] idx;  // byte after the sync word: type, len(2), address(2), value(4), crc(4)
+    wire [31:0] crc;  // over type, length and payload; done before the next byte (10 clocks apart)
+    crc32_serial u_crc (.clk(clk), .rst(rst), .init(state == HUNT1), .load(state == BODY && rx_valid && idx < 9),
+        .data(rx_data), .crc(crc), .busy());
+    reg is_write, type_ok, len_ok, crc_ok;
+    reg [31:0] value;  // reply: the register's value after the command
+    reg [1:0] rstat;   // reply status (0 ok, 1 bad address, 2 read-only)
+    reg [7:0] crc_rx;  // the CRC byte expected now
+    always @* case (idx[1:0])  // idx 9, 10, 11, 12: CRC bytes 0..3
+        2'd1: crc_rx = ~crc[7:0];
+        2'd2: crc_rx = ~crc[15:8];
+        2'd3: crc_rx = ~crc[23:16];
+        default: crc_rx = ~crc[31:24];
+    endcase
     reg [7:0] rbyte;
-    wire [31:0] rx_crc = {buf_[12], buf_[11], buf_[10], buf_[9]};
-    wire good = (buf_[0] == 8'h10 || buf_[0] == 8'h11) && buf_[1] == 8'd6 && buf_[2] == 8'd0 && rx_crc == ~crc;
-
-    always @* begin
-        case (ridx)
-            0: rbyte = 8'hA5; 1: rbyte = 8'h5A; 2: rbyte = 8'h02; 3: rbyte = 8'd7; 4: rbyte = 8'd0;
-            12: rbyte = ~crc[7:0]; 13: rbyte = ~crc[15:8]; 14: rbyte = ~crc[23:16]; 15: rbyte = ~crc[31:24];
-            default: rbyte = reply[8 * (ridx - 5) +: 8];
-        endcase
-        crc_byte = (state == REPLY) ? rbyte : rx_data;
-    end
+    always @* case (idx)
+        4'd0: rbyte = 8'h02;
+        4'd1: rbyte = 8'd7;
+        4'd3: rbyte = bus_addr[7:0];
+        4'd4: rbyte = bus_addr[15:8];
+        4'd5: rbyte = value[7:0];
+        4'd6: rbyte = value[15:8];
+        4'd7: rbyte = value[23:16];
+        4'd8: rbyte = value[31:24];
+        4'd9: rbyte = {6'd0, rstat};
+        default: rbyte = 8'd0;
+    endcase
 
     always @(posedge clk) begin
         bus_we <= 1'b0;
@@ -39,38 +48,42 @@ module tactile_cmd (
         end else case (state)
             HUNT0: if (rx_valid && rx_data == 8'hA5) state <= HUNT1;
             HUNT1: if (rx_valid) begin
-                if (rx_data == 8'h5A) begin state <= BODY; idx <= 0; crc <= 32'hFFFFFFFF; end
+                if (rx_data == 8'h5A) begin state <= BODY; idx <= 0; end
                 else if (rx_data != 8'hA5) state <= HUNT0;
             end
             BODY: if (rx_valid) begin
-                buf_[idx] <= rx_data;
-                if (idx < 9) crc <= crc_next;
-                if (idx == 2 && (buf_[1] != 8'd6 || rx_data != 8'd0)) begin
+                if (idx == 0) begin
+                    type_ok <= (rx_data[7:1] == 7'h08);  // 0x10 write, 0x11 read
+                    is_write <= !rx_data[0];
+                end
+                if (idx == 1) len_ok <= (rx_data == 8'd6);
+                if (idx == 3 || idx == 4) bus_addr <= {rx_data, bus_addr[15:8]};
+                if (idx >= 5 && idx <= 8) bus_wdata <= {rx_data, bus_wdata[31:8]};
+                if (idx == 9) crc_ok <= (rx_data == crc_rx);
+                else if (idx > 9) crc_ok <= crc_ok && (rx_data == crc_rx);
+                if (idx == 2 && (!len_ok || rx_data != 8'd0)) begin
                     rejected <= rejected + 1; state <= HUNT0;  // wrong length: hunt again
                 end else if (idx == 12) state <= EXEC;
                 idx <= idx + 1;
             end
             EXEC: begin
-                if (good) begin
-                    bus_addr <= {buf_[4], buf_[3]};
-                    bus_wdata <= {buf_[8], buf_[7], buf_[6], buf_[5]};
-                    bus_we <= (buf_[0] == 8'h10);
-                    state <= REPLY; ridx <= 0; crc <= 32'hFFFFFFFF;
+                if (type_ok && crc_ok) begin
+                    bus_we <= is_write;
+                    state <= REPLY; idx <= 0;
                 end else begin
                     rejected <= rejected + 1; state <= HUNT0;
                 end
             end
             REPLY: begin
                 // Status during the bus cycle (a write to a read-only register), value after it.
-                if (ridx == 0 && !out_valid) reply[55:48] <= bus_status;
-                if (ridx == 1 && !out_valid) reply[47:0] <= {bus_rdata, bus_addr};
+                if (idx == 0 && !out_valid) rstat <= bus_status[1:0];
+                if (idx == 1 && !out_valid) value <= bus_rdata;
                 if (!out_valid) begin
-                    out_valid <= 1'b1; out_data <= (ridx == 0) ? 8'hA5 : rbyte; out_last <= (ridx == 15);
+                    out_valid <= 1'b1; out_data <= rbyte; out_last <= (idx == 9);
                 end else if (out_ready) begin
-                    if (ridx >= 2 && ridx < 12) crc <= crc_next;
                     out_valid <= 1'b0;
-                    if (ridx == 15) state <= HUNT0;
-                    ridx <= ridx + 1;
+                    if (idx == 9) state <= HUNT0;
+                    idx <= idx + 1;
                 end
             end
             default: state <= HUNT0;

@@ -4,9 +4,10 @@ module uart_tx #(parameter DIV = 4) (
     input  wire [7:0] data, input wire valid, output wire ready,
     output reg  tx
 );
+    localparam CW = (DIV > 2) ? $clog2(DIV) : 1;
     reg [9:0] shift;
     reg [3:0] nbits;
-    reg [15:0] cnt;
+    reg [CW-1:0] cnt;
     assign ready = (nbits == 0);
     always @(posedge clk) begin
         if (rst) begin
@@ -29,9 +30,10 @@ module uart_rx #(parameter DIV = 4) (
     input  wire clk, input wire rst, input wire rx,
     output reg [7:0] data, output reg valid
 );
+    localparam CW = (DIV > 2) ? $clog2(DIV) : 1;
     reg [1:0] sync;
     reg [3:0] nbits;
-    reg [15:0] cnt;
+    reg [CW-1:0] cnt;
     reg [8:0] shift;
     always @(posedge clk) begin
         sync <= {sync[0], rx};
