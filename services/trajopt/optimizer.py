@@ -92,8 +92,8 @@ def qp_options(name: str) -> dict:
     """Quiet, non-throwing options per CasADi conic plugin (the ones compared in docs/trajopt.md)."""
     common = {"error_on_fail": False}
     specific = {
-        "ipqp": {"print_iter": False, "print_header": False, "print_info": False, "constr_viol_tol": 1e-8,
-                 "dual_inf_tol": 1e-8},
+        "ipqp": {"print_iter": False, "print_header": False, "print_info": False, "constr_viol_tol": 1e-6,
+                 "dual_inf_tol": 1e-6},
         "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
         "osqp": {"osqp": {"verbose": False, "eps_abs": 1e-7, "eps_rel": 1e-7, "polish": True, "max_iter": 20000},
                  "warm_start_primal": True, "warm_start_dual": True},

@@ -25,7 +25,7 @@ class TrajoptService:
         knots: int = 20
         horizon_s: float = 1.0
         fixed_knots: int = 2
-        max_iterations: int = 3
+        max_iterations: int = 2  # as deployed: the next cycle continues from this one (warm start)
         # 7.22 hand-pose regulariser, for models with finger joints (hand_arm): prior from the scripted
         # teacher's finger flexion over `prior_demos` demonstrations of `prior_task`.
         pose_weight: float = 1e-6
