@@ -84,6 +84,7 @@ def axis_params(name: str) -> AxisParams:
         return AxisParams(500.0, 20.0, 2000.0, 20.0, 50.0, 300.0, 2.0, 56.0 if name != "wrist_3" else 28.0, 0.3)
     if name.startswith(HAND_FINGERS):
         return AxisParams(5.0, 0.1, 20.0, 0.2, 0.5, 0.5, 0.05, 2.0, 0.002)
+    if "finger" in name:  # the workcell gripper's fingers: light, geared 5:1
         return AxisParams(300.0, 6.0, 0.0, 0.0, 30.0, 20.0, 0.5, 40.0, 0.05)
     if name.endswith("wrist"):
         return AxisParams(30.0, 1.0, 5.0, 0.5, 5.0, 2.0, 0.08, 5.0, 0.01)

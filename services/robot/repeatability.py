@@ -104,7 +104,7 @@ def run(seed: int = 0, progress: bool = True) -> list[dict]:
             j = names.index(case.joints[0])
             touch = home.copy()
             touch[j] += np.radians(60) if case.label == "Wrist" else 0.01
-            rig.move(touch, 0.5)
+            rig.move(rig.model.couple(touch), 0.5)  # coupled joints (the gripper's second finger) follow
             readings.append(rig.point(case.point))
             rig.move(home, 0.5)
             bar.update(1)
