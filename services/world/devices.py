@@ -31,22 +31,31 @@ def hand_frame(keypoints: np.ndarray) -> np.ndarray:
 
 class ImuModel:
     """SIMULATED wrist IMU: specific force and angular rate in the hand frame from the teacher's
-    keypoints, by finite differences at the readout rate (no noise: the protocol's LSBs quantize)."""
+    keypoints, by finite differences over about ``BASELINE_S`` whatever the readout rate (like the
+    sensor's digital low-pass filter: shorter differences would turn keypoint jitter into spikes).
+    No noise: the protocol's LSBs quantize."""
+
+    BASELINE_S = 0.02
 
     def __init__(self) -> None:
-        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, wrist, R)
+        self.history: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, wrist, R), oldest first
+
+    def _near(self, t: float) -> tuple[float, np.ndarray, np.ndarray]:
+        return min(self.history, key=lambda h: abs(h[0] - t))
 
     def sample(self, t: float, keypoints: np.ndarray) -> np.ndarray:
         R = hand_frame(keypoints)
-        self.history = [*self.history[-2:], (t, keypoints[0].astype(float), R)]
+        self.history = [h for h in self.history if h[0] >= t - 3 * self.BASELINE_S] + [
+            (t, keypoints[0].astype(float), R)]
         accel, gyro = -GRAVITY, np.zeros(3)
-        if len(self.history) == 3:
-            (t0, p0, _), (t1, p1, R1), (t2, p2, R2) = self.history
-            if t2 > t1 > t0:
-                v1, v2 = (p1 - p0) / (t1 - t0), (p2 - p1) / (t2 - t1)
-                accel = 2 * (v2 - v1) / (t2 - t0) - GRAVITY
-                dR = R1.T @ R2  # body-frame increment; its skew part / dt is the rate
-                gyro = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (2 * (t2 - t1))
+        t2, p2, R2 = self.history[-1]
+        t1, p1, R1 = self._near(t2 - self.BASELINE_S)
+        t0, p0, _ = self._near(t1 - self.BASELINE_S)
+        if t2 > t1 > t0:
+            v1, v2 = (p1 - p0) / (t1 - t0), (p2 - p1) / (t2 - t1)
+            accel = 2 * (v2 - v1) / (t2 - t0) - GRAVITY
+            dR = R1.T @ R2  # body-frame increment; its skew part / dt is the rate
+            gyro = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / (2 * (t2 - t1))
         return np.concatenate([R.T @ accel, gyro]).astype(np.float32)
 
 
@@ -55,14 +64,19 @@ class GloveDevice:
     host reads and writes with tactile.RegisterFile semantics), frames only while control.run is
     set, only the enabled lines, and a wrist IMU sample per frame while imu_enable is set.
 
-    The frame rate stays the world's glove_rate_hz: the window/tick_div registers are stored and
-    read back but do not change the simulated rate (2 cores cannot render 1 kHz x 2 gloves)."""
+    The frame period is the core's, window x tick_div / f_clk. The module starts with the tick_div
+    that gives ``rate_hz`` at the default window (the deployment's rate: 2 cores cannot simulate
+    1 kHz x 2 gloves), and a host that writes window or tick_div changes the rate as on the FPGA."""
 
-    def __init__(self, port: str, hand: str, seed: int = 0) -> None:
+    def __init__(self, port: str, hand: str, seed: int = 0, rate_hz: float = 100.0) -> None:
         self.hand = hand
         self.pty = PtyDevice(port)
         self.model = GloveSensorModel(seed)
         self.registers = tactile.RegisterFile()
+        regs = self.registers.values
+        regs[tactile.REG_TICK_DIV] = int(np.clip(round(tactile.CORE_CLOCK_HZ / (rate_hz * regs[tactile.REG_WINDOW])),
+                                                 1, 0xFFFF))
+        self._next_frame = 0.0
         self.commands = tactile.CommandDecoder()
         self.imu = ImuModel()
         self.sequence = 0
@@ -80,6 +94,19 @@ class GloveDevice:
                 self._config_changed = True
             self.pty.write(tactile.encode_reply(reply.address, reply.value, reply.status))
             self.replies += 1
+
+    @property
+    def period_s(self) -> float:
+        """Seconds per frame from the window and tick_div registers (zero values count as 1)."""
+        regs = self.registers.values
+        return max(regs[tactile.REG_WINDOW], 1) * max(regs[tactile.REG_TICK_DIV], 1) / tactile.CORE_CLOCK_HZ
+
+    def due(self, t: float) -> bool:
+        """True when a readout window ends at ``t`` (then the next one is scheduled)."""
+        if t < self._next_frame:
+            return False
+        self._next_frame = t + self.period_s - 1e-9
+        return True
 
     def emit(self, t: float, region_forces: np.ndarray, hand_keypoints: np.ndarray | None = None) -> None:
         """One readout window ending at ``t``: a frame, if the module is running."""

@@ -44,7 +44,7 @@ class WorldService:
         self.sim = WorldSim(task=params.task, seed=params.seed, robot=params.robot)
         self.physics_dt = float(self.sim.model.opt.timestep)
         self.substeps = max(1, round(params.tick_s / self.physics_dt))
-        self.gloves = [GloveDevice(port, hand, seed=i)  # glove i: seed i, matching its factory calibration
+        self.gloves = [GloveDevice(port, hand, seed=i, rate_hz=params.glove_rate_hz)  # seed i: its calibration
                        for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
         self.board = BoardDevice(params.robot_port, self.sim.joint_names) if params.robot_port else None
         self.clock_pub = node.publisher("xm/clock")
@@ -52,7 +52,7 @@ class WorldService:
         self.session_pub = node.publisher("xm/world/sim/session")
         self._snapshot_q = node.session.declare_queryable(SNAPSHOT_KEY, self._on_snapshot)
         self._last_session: tuple | None = None
-        self._due = {"clock": 0.0, "truth": 0.0, "glove": 0.0, "session": 0.0}
+        self._due = {"clock": 0.0, "truth": 0.0, "session": 0.0}
         node.queryable("reset", self.cmd_reset)
         node.queryable("mode", self.cmd_mode)
         node.health_extra = self._health
@@ -113,13 +113,13 @@ class WorldService:
         if t >= due["clock"]:
             due["clock"] = t + 1.0 / self.p.clock_rate_hz - 1e-9
             self.clock_pub.put(msgs.make("rosgraph_msgs/msg/Clock", clock=msgs.stamp(t)))
-        if t >= due["glove"] and self.gloves:
-            due["glove"] = t + 1.0 / self.p.glove_rate_hz - 1e-9
-            forces, hands = self.sim.region_forces(), self.sim.hand_keypoints()
-            for i, glove in enumerate(self.gloves):
+        forces = hands = None
+        for i, glove in enumerate(self.gloves):  # each module at its own registers' frame period
+            if glove.due(t):
+                if forces is None:
+                    forces, hands = self.sim.region_forces(), self.sim.hand_keypoints()
                 glove.emit(t, forces[i], hands[i])
-        else:
-            for glove in self.gloves:
+            else:
                 glove.poll()
         if t >= due["truth"]:
             due["truth"] = t + 1.0 / self.p.truth_rate_hz - 1e-9

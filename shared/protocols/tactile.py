@@ -58,6 +58,7 @@ REG_IMU_ENABLE = 0x0010
 REG_CONTROL = 0x0014  # bit 0: run (stream frames)
 REG_FRAME_COUNT = 0x0018  # read-only: sequence number of the last frame
 REG_TICK_DIV = 0x001C  # system clocks per ADC/DAC sample
+CORE_CLOCK_HZ = 48_000_000  # the readout core's system clock (hdl/tactile)
 REG_FREQ_BASE = 0x0100  # 16 registers, 4 bytes apart: DDS phase increment per excitation line
 READ_ONLY = {REG_ID, REG_FRAME_COUNT}
 REGISTER_NAMES = {REG_ID: "id", REG_WINDOW: "window", REG_TX_ENABLE: "tx_enable", REG_RX_ENABLE: "rx_enable",
