@@ -56,7 +56,7 @@ REG_TX_ENABLE = 0x0008  # excitation lines driven and transmitted (bit per line)
 REG_RX_ENABLE = 0x000C  # reception lines transmitted
 REG_IMU_ENABLE = 0x0010
 REG_CONTROL = 0x0014  # bit 0: run (stream frames)
-REG_FRAME_COUNT = 0x0018  # read-only: sequence number of the last frame
+REG_FRAME_COUNT = 0x0018  # read-only: sequence number of the last frame, all ones before the first
 REG_TICK_DIV = 0x001C  # system clocks per ADC/DAC sample
 CORE_CLOCK_HZ = 48_000_000  # the readout core's system clock (hdl/tactile)
 REG_FREQ_BASE = 0x0100  # 16 registers, 4 bytes apart: DDS phase increment per excitation line
@@ -310,7 +310,7 @@ class CommandDecoder:
 def default_registers() -> dict[int, int]:
     """Power-on register values of the readout core (hdl/tactile/tactile_regs.v has the same)."""
     regs = {REG_ID: DEVICE_ID, REG_WINDOW: 256, REG_TX_ENABLE: ALL_LINES, REG_RX_ENABLE: ALL_LINES,
-            REG_IMU_ENABLE: 0, REG_CONTROL: 1, REG_FRAME_COUNT: 0, REG_TICK_DIV: 256}
+            REG_IMU_ENABLE: 0, REG_CONTROL: 1, REG_FRAME_COUNT: 0xFFFFFFFF, REG_TICK_DIV: 256}
     for k in range(16):  # line k at (8 + 2k) cycles per default 256-sample window: orthogonal over it
         regs[REG_FREQ_BASE + 4 * k] = (8 + 2 * k) << 24
     return regs

@@ -106,7 +106,8 @@ if cocotb is not None:
     async def registers_over_uart(dut) -> None:
         decoder, out = await start(dut)
         model = tactile.RegisterFile()
-        for addr, value in [(tactile.REG_ID, None), (tactile.REG_ID, 5), (0x0002, None), (0x0200, 1),
+        for addr, value in [(tactile.REG_FRAME_COUNT, None), (tactile.REG_FRAME_COUNT, 5),  # before any frame
+                            (tactile.REG_ID, None), (tactile.REG_ID, 5), (0x0002, None), (0x0200, 1),
                             (tactile.REG_FREQ_BASE + 4, None), (tactile.REG_TICK_DIV, 0x12345),
                             (tactile.REG_TICK_DIV, None), (tactile.REG_FREQ_BASE + 60, 0xDEADBEEF),
                             (tactile.REG_FREQ_BASE + 60, None), (tactile.REG_RX_ENABLE, 0x3F),
