@@ -1,8 +1,10 @@
 // UART command parser: host frames (types 10 write, 11 read, 6-byte payload, CRC-32) become bus
 // cycles; each well-formed command queues one reply (type 02: type, length and payload; the framer
 // adds sync and CRC). Bad frames are dropped and counted (rejected). The parser then waits for its
-// reply to be sent before taking the next one. Fields are taken on the fly (no frame buffer): the
-// address and value shift into bus_addr / bus_wdata, the CRC is compared byte by byte.
+// reply to be taken by the framer before taking the next byte, which can be a whole frame's time
+// when a frame is being sent: host bytes wait in a 32-byte FIFO meanwhile (two further commands; a
+// byte that finds it full is lost). Fields are taken on the fly (no frame buffer): the address and
+// value shift into bus_addr / bus_wdata, the CRC is compared byte by byte.
 module tactile_cmd (
     input  wire clk, input wire rst,
     input  wire [7:0] rx_data, input wire rx_valid,
@@ -13,10 +15,29 @@ module tactile_cmd (
 );
     localparam HUNT0 = 0, HUNT1 = 1, BODY = 2, EXEC = 3, REPLY = 4;
     reg [2:0] state;
+    // RX FIFO (distributed RAM on the ECP5, sync read): a byte is popped when the parser takes bytes
+    // (hunting or in a command body), no popped byte is still on its way (c_valid) and the CRC unit
+    // is idle; the parser sees it (c_data, c_valid) the clock after, with its state unchanged.
+    reg [7:0] fifo [0:31];  // yosys: 4 TRELLIS_DPR16X4 on the ECP5, one SB_RAM40_4K on the iCE40
+    reg [5:0] wp, rp;  // one bit more than the address: full when they differ by 32
+    reg [7:0] c_data; reg c_valid;
+    wire crc_busy;
+    wire put = rx_valid && (wp ^ rp) != 6'b100000;  // not full
+    wire pop = (wp != rp) && !c_valid && !crc_busy && (state == HUNT0 || state == HUNT1 || state == BODY);
+    always @(posedge clk) begin
+        if (put) fifo[wp[4:0]] <= rx_data;
+        c_data <= fifo[rp[4:0]];
+        c_valid <= pop;
+        if (rst) begin wp <= 0; rp <= 0; c_valid <= 1'b0; end
+        else begin
+            if (put) wp <= wp + 1;
+            if (pop) rp <= rp + 1;
+        end
+    end
     reg [3:0] idx;  // byte after the sync word: type, len(2), address(2), value(4), crc(4)
-    wire [31:0] crc;  // over type, length and payload; done before the next byte (10 clocks apart)
-    crc32_serial u_crc (.clk(clk), .rst(rst), .init(state == HUNT1), .load(state == BODY && rx_valid && idx < 9),
-        .data(rx_data), .crc(crc), .busy());
+    wire [31:0] crc;  // over type, length and payload; done before the next byte is popped
+    crc32_serial u_crc (.clk(clk), .rst(rst), .init(state == HUNT1), .load(state == BODY && c_valid && idx < 9),
+        .data(c_data), .crc(crc), .busy(crc_busy));
     reg is_write, type_ok, len_ok, crc_ok;
     reg [31:0] value;  // reply: the register's value after the command
     reg [1:0] rstat;   // reply status (0 ok, 1 bad address, 2 read-only)
@@ -46,22 +67,22 @@ module tactile_cmd (
         if (rst) begin
             state <= HUNT0; rejected <= 0; out_valid <= 1'b0; out_last <= 1'b0;
         end else case (state)
-            HUNT0: if (rx_valid && rx_data == 8'hA5) state <= HUNT1;
-            HUNT1: if (rx_valid) begin
-                if (rx_data == 8'h5A) begin state <= BODY; idx <= 0; end
-                else if (rx_data != 8'hA5) state <= HUNT0;
+            HUNT0: if (c_valid && c_data == 8'hA5) state <= HUNT1;
+            HUNT1: if (c_valid) begin
+                if (c_data == 8'h5A) begin state <= BODY; idx <= 0; end
+                else if (c_data != 8'hA5) state <= HUNT0;
             end
-            BODY: if (rx_valid) begin
+            BODY: if (c_valid) begin
                 if (idx == 0) begin
-                    type_ok <= (rx_data[7:1] == 7'h08);  // 0x10 write, 0x11 read
-                    is_write <= !rx_data[0];
+                    type_ok <= (c_data[7:1] == 7'h08);  // 0x10 write, 0x11 read
+                    is_write <= !c_data[0];
                 end
-                if (idx == 1) len_ok <= (rx_data == 8'd6);
-                if (idx == 3 || idx == 4) bus_addr <= {rx_data, bus_addr[15:8]};
-                if (idx >= 5 && idx <= 8) bus_wdata <= {rx_data, bus_wdata[31:8]};
-                if (idx == 9) crc_ok <= (rx_data == crc_rx);
-                else if (idx > 9) crc_ok <= crc_ok && (rx_data == crc_rx);
-                if (idx == 2 && (!len_ok || rx_data != 8'd0)) begin
+                if (idx == 1) len_ok <= (c_data == 8'd6);
+                if (idx == 3 || idx == 4) bus_addr <= {c_data, bus_addr[15:8]};
+                if (idx >= 5 && idx <= 8) bus_wdata <= {c_data, bus_wdata[31:8]};
+                if (idx == 9) crc_ok <= (c_data == crc_rx);
+                else if (idx > 9) crc_ok <= crc_ok && (c_data == crc_rx);
+                if (idx == 2 && (!len_ok || c_data != 8'd0)) begin
                     rejected <= rejected + 1; state <= HUNT0;  // wrong length: hunt again
                 end else if (idx == 12) state <= EXEC;
                 idx <= idx + 1;

@@ -39,7 +39,7 @@ def test_core_registers_and_impedances(tmp_path):
     results = runner.test(hdl_toplevel="tactile_core", test_module="test_tactile_core", build_dir=tmp_path,
                           test_dir=tmp_path, extra_env=env)
     total, failed = get_results(results)
-    assert total == 4 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
+    assert total == 5 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
 
 
 # ---- cocotb side (runs inside the simulator; no test_ prefix so pytest does not collect it) ----
@@ -126,6 +126,46 @@ if cocotb is not None:
         await uart_send(dut, bytes(bad))
         assert (await command(dut, out, tactile.REG_WINDOW, None)).value == 256
         assert int(dut.u_cmd.rejected.value) == 1
+
+    @cocotb.test()
+    async def commands_while_streaming(dut) -> None:
+        """Three commands back to back (45 bytes, no waiting for replies) while frames stream: the
+        first one's reply can wait behind a frame (37 us on the link) while the other two arrive; they
+        wait in the parser's RX FIFO. Every command gets its reply, in order, equal to RegisterFile's,
+        and the frames stay intact."""
+        decoder, out = await start(dut)
+        model = tactile.RegisterFile()
+        for addr, value in [(tactile.REG_TICK_DIV, 20), (tactile.REG_WINDOW, 128), (tactile.REG_RX_ENABLE, 0xF)]:
+            await command(dut, out, addr, value, timeout_us=60)
+            model.handle(tactile.RegisterCommand(addr, value))
+        rng = np.random.default_rng(3)
+        pool = [tactile.REG_ID, tactile.REG_TX_ENABLE, tactile.REG_WINDOW, tactile.REG_TICK_DIV, 0x0101,
+                tactile.REG_FREQ_BASE + 8, tactile.REG_FREQ_BASE + 60]
+        replies: list = []
+        sent = 0
+        for _ in range(8):
+            cmds = []
+            for _ in range(3):
+                addr = pool[int(rng.integers(len(pool)))]
+                write = addr in (tactile.REG_ID, tactile.REG_FREQ_BASE + 8, tactile.REG_FREQ_BASE + 60, 0x0101) \
+                    and bool(rng.integers(2))
+                cmds.append((addr, int(rng.integers(1 << 32)) if write else None))
+            await Timer(int(rng.integers(1, 40)), unit="us")  # somewhere in the frame stream
+            await uart_send(dut, b"".join(tactile.encode_command(a, v) for a, v in cmds))
+            sent += len(cmds)
+            for a, v in cmds:
+                want = model.handle(tactile.RegisterCommand(a, v))
+                replies.append(((a, v), (want.address, want.value, want.status)))
+        for _ in range(200):
+            if sum(isinstance(o, tactile.RegisterReply) for o in out) >= sent:
+                break
+            await Timer(1, unit="us")
+        got = [(r.address, r.value, r.status) for r in out if isinstance(r, tactile.RegisterReply)]
+        frames = [o for o in out if isinstance(o, tactile.TactileFrame)]
+        assert got == [w for _, w in replies], (got, replies)
+        assert len(frames) >= 4 and decoder.stats["crc_errors"] == 0 and decoder.stats["bytes_discarded"] == 0, \
+            (len(frames), decoder.stats)
+        assert int(dut.u_cmd.rejected.value) == 0
 
     @cocotb.test()
     async def impedances_from_modelled_cells(dut) -> None:
