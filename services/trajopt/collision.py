@@ -146,11 +146,12 @@ class CollisionModel:
         return len(self.pairs)
 
     def witnesses(self, poses: dict[str, np.ndarray], exact_below: float | None = None,
-                  per_knot: int | None = None) -> Witnesses:
+                  per_knot: int | None = None, always_below: float | None = None) -> Witnesses:
         """poses: link -> (knots, 4, 4) world poses. Separating plane for every pair and knot: from
         GJK/EPA where the sphere bound is under ``exact_below`` (default ``near``), else from the
         closest pair of covering spheres (a conservative plane and distance). ``per_knot`` caps the
-        GJK calls per knot to the pairs with the smallest bounds."""
+        GJK calls per knot to the pairs with the smallest bounds; pairs bounded under
+        ``always_below`` get GJK/EPA regardless of the cap."""
         P = len(self.pairs)
         K = next(iter(poses.values())).shape[0] if poses else 0
         if not P:
@@ -178,6 +179,8 @@ class CollisionModel:
         if per_knot is not None:  # only the per_knot closest candidates (by their bound) per knot
             rank = np.argsort(np.argsort(np.where(cand, dist, np.inf), axis=0), axis=0)
             cand &= rank < per_knot
+        if always_below is not None:
+            cand |= dist < always_below
         near = np.argwhere(cand)
         if len(near):
             ia, ka = near[:, 0], near[:, 1]

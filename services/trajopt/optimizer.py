@@ -133,6 +133,9 @@ class TrajectoryOptimizer:
         self._sample_workspace()
         self._build()
         self._warm: dict | None = None
+        # The last iterate's free knots and its separating planes: the next cycle starts from the
+        # same configurations shifted by whole knots, so their planes need no second GJK/EPA pass.
+        self._planes: tuple[np.ndarray, np.ndarray, np.ndarray, float, str] | None = None
 
     # --- problem data -------------------------------------------------------------------------
     def _limits(self) -> None:
@@ -330,8 +333,8 @@ class TrajectoryOptimizer:
         if not S:
             return np.zeros(0), lb, np.inf, ""
         poses = self._link_poses(z)
-        if final:  # exact distances wherever the sphere bound cannot prove the margin
-            wit = self.collision.witnesses(poses, exact_below=self.cfg.margin + 1e-6)
+        if final:  # also exact wherever the sphere bound cannot prove the margin (the final check)
+            wit = self.collision.witnesses(poses, per_knot=S, always_below=self.cfg.margin + 1e-6)
         else:  # GJK/EPA for the closest candidates that get a slot
             wit = self.collision.witnesses(poses, per_knot=S)
         order = np.argsort(wit.distance, axis=0)[:S]  # (S', Kf): the closest pairs per knot
@@ -351,6 +354,24 @@ class TrajectoryOptimizer:
         pr = self.collision.pairs[i]
         name = f"separation {pr.a.link}-{pr.b.link} at knot {k + self.cfg.fixed_knots}"
         return v.ravel(), lb, float(wit.distance[i, k]), name
+
+    def _shifted_planes(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, str] | None:
+        """The last iterate's planes when z's free knots are its knots shifted by a whole number of
+        knots (the padded tail repeating its last knot), else None. Exact reuse: same configurations,
+        same planes."""
+        if self._planes is None or not len(self._slot_rows):
+            return None
+        qa_old, wit_old, lb_old, dmin, pair = self._planes
+        Kf = len(qa_old)
+        qa = z[self.q_index].reshape(qa_old.shape)
+        for shift in range(Kf):
+            src = np.minimum(np.arange(Kf) + shift, Kf - 1)
+            if np.array_equal(qa, qa_old[src]):
+                wit = wit_old.reshape(Kf, -1)[src].ravel()
+                lb = lb_old.copy()
+                lb[self._slot_rows] = lb_old[self._slot_rows[src]]
+                return wit, lb, dmin, pair
+        return None
 
     def _fail(self, current: np.ndarray, status: str, reason: str, t0: float, iterations: int = 0,
               violation: float = float("nan")) -> TrajoptResult:
@@ -400,7 +421,7 @@ class TrajectoryOptimizer:
         weights = (mask[F:] * self.weights[None]).ravel()
         gvec = goals[F:].ravel()
         status, it, cost = "max_iterations", 0, float("nan")
-        wit, lbg, dmin, pair = self._witness_vector(z)
+        wit, lbg, dmin, pair = self._shifted_planes(z) or self._witness_vector(z)
         H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
         for it in range(1, cfg.max_iterations + 1):
             g = np.array(g).ravel()
@@ -424,6 +445,7 @@ class TrajectoryOptimizer:
             z = z + dz
             # the next linearisation; it is also the final check of the last iterate
             wit, lbg, dmin, pair = self._witness_vector(z, final=True)
+            self._planes = (z[self.q_index].reshape(K - F, na).copy(), wit, lbg, dmin, pair)
             H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
             # Converged when the step stayed inside the trust region and the QP model predicted the
             # cost and constraints at the new iterate (then its solution is the local optimum).
@@ -473,5 +495,6 @@ class TrajectoryOptimizer:
         return max(float(v), 0.0), what
 
     def reset(self) -> None:
-        """Forget the QP warm start (after a jump in the executing trajectory)."""
+        """Forget the QP warm start and the last planes (after a jump in the executing trajectory)."""
         self._warm = None
+        self._planes = None

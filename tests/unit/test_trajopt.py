@@ -104,6 +104,31 @@ def test_separating_planes_keep_the_arms_apart_when_goals_would_make_them_collid
     assert poses["left_carriage"][1, 3] - poses["right_carriage"][1, 3] < 0.08
 
 
+def test_the_next_cycle_reuses_the_planes_of_its_shifted_knots_exactly(workcell):
+    """A cycle that starts from the last iterate shifted by whole knots takes its separating planes
+    from the last final pass; they must equal a fresh GJK/EPA pass at those configurations."""
+    model, opt = workcell
+    opt.reset()
+    q0 = home(left_y=0.05)
+    cur = np.repeat(q0[None], K, 0)
+    goals = np.repeat(opt.points(q0)[None], K, 0)
+    goals[:, 2] = [0.0, 0.04, 0.12]  # contact between the arms: slots in use
+    F = opt.cfg.fixed_knots
+    for shift in (1, 3, 0):
+        r = opt.solve(cur, goals, np.ones((K, 3), bool), DT)
+        assert r.ok, r.reason
+        cur = np.concatenate([r.q[shift:], np.repeat(r.q[-1:], shift, 0)])
+        z = cur[F:, opt.act_index].ravel()[opt._expand]
+        reused = opt._shifted_planes(z)
+        assert reused is not None, f"shift {shift} not recognized"
+        fresh = opt._witness_vector(z, final=True)
+        np.testing.assert_allclose(reused[0], fresh[0], atol=1e-12)
+        np.testing.assert_array_equal(reused[1], fresh[1])
+    moved = cur.copy()
+    moved[F:, 0] += 1e-3  # anything but a shift of the last iterate computes planes afresh
+    assert opt._shifted_planes(moved[F:, opt.act_index].ravel()[opt._expand]) is None
+
+
 def test_masked_goals_are_ignored_even_when_nan(workcell):
     _, opt = workcell
     opt.reset()
