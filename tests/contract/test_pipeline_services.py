@@ -159,8 +159,14 @@ def test_policy_and_trajopt_turn_a_scene_into_a_plan_and_a_joint_trajectory(rout
         for point in t.points:
             assert np.all(np.asarray(point.positions) >= model.lower - 1e-6)
             assert np.all(np.asarray(point.positions) <= model.upper + 1e-6)
-        health = query_json(session, "xm/trajopt/main/@health")[0]
-        assert "solve_time_ms" in health and any(k.startswith("malformed") for k in health["errors"])
+
+        def broken_plan_counted() -> bool:  # keep-latest: a valid plan may supersede a broken one
+            session.put("xm/policy/main/plan", b"broken plan")
+            health = query_json(session, "xm/trajopt/main/@health")
+            return bool(health) and "solve_time_ms" in health[0] and any(
+                k.startswith("malformed") for k in health[0]["errors"])
+
+        assert wait_for(broken_plan_counted, 10), trajopt.output()
     finally:
         policy.stop()
         trajopt.stop()
