@@ -24,10 +24,13 @@ class Calibration:
     a: np.ndarray  # (16,16) 1/kPa
     b: np.ndarray  # (16,16) 1/kPa
 
+    def __post_init__(self) -> None:
+        # Per-frame constants, computed once (pressure runs at 1 kHz per glove).
+        self._c0 = np.where(CELL_MASK == 1, self.c0, 1.0)  # unpopulated crossings: no division by ~0
+        self._r_max = 0.95 * self.a / np.maximum(self.b, 1e-9)  # beyond saturation: clamp, not blow up
+
     def pressure(self, impedance: np.ndarray) -> np.ndarray:
-        c0 = np.where(CELL_MASK == 1, self.c0, 1.0)  # unpopulated crossings: no division by ~0
-        r = (np.asarray(impedance).imag - c0) / c0
-        r = np.minimum(r, 0.95 * self.a / np.maximum(self.b, 1e-9))  # beyond saturation: clamp, not blow up
+        r = np.minimum(np.asarray(impedance).imag / self._c0 - 1.0, self._r_max)
         p = r / (self.a - self.b * r)
         return (np.clip(p, 0.0, None) * CELL_MASK).astype(np.float32)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,14 @@ from shared.runtime import Node
 def line_bits(mask: int) -> np.ndarray:
     """0/1 per line (16) of a line mask."""
     return (mask >> np.arange(16)) & 1
+
+
+@functools.lru_cache(maxsize=64)
+def cell_mask(tx_mask: int, rx_mask: int) -> np.ndarray:
+    """Flat 0/1 mask of the glove's cells carried by a frame (cells of lines not read: masked)."""
+    mask = (CELL_MASK & np.outer(line_bits(tx_mask), line_bits(rx_mask))).astype(np.uint8).ravel()
+    mask.flags.writeable = False  # shared between frames
+    return mask
 
 
 class GloveService:
@@ -44,8 +53,7 @@ class GloveService:
 
     def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:
         header = msgs.header(stamp, f"glove_{self.hand}")
-        enabled = np.outer(line_bits(frame.tx_mask), line_bits(frame.rx_mask))  # cells of lines not read: masked
-        mask = (CELL_MASK & enabled).astype(np.uint8).ravel()
+        mask = cell_mask(frame.tx_mask, frame.rx_mask)
         self.tactile_pub.put(msgs.make(
             "xm_msgs/msg/Tactile", header=header, hand=self.hand, rows=16, cols=16,
             pressure=np.where(mask, pressure.ravel(), 0.0).astype(np.float32), mask=mask, sequence=frame.sequence))
