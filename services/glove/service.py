@@ -15,15 +15,12 @@ from shared.protocols import tactile
 from shared.runtime import Node
 
 
-def line_bits(mask: int) -> np.ndarray:
-    """0/1 per line (16) of a line mask."""
-    return (mask >> np.arange(16)) & 1
-
-
 @functools.lru_cache(maxsize=64)
 def cell_mask(tx_mask: int, rx_mask: int) -> np.ndarray:
     """Flat 0/1 mask of the glove's cells carried by a frame (cells of lines not read: masked)."""
-    mask = (CELL_MASK & np.outer(line_bits(tx_mask), line_bits(rx_mask))).astype(np.uint8).ravel()
+    carried = np.zeros(CELL_MASK.size, np.uint8)
+    carried[tactile.cell_index(tx_mask, rx_mask)] = 1
+    mask = CELL_MASK.ravel().astype(np.uint8) & carried
     mask.flags.writeable = False  # shared between frames
     return mask
 

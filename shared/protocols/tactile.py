@@ -183,14 +183,14 @@ def _cells(impedance: np.ndarray, tx_mask: int, rx_mask: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _cell_index(tx_mask: int, rx_mask: int) -> np.ndarray:
+def cell_index(tx_mask: int, rx_mask: int) -> np.ndarray:
     """Flat indices of the carried cells in row-major order (cached: masks rarely change)."""
     return (lines(tx_mask)[:, None] * COLS + lines(rx_mask)[None, :]).ravel()
 
 
 def _matrix(values: np.ndarray, tx_mask: int, rx_mask: int) -> np.ndarray:
     z = np.zeros(ROWS * COLS, np.complex64)
-    z[_cell_index(tx_mask, rx_mask)] = values[0::2] + 1j * values[1::2]
+    z[cell_index(tx_mask, rx_mask)] = values[0::2] + 1j * values[1::2]
     return z.reshape(ROWS, COLS)
 
 
