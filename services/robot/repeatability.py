@@ -48,7 +48,9 @@ class Rig:
         self.seq = 0
 
     def move(self, target: np.ndarray, duration: float) -> None:
-        """Linear interpolation to target over ``duration``, then settle; commands at 250 Hz."""
+        """Linear interpolation to target over ``duration``, then settle; commands at 250 Hz.
+        Coupled joints (the gripper's second finger) follow their masters."""
+        target = self.model.couple(target)
         q0, _ = self.sim.joint_state()
         n = len(self.names)
         t_start = self.sim.time
@@ -79,7 +81,7 @@ def run(seed: int = 0, progress: bool = True) -> list[dict]:
     home = np.zeros(len(names))
     home[names.index("left_z")] = 0.2
     home[names.index("right_z")] = 0.1
-    home[names.index("left_finger_a")] = home[names.index("left_finger_b")] = 0.01
+    home[names.index("left_finger_a")] = 0.01
     rig.move(home, 1.0)
     results = []
     total = sum(c.repeats for c in CASES)
@@ -104,7 +106,7 @@ def run(seed: int = 0, progress: bool = True) -> list[dict]:
             j = names.index(case.joints[0])
             touch = home.copy()
             touch[j] += np.radians(60) if case.label == "Wrist" else 0.01
-            rig.move(rig.model.couple(touch), 0.5)  # coupled joints (the gripper's second finger) follow
+            rig.move(touch, 0.5)
             readings.append(rig.point(case.point))
             rig.move(home, 0.5)
             bar.update(1)

@@ -18,14 +18,14 @@ def test_gripper_reaches_and_repeats_its_commanded_opening():
     home[names.index("left_z")] = 0.2
     home[names.index("right_z")] = 0.1
     home[names.index("left_finger_a")] = 0.01
-    rig.move(rig.model.couple(home), 1.0)
+    rig.move(home, 1.0)
     j = names.index("left_finger_a")
     opened = home.copy()
     opened[j] = 0.02
     reached = []
     for _ in range(3):
-        rig.move(rig.model.couple(opened), 0.5)
+        rig.move(opened, 0.5)
         reached.append(rig.sim.joint_state()[0][j])
-        rig.move(rig.model.couple(home), 0.5)
+        rig.move(home, 0.5)
     assert np.allclose(reached, 0.02, atol=2e-4), reached
     assert np.ptp(reached) < 1e-4
