@@ -9,7 +9,7 @@ with object velocities first reconciled with the dynamics constraint (7.15)
 
     V_o = argmin |V_o - V_o,net|^2 + w_dyn |V_o - J_D V_pinch|^2
 
-and the reservoir activations with 7.9-7.10: H = argmin |H - H_P|^2 + |H - H_prev - dH_P dt|^2.
+and the reservoir activations with 7.9-7.10: H = argmin w_H |H - H_P|^2 + |H - H_prev - dH_P dt|^2.
 
 All constraints are linear in the unknowns; x, y and z share one normal matrix. Points that are
 not anchors only carry 7.5, so their solution is the exact integral. The anchor system is
@@ -73,15 +73,68 @@ class ConsistencySolver:
         return nxt
 
     @staticmethod
-    def memory(H_pred: np.ndarray, H_prev: np.ndarray, dH: np.ndarray, dt: float) -> np.ndarray:
-        """7.9 + 7.10 with equal weights: the mean of the two estimates."""
-        return 0.5 * (H_pred + H_prev + dH * dt)
+    def memory(H_pred: np.ndarray, H_prev: np.ndarray, dH: np.ndarray, dt: float, w_pred: float = 1.0) -> np.ndarray:
+        """7.9 (weight ``w_pred``) + 7.10 (weight 1) as least squares: the weighted mean of the two estimates."""
+        return (w_pred * H_pred + H_prev + dH * dt) / (1.0 + w_pred)
 
 
 def object_groups(object_names: list[str]) -> np.ndarray:
     """Body index per object keypoint from names "<object>/<point>"."""
     bodies: dict[str, int] = {}
     return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
+
+
+# finger chains from the wrist (0) plus the palm's knuckle line: the bones of a 21-point hand
+_CHAINS = [(0, 1, 2, 3, 4), (0, 5, 6, 7, 8), (0, 9, 10, 11, 12), (0, 13, 14, 15, 16), (0, 17, 18, 19, 20),
+           (5, 9, 13, 17)]
+HAND_BONES = np.array([(c[i], c[i + 1]) for c in _CHAINS for i in range(len(c) - 1)])
+
+
+def bone_pairs(hands: int = 2, per_hand: int = 21) -> np.ndarray:
+    """(n,2) point indices of every bone of ``hands`` hands laid out one after the other."""
+    return np.concatenate([HAND_BONES + h * per_hand for h in range(hands)])
+
+
+def keep_bone_lengths(pos: np.ndarray, bones: np.ndarray, lengths: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """Positions moved as little as possible (equal weights, Gauss-Seidel over the bones, projected
+    per iteration) so that every bone has its length: bone lengths of a hand are constant, and the
+    network's independent point velocities otherwise let the hand's shape drift in long rollouts."""
+    p = pos.copy()
+    i, j = bones[:, 0], bones[:, 1]
+    for _ in range(iterations):
+        d = p[j] - p[i]
+        n = np.linalg.norm(d, axis=1, keepdims=True)
+        corr = 0.5 * (n - lengths[:, None]) * d / np.maximum(n, 1e-9)
+        delta = np.zeros_like(p)
+        count = np.zeros(len(p))
+        np.add.at(delta, i, corr)
+        np.add.at(delta, j, -corr)
+        np.add.at(count, i, 1)
+        np.add.at(count, j, 1)
+        p += delta / np.maximum(count, 1)[:, None]
+    return p
+
+
+def follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, bodies: np.ndarray) -> np.ndarray:
+    """Velocities of points the network was not trained for at this step (unobserved now or next,
+    7.2.5: their losses are masked) replaced by the rigid motion of their body fitted to its
+    trusted points; bodies without a trusted point keep the network's velocities.
+    v, p (P,3), trusted (P,) bool, bodies (P,) int (each hand and object one body)."""
+    out = v.copy()
+    for b in np.unique(bodies[~trusted]):
+        idx = np.flatnonzero(bodies == b)
+        seen, hidden = idx[trusted[idx]], idx[~trusted[idx]]
+        if not len(seen):
+            continue
+        c = p[seen].mean(axis=0)
+        vc = v[seen].mean(axis=0)
+        w = np.zeros(3)
+        if len(seen) >= 3:
+            r = p[seen] - c
+            M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
+            w = np.linalg.lstsq(M, np.cross(r, v[seen] - vc).sum(axis=0), rcond=None)[0]
+        out[hidden] = vc + np.cross(w, p[hidden] - c)
+    return out
 
 
 def rigid_velocities(v: np.ndarray, p: np.ndarray, groups: np.ndarray) -> np.ndarray:

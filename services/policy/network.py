@@ -46,6 +46,8 @@ class PolicyConfig:
     recurrent: bool = False  # recurrent branch (7.2.6) trained on trajectories (7.2.7)
     denoise: bool = True  # 7.2.2
     masks: bool = True  # masked inputs/losses, masks predicted (7.2.5)
+    keep_bones: bool = False  # inference: hand bone lengths held at their first observed lengths (measured worse)
+    follow_unobserved: bool = True  # inference: unobserved points move rigidly with their body's seen points
     velocity_input: bool = False  # current velocities as inputs; off measured better (docs/policy.md)
     phase_input: bool = False  # seconds since the episode start as an input (a clock for the phase)
     rigid_objects: bool = False  # inference: object keypoint velocities projected onto rigid motions
@@ -61,8 +63,10 @@ class PolicyConfig:
     noise_gain: float = 8.0  # f_n (1/s): fraction of a displacement corrected per second
     rigid_noise: float = 1.0  # per-body translation noise, relative to the per-point noise
     object_noise: float = 0.5  # object noise relative to hand noise
+    noise_loss_ref: float = 0.0  # m; > 0 weighs each sample's velocity loss by ref / (ref + noise scale)
     reservoir: int = 32
     reservoir_radius: float = 0.98
+    w_dH_loss: float = 0.1  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)
     hidden: tuple[int, ...] = (2048, 512, 512, 512)
     rec_in: int = 32
@@ -72,8 +76,10 @@ class PolicyConfig:
     reset_probability: float = 0.05  # recurrent training: reset positions to the demonstration
     w_pair: float = 0.0  # weight of the 7.8 pair constraint at inference; 1.0 measured worse (docs/policy.md)
     w_dyn: float = 1.0
+    w_memory_prior: float = 0.01  # weight of 7.9 (H = H_P) against 7.10 (H = H_prev + dH_P dt); 1.0 measured worse
     w_plausible: float = 1e-3
     pair_eps: float = 0.0025  # m^2 (5 cm): the bias of the 7.8 normalization
+    pair_input_eps: float = 0.0  # m^2; > 0 feeds pairs as P / (|P|^2 + eps) (7.8's form) instead of raw P
     max_speed: float = 1.5  # m/s, bound applied before the consistency solve
     steps: int = 1500
     batch: int = 256
@@ -206,7 +212,11 @@ class PolicyNet(nn.Module):
         hands = pos[:, :HAND_POINTS].reshape(B, 2, KEYPOINTS_PER_HAND, 3)
         local = (hands - hands[:, :, :1]).reshape(B, -1)
         a = pos[:, self.anchors]
-        pairs = (a[:, self.pj] - a[:, self.pi]).reshape(B, -1)
+        pairs = a[:, self.pj] - a[:, self.pi]
+        eps = self.cfg.pair_input_eps
+        if eps > 0:  # 7.8's normalization on the inputs: fine resolution near contact, far pairs compressed
+            pairs = pairs * (eps ** 0.5 / POS_SCALE) / ((pairs ** 2).sum(-1, keepdim=True) + eps)
+        pairs = pairs.reshape(B, -1)
         feats = torch.cat([torch.cat([local, pairs, a[:, :, 2]], dim=1) * POS_SCALE, vel.reshape(B, -1) * VEL_SCALE,
                            mask], dim=1)
         fmask = torch.cat([mask[:, self.m_local] * mask[:, self.m_wrist], mask[:, self.m_pi] * mask[:, self.m_pj],

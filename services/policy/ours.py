@@ -13,8 +13,24 @@ import numpy as np
 import torch
 
 from services.policy import dataset as D
-from services.policy.consistency import ConsistencySolver, object_groups, rigid_velocities
-from services.policy.network import PAIR_SCALE, PRESETS, TACTILE_SCALE, VEL_SCALE, PolicyConfig, PolicyNet, preset
+from services.policy.consistency import (
+    ConsistencySolver,
+    bone_pairs,
+    follow_bodies,
+    keep_bone_lengths,
+    object_groups,
+    rigid_velocities,
+)
+from services.policy.network import (
+    HAND_POINTS,
+    PAIR_SCALE,
+    PRESETS,
+    TACTILE_SCALE,
+    VEL_SCALE,
+    PolicyConfig,
+    PolicyNet,
+    preset,
+)
 from services.policy.reservoir import Reservoir
 from shared.demo import KEYPOINTS_PER_HAND, Demo
 
@@ -56,11 +72,7 @@ class Ours:
         self.reservoir = Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.seed) if cfg.memory else None
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)
-        bodies = [0] * KEYPOINTS_PER_HAND + [1] * KEYPOINTS_PER_HAND
-        groups = {}
-        for name in self.object_names:
-            bodies.append(2 + groups.setdefault(name.split("/")[0], len(groups)))
-        self.body = np.array(bodies)
+        self.body = self.bodies()
         if cfg.memory:
             rng = np.random.default_rng(cfg.seed + 1)
             Hs = Reservoir.rotated(data.H, rng.uniform(0, 2 * np.pi, len(data)) if cfg.rotate else 0.0)
@@ -77,6 +89,10 @@ class Ours:
             x = self.batch_inputs(self.make_batch(data, rng, 2048, noise=False))[0]
         self.net.set_statistics(x)
         return data
+
+    def bodies(self) -> np.ndarray:
+        """Rigid body per point: 0 and 1 the hands, then one per object."""
+        return np.concatenate([np.repeat([0, 1], KEYPOINTS_PER_HAND), 2 + object_groups(self.object_names)])
 
     def solver(self) -> ConsistencySolver:
         c = self.cfg
@@ -129,6 +145,8 @@ class Ours:
         self.last = (out, rec_next)  # for the recurrent training loop
         n, P = b["pos"].shape[:2]
         wv = _t(np.repeat(b["next_vmask"], 3, axis=1).reshape(n, P * 3)) if cfg.masks else torch.ones(n, P * 3)
+        if cfg.noise_loss_ref > 0:  # large-noise samples carry large, partly unpredictable targets
+            wv = wv * _t(cfg.noise_loss_ref / (cfg.noise_loss_ref + b.get("scale", np.zeros(n))))[:, None]
         tv = _t(b["target_vel"].reshape(n, -1) * VEL_SCALE)
         parts = {"vel": ((out["vel"] - tv) ** 2 * wv).sum() / wv.sum().clamp_min(1)}
         if cfg.masks:
@@ -142,7 +160,7 @@ class Ours:
                 parts["tactile_model"] = ((side["tactile"] - now) ** 2 * tm).sum() / tm.sum().clamp_min(1)
         if cfg.memory:
             parts["H"] = ((out["H"] - _t(b["H_clean"])) ** 2).mean()
-            parts["dH"] = 0.1 * ((out["dH"] - _t(b["dH"])) ** 2).mean()
+            parts["dH"] = cfg.w_dH_loss * ((out["dH"] - _t(b["dH"])) ** 2).mean()
         lay = net.layout
         if cfg.pair_outputs:
             nxt = b["pos"] + b["target_vel"] * self.dt
@@ -280,9 +298,15 @@ class Ours:
             raise PolicyError("network output contains NaN or inf")
         P = len(state["pos"])
         v = np.clip(out["vel"].reshape(P, 3) / VEL_SCALE, -cfg.max_speed, cfg.max_speed)
+        trusted = None
+        if cfg.masks and cfg.follow_unobserved:
+            trusted = state["mask"] & (out["mask"] > 0.0)
+            v = follow_bodies(v, state["pos"], trusted, self.body)
         J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
         v = np.clip(solver.velocities(v[:2 * KEYPOINTS_PER_HAND], v[2 * KEYPOINTS_PER_HAND:], J),
                     -cfg.max_speed, cfg.max_speed)
+        if trusted is not None and J is not None:  # object points unseen follow their reconciled object
+            v = follow_bodies(v, state["pos"], trusted, self.body)
         if cfg.rigid_objects:
             n = 2 * KEYPOINTS_PER_HAND
             v[n:] = rigid_velocities(v[n:], state["pos"][n:], object_groups(self.object_names))
@@ -297,6 +321,12 @@ class Ours:
                 am = state["mask"][lay.anchors]
                 pmask = (am[lay.pair_j] & am[lay.pair_i]).astype(float)
         pos = solver.positions(state["pos"], v, pairs, pmask)
+        if cfg.keep_bones:
+            bones = bone_pairs()
+            if "bones" not in state:  # lengths from the first state of the episode (the observed hand)
+                p0 = state["pos"][bones]
+                state["bones"] = np.linalg.norm(p0[:, 1] - p0[:, 0], axis=1)
+            pos[:HAND_POINTS] = keep_bone_lengths(pos[:HAND_POINTS], bones, state["bones"])
         if observed_objects is not None:
             pos[2 * KEYPOINTS_PER_HAND:] = observed_objects
         nxt = dict(state)
@@ -312,7 +342,7 @@ class Ours:
             dH = out["dH"] * self.net.dH_std.numpy() / self.net.H_std.numpy()
             # bounded to +-5 training standard deviations: a linear reservoir driven by demonstration
             # speeds never leaves that range, and an untrained net must not run away through it
-            nxt["H"] = np.clip(solver.memory(Hp, state["H"], dH, self.dt), -5.0, 5.0)
+            nxt["H"] = np.clip(solver.memory(Hp, state["H"], dH, self.dt, cfg.w_memory_prior), -5.0, 5.0)
         if cfg.recurrent:
             nxt["rec"] = out["rec"]
         if not np.isfinite(pos).all():
@@ -351,6 +381,7 @@ class Ours:
         self = cls(PolicyConfig.from_json(meta["config"]))
         self.K, self.dt, self.object_names = int(meta["K"]), float(meta["dt"]), list(meta["object_names"])
         self.net = PolicyNet(self.cfg, self.K)
+        self.body = self.bodies()
         sd = dict(ckpt["state_dict"])
         if self.cfg.memory:
             self.reservoir = Reservoir.from_arrays(sd.pop("reservoir.W_R").numpy(), sd.pop("reservoir.W_I").numpy())

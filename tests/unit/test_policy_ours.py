@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from services.policy import dataset as D
-from services.policy.consistency import ConsistencySolver
+from services.policy.consistency import ConsistencySolver, follow_bodies
 from services.policy.network import Layout, PolicyConfig, preset
 from services.policy.ours import Ours, PolicyError
 from services.policy.reservoir import Reservoir
@@ -125,11 +125,32 @@ def test_dynamics_constraint_moves_objects_with_the_pinch():
     np.testing.assert_allclose(v[42:], [[0.05, 0.0, 0.0]] * K)  # halfway: equal weights
 
 
+def test_unobserved_points_follow_the_rigid_motion_of_their_body():
+    rng = np.random.default_rng(3)
+    p = rng.normal(0, 0.05, (10, 3))
+    bodies = np.array([0] * 6 + [1] * 4)
+    vc, w = np.array([0.1, -0.2, 0.05]), np.array([0.0, 0.0, 2.0])  # body 0 translates and turns
+    c = p[:6].mean(axis=0)
+    v = np.zeros((10, 3))
+    v[:6] = vc + np.cross(w, p[:6] - c)
+    v[[2, 7]] = [5.0, 5.0, 5.0]  # untrained outputs of two unobserved points
+    trusted = np.ones(10, bool)
+    trusted[[2, 7]] = False
+    out = follow_bodies(v, p, trusted, bodies)
+    np.testing.assert_allclose(out[2], vc + np.cross(w, p[2] - c), atol=1e-9)  # back on body 0's motion
+    np.testing.assert_allclose(out[7], 0.0, atol=1e-9)  # body 1 stands still
+    np.testing.assert_array_equal(np.delete(out, [2, 7], 0), np.delete(v, [2, 7], 0))
+    alone = follow_bodies(v, p, np.r_[np.ones(6, bool), np.zeros(4, bool)], bodies)
+    np.testing.assert_array_equal(alone[6:], v[6:])  # nothing seen on body 1: outputs kept
+
+
 def test_memory_solve_is_least_squares_of_7_9_and_7_10():
     Hp, Hprev, dH = np.array([1.0]), np.array([0.0]), np.array([10.0])
-    H = ConsistencySolver.memory(Hp, Hprev, dH, 0.02)
-    grad = (H - Hp) + (H - Hprev - dH * 0.02)
-    np.testing.assert_allclose(grad, 0.0, atol=1e-12)
+    for w in (1.0, 0.01):
+        H = ConsistencySolver.memory(Hp, Hprev, dH, 0.02, w)
+        grad = w * (H - Hp) + (H - Hprev - dH * 0.02)
+        np.testing.assert_allclose(grad, 0.0, atol=1e-12)
+    assert abs(ConsistencySolver.memory(Hp, Hprev, dH, 0.02, 0.01) - 0.2) < 0.01  # mostly the integrated rate
 
 
 SWITCHES = {
