@@ -89,10 +89,11 @@ def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[st
 
 def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[str, ...] = METHODS,
              out_dir: str | Path = "runs/eval", quick: bool = False, progress: bool = True,
-             demos: list[Demo] | None = None) -> dict[str, dict[str, float]]:
+             demos: list[Demo] | None = None, merge: bool = False) -> dict[str, dict[str, float]]:
     """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
 
-    ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation')."""
+    ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation').
+    ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table."""
     import torch
     from tqdm import tqdm
 
@@ -110,6 +111,9 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     results, timing = {}, {}
+    if merge and (out / "results.json").exists():
+        results = json.loads((out / "results.json").read_text())
+        timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}
     bar = tqdm(list(methods), desc="methods", disable=not progress)
     for name in bar:
         bar.set_postfix(method=name)
@@ -122,6 +126,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         t2 = time.perf_counter()
         results[name] = score(outs, val)
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
+        results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -226,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--execute", action="store_true",
                         help="robot in the loop instead: the trained policy (--checkpoint) drives the simulated robot "
@@ -238,7 +245,8 @@ def main(argv: list[str] | None = None) -> int:
         return execute_main(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress)
+        evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
+                 merge=args.merge)
     except EvaluationError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
