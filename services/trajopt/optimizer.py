@@ -239,6 +239,10 @@ class TrajectoryOptimizer:
         S, L = self.slots, len(self.collision.links)
         # per knot and contact slot: normal, witness a and b (in their link frames), one-hot link a, link b
         wit = ca.SX.sym("wit", Kf * S * (9 + 2 * L))
+        # only links that are side a (b) of some pair can have a one-hot entry there: the other terms
+        # are zero, and leaving them out halves the slot rows' part of the function for the workcell
+        links = self.collision.links
+        side_a, side_b = sorted(set(self.collision.link_a.tolist())), sorted(set(self.collision.link_b.tolist()))
         fixed_q = [fixed[k * na:(k + 1) * na] for k in range(F)]
         stride = 3 * na
         if ocp:
@@ -296,10 +300,8 @@ class TrajectoryOptimizer:
                     f"workspace plane for {frame} at knot {k}")
             for i in range(S):  # 7.21, the S closest shape pairs at this knot
                 v = wit[(kf * S + i) * (9 + 2 * L):(kf * S + i + 1) * (9 + 2 * L)]
-                wa = sum(v[9 + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[3:6]))
-                         for j, lk in enumerate(self.collision.links))
-                wb = sum(v[9 + L + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[6:9]))
-                         for j, lk in enumerate(self.collision.links))
+                wa = sum(v[9 + j] * (pose[links[j]][1] + ca.mtimes(pose[links[j]][0], v[3:6])) for j in side_a)
+                wb = sum(v[9 + L + j] * (pose[links[j]][1] + ca.mtimes(pose[links[j]][0], v[6:9])) for j in side_b)
                 self._slot_rows.append(len(lbg))
                 add(ca.dot(v[:3], wb - wa), cfg.margin, np.inf, f"separation slot {i} at knot {k}")
             for link in self.collision.links:
