@@ -146,6 +146,26 @@ class BufferedFunction:
         return self._buf.stats()
 
 
+class OrdinaryCall(BufferedFunction):
+    """The same interface, evaluated by an ordinary call (DM in, DM out): for QP plugins that
+    misbehave across buffered calls (HPIPM's stage-wise QPs fail from the second solve on)."""
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        for dst, src in zip(self.args, args, strict=False):
+            if src is not None:
+                dst[...] = src
+        out = self.f(*[ca.DM(self.f.sparsity_in(i), a) for i, a in enumerate(self.args)])
+        for dst, r in zip(self.res, out, strict=True):
+            dst[...] = np.asarray(ca.DM(r).nonzeros())
+        return self.res
+
+    def stats(self) -> dict:
+        return self.f.stats()
+
+
+BUFFERED_QP = ("ipqp",)  # plugins checked to give the ordinary call's results through buffers
+
+
 class TrajectoryOptimizer:
     def __init__(self, model: RobotModel, config: TrajoptConfig | None = None) -> None:
         self.model = model
@@ -359,14 +379,22 @@ class TrajectoryOptimizer:
     def _bind(self) -> None:
         """Buffered calls of the functions a solve evaluates; the linearisation writes H, the
         gradient and G straight into the QP's input arrays."""
-        self._qp_call = qp = BufferedFunction(self._qp)
+        self._qp_call = qp = BufferedFunction(self._qp) if self.cfg.qp_solver in BUFFERED_QP else OrdinaryCall(self._qp)
         self._qp_in = {name: qp.args[i] for i, name in enumerate(self._qp.name_in())}
         self._qp_out = {name: qp.res[i] for i, name in enumerate(self._qp.name_out())}
         self._lin = BufferedFunction(self._eval)
+        self._lin_copies = []  # (output, QP input, index of each input nonzero among the output's or -1)
         for i, name in ((0, "h"), (1, "g"), (3, "a")):
-            self._lin.bind_res(i, self._qp_in[name])
+            sp_out, sp_in = self._eval.sparsity_out(i), self._qp.sparsity_in(self._qp.index_in(name))
+            if sp_out == sp_in:
+                self._lin.bind_res(i, self._qp_in[name])
+            else:  # some plugins (hpipm) take another pattern: copy the matching nonzeros
+                pos = {rc: k for k, rc in enumerate(zip(*sp_out.get_triplet(), strict=True))}
+                idx = np.array([pos.get(rc, -1) for rc in zip(*sp_in.get_triplet(), strict=True)], int)
+                self._lin_copies.append((self._lin.res[i], self._qp_in[name], idx))
         self._check_call = BufferedFunction(self._check)
         self._poses_call = BufferedFunction(self._poses)
+        self._G_nz = self._lin.res[3]
         # G's nonzeros in CasADi's column-major order: row and column of each, for G @ dz
         self._G_rows = np.array(self._G_sp.row(), int)
         self._G_cols = np.repeat(np.arange(self._G_sp.size2()), np.diff(self._G_sp.colind()))
@@ -486,7 +514,7 @@ class TrajectoryOptimizer:
         wit, lbg, dmin, pair = self._shifted_planes(z) or self._witness_vector(z)
         params = (fixed, gvec, weights, dt)
         # H, the gradient and G land in the QP's inputs; g and the cost are copied (the next call overwrites them)
-        _, _, g, _, cost = self._lin(z, *params, wit)
+        _, _, g, _, cost = self._linearise(z, params, wit)
         g, cost = g.copy(), float(cost[0])
         qp_in, qp_out = self._qp_in, self._qp_out
         for it in range(1, cfg.max_iterations + 1):
@@ -504,7 +532,7 @@ class TrajectoryOptimizer:
             dz = qp_out["x"].copy()
             decrease = -float(qp_out["cost"][0])  # the Gauss-Newton model's predicted cost decrease
             predicted_cost = cost - decrease
-            predicted_g = g + np.bincount(self._G_rows, qp_in["a"] * dz[self._G_cols], len(g))  # g + G dz
+            predicted_g = g + np.bincount(self._G_rows, self._G_nz * dz[self._G_cols], len(g))  # g + G dz
             z = z + dz
             # the next linearisation point; this pass is also the final check of the last iterate
             wit, lbg, dmin, pair = self._witness_vector(z, final=True)
@@ -523,7 +551,7 @@ class TrajectoryOptimizer:
                 status = "solved"
                 break
             if it < cfg.max_iterations:  # derivatives only where another QP follows
-                self._lin(z, *params, wit)
+                self._linearise(z, params, wit)
         violation, what = self._violation(z, g, lbg, dmin, pair, lo_z, hi_z)
         if violation > cfg.violation_tolerance:
             return self._fail(current, "infeasible", f"kept the executing trajectory: {what} violated by "
@@ -531,6 +559,12 @@ class TrajectoryOptimizer:
         qa = z[self.q_index].reshape(K - F, na)
         q = np.vstack([current[:F], qa @ self.M.T + self.c])
         return TrajoptResult(q, status, True, time.perf_counter() - t0, it, violation, "", cost)
+
+    def _linearise(self, z: np.ndarray, params: tuple, wit: np.ndarray) -> list[np.ndarray]:
+        out = self._lin(z, *params, wit)
+        for src, dst, idx in self._lin_copies:
+            dst[:] = np.where(idx >= 0, src[idx], 0.0)
+        return out
 
     def _solve_qp(self) -> str:
         """Solve the QP whose inputs are in ``_qp_in``: "" on success (the step in ``_qp_out``), or
