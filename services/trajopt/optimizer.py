@@ -105,6 +105,67 @@ def qp_options(name: str) -> dict:
     return {**common, **specific.get(name, {})}
 
 
+class BufferedFunction:
+    """A CasADi function called through its buffer interface: inputs and outputs are preallocated
+    nonzero vectors (numpy arrays the function reads and writes in place). An ordinary call
+    converts every argument to a DM and every output back, about 0.25 ms per call of the SQP
+    function here, more than evaluating it. ``args`` and ``res`` may be re-pointed (``bind_arg``,
+    ``bind_res``) at another function's arrays, so one function's output feeds the next one's input
+    without a copy."""
+
+    def __init__(self, f: ca.Function) -> None:
+        self.f = f
+        self.args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+        self.res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
+        self._buf, self._eval = f.buffer()  # the buffer holds raw pointers: the arrays live in self
+        for i, a in enumerate(self.args):
+            self._buf.set_arg(i, memoryview(a))
+        for i, r in enumerate(self.res):
+            self._buf.set_res(i, memoryview(r))
+
+    def bind_arg(self, i: int, array: np.ndarray) -> None:
+        assert array.dtype == np.float64 and array.flags.c_contiguous and array.size == self.f.nnz_in(i)
+        self.args[i] = array
+        self._buf.set_arg(i, memoryview(array))
+
+    def bind_res(self, i: int, array: np.ndarray) -> None:
+        assert array.dtype == np.float64 and array.flags.c_contiguous and array.size == self.f.nnz_out(i)
+        self.res[i] = array
+        self._buf.set_res(i, memoryview(array))
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        """Copy the given inputs (dense values or nonzeros, in input order; None keeps what the
+        input array holds), evaluate, and return the output arrays (overwritten by the next call)."""
+        for dst, src in zip(self.args, args, strict=False):
+            if src is not None:
+                dst[...] = src
+        self._eval()
+        return self.res
+
+    def stats(self) -> dict:
+        return self._buf.stats()
+
+
+class OrdinaryCall(BufferedFunction):
+    """The same interface, evaluated by an ordinary call (DM in, DM out): for QP plugins that
+    misbehave across buffered calls (HPIPM's stage-wise QPs fail from the second solve on)."""
+
+    def __call__(self, *args) -> list[np.ndarray]:
+        for dst, src in zip(self.args, args, strict=False):
+            if src is not None:
+                dst[...] = src
+        out = self.f(*[ca.DM(self.f.sparsity_in(i), a) for i, a in enumerate(self.args)])
+        for dst, r in zip(self.res, out, strict=True):
+            dst[...] = np.asarray(ca.DM(r).nonzeros())
+        return self.res
+
+    def stats(self) -> dict:
+        return self.f.stats()
+
+
+BUFFERED_QP = ("ipqp",)  # plugins checked to give the ordinary call's results through buffers
+
+
 class TrajectoryOptimizer:
     def __init__(self, model: RobotModel, config: TrajoptConfig | None = None) -> None:
         self.model = model
@@ -132,7 +193,7 @@ class TrajectoryOptimizer:
         self.layout = "ocp" if cfg.qp_solver in OCP_SOLVERS else "compact"
         self._sample_workspace()
         self._build()
-        self._warm: dict | None = None
+        self._warm = False  # the QP's dual start holds the last QP's multipliers
         # The last iterate's free knots and its separating planes: the next cycle starts from the
         # same configurations shifted by whole knots, so their planes need no second GJK/EPA pass.
         self._planes: tuple[np.ndarray, np.ndarray, np.ndarray, float, str] | None = None
@@ -198,6 +259,10 @@ class TrajectoryOptimizer:
         S, L = self.slots, len(self.collision.links)
         # per knot and contact slot: normal, witness a and b (in their link frames), one-hot link a, link b
         wit = ca.SX.sym("wit", Kf * S * (9 + 2 * L))
+        # only links that are side a (b) of some pair can have a one-hot entry there: the other terms
+        # are zero, and leaving them out halves the slot rows' part of the function for the workcell
+        links = self.collision.links
+        side_a, side_b = sorted(set(self.collision.link_a.tolist())), sorted(set(self.collision.link_b.tolist()))
         fixed_q = [fixed[k * na:(k + 1) * na] for k in range(F)]
         stride = 3 * na
         if ocp:
@@ -255,10 +320,8 @@ class TrajectoryOptimizer:
                     f"workspace plane for {frame} at knot {k}")
             for i in range(S):  # 7.21, the S closest shape pairs at this knot
                 v = wit[(kf * S + i) * (9 + 2 * L):(kf * S + i + 1) * (9 + 2 * L)]
-                wa = sum(v[9 + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[3:6]))
-                         for j, lk in enumerate(self.collision.links))
-                wb = sum(v[9 + L + j] * (pose[lk][1] + ca.mtimes(pose[lk][0], v[6:9]))
-                         for j, lk in enumerate(self.collision.links))
+                wa = sum(v[9 + j] * (pose[links[j]][1] + ca.mtimes(pose[links[j]][0], v[3:6])) for j in side_a)
+                wb = sum(v[9 + L + j] * (pose[links[j]][1] + ca.mtimes(pose[links[j]][0], v[6:9])) for j in side_b)
                 self._slot_rows.append(len(lbg))
                 add(ca.dot(v[:3], wb - wa), cfg.margin, np.inf, f"separation slot {i} at knot {k}")
             for link in self.collision.links:
@@ -280,7 +343,10 @@ class TrajectoryOptimizer:
         G = ca.jacobian(g, z)
         H = ca.mtimes(J.T, J) + cfg.damping * ca.SX.eye(nz)  # Levenberg-Marquardt: flat directions take small steps
         params = [fixed, goals, w, dt, wit]
-        self._eval = ca.Function("trajopt_sqp", [z, *params], [H, ca.mtimes(J.T, r), g, G, 0.5 * ca.sumsqr(r)])
+        cost = 0.5 * ca.sumsqr(r)
+        self._eval = ca.Function("trajopt_sqp", [z, *params], [H, ca.mtimes(J.T, r), g, G, cost])
+        # g and the cost alone: the convergence test and the final check need no derivatives
+        self._check = ca.Function("trajopt_check", [z, *params], [g, cost])
         self._poses = ca.Function("trajopt_poses", [z], [ca.vertcat(*pose_out) if pose_out else ca.SX(0, 1)])
         self._lbg, self._ubg, self._labels = np.array(lbg, float), np.array(ubg, float), labels
         self._slot_rows = np.array(self._slot_rows, int).reshape(Kf, S)
@@ -308,6 +374,30 @@ class TrajectoryOptimizer:
             if cfg.qp_solver == "fatrop":
                 opts["structure_detection"] = "manual"
         self._qp = ca.conic("trajopt_qp", cfg.qp_solver, {"h": self._H_sp, "a": self._G_sp}, opts)
+        self._bind()
+
+    def _bind(self) -> None:
+        """Buffered calls of the functions a solve evaluates; the linearisation writes H, the
+        gradient and G straight into the QP's input arrays."""
+        self._qp_call = qp = BufferedFunction(self._qp) if self.cfg.qp_solver in BUFFERED_QP else OrdinaryCall(self._qp)
+        self._qp_in = {name: qp.args[i] for i, name in enumerate(self._qp.name_in())}
+        self._qp_out = {name: qp.res[i] for i, name in enumerate(self._qp.name_out())}
+        self._lin = BufferedFunction(self._eval)
+        self._lin_copies = []  # (output, QP input, index of each input nonzero among the output's or -1)
+        for i, name in ((0, "h"), (1, "g"), (3, "a")):
+            sp_out, sp_in = self._eval.sparsity_out(i), self._qp.sparsity_in(self._qp.index_in(name))
+            if sp_out == sp_in:
+                self._lin.bind_res(i, self._qp_in[name])
+            else:  # some plugins (hpipm) take another pattern: copy the matching nonzeros
+                pos = {rc: k for k, rc in enumerate(zip(*sp_out.get_triplet(), strict=True))}
+                idx = np.array([pos.get(rc, -1) for rc in zip(*sp_in.get_triplet(), strict=True)], int)
+                self._lin_copies.append((self._lin.res[i], self._qp_in[name], idx))
+        self._check_call = BufferedFunction(self._check)
+        self._poses_call = BufferedFunction(self._poses)
+        self._G_nz = self._lin.res[3]
+        # G's nonzeros in CasADi's column-major order: row and column of each, for G @ dz
+        self._G_rows = np.array(self._G_sp.row(), int)
+        self._G_cols = np.repeat(np.arange(self._G_sp.size2()), np.diff(self._G_sp.colind()))
 
     # --- helpers ------------------------------------------------------------------------------------
     def points(self, q: np.ndarray) -> np.ndarray:
@@ -318,7 +408,7 @@ class TrajectoryOptimizer:
         L, Kf = len(self.collision.links), self.cfg.knots - self.cfg.fixed_knots
         if not L:
             return {}
-        raw = np.array(self._poses(z)).ravel()
+        raw = self._poses_call(z)[0]
         T = np.zeros((Kf, L, 4, 4))
         T[..., :3, :] = raw.reshape(Kf, L, 4, 3).transpose(0, 1, 3, 2)  # column-major 3x4 blocks
         T[..., 3, 3] = 1.0
@@ -422,66 +512,83 @@ class TrajectoryOptimizer:
         gvec = goals[F:].ravel()
         status, it, cost = "max_iterations", 0, float("nan")
         wit, lbg, dmin, pair = self._shifted_planes(z) or self._witness_vector(z)
-        H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
+        params = (fixed, gvec, weights, dt)
+        # H, the gradient and G land in the QP's inputs; g and the cost are copied (the next call overwrites them)
+        _, _, g, _, cost = self._linearise(z, params, wit)
+        g, cost = g.copy(), float(cost[0])
+        qp_in, qp_out = self._qp_in, self._qp_out
         for it in range(1, cfg.max_iterations + 1):
-            g = np.array(g).ravel()
-            lbx = np.maximum(lo_z - z, -cfg.trust_region)  # 7.17 and 7.18
-            ubx = np.minimum(hi_z - z, cfg.trust_region)
-            args = dict(h=H, g=grad, a=G, lbx=lbx, ubx=ubx, lba=lbg - g, uba=self._ubg - g)
-            if self._warm is not None:
-                args.update(self._warm)
-            sol = self._solve_qp(args)
-            if isinstance(sol, str):  # a failed QP is never read as a (converged) step: keep the executing one
-                self._warm = None
+            np.maximum(lo_z - z, -cfg.trust_region, out=qp_in["lbx"])  # 7.17 and 7.18
+            np.minimum(hi_z - z, cfg.trust_region, out=qp_in["ubx"])
+            np.subtract(lbg, g, out=qp_in["lba"])
+            np.subtract(self._ubg, g, out=qp_in["uba"])
+            failure = self._solve_qp()
+            if failure:  # a failed QP is never read as a (converged) step: keep the executing one
+                self._warm = False
                 v, what = self._violation(z, g, lbg, dmin, pair, lo_z, hi_z)  # a likely cause
-                why = f"{sol}; the iterate violates {what} by {v:.4g}" if v > cfg.violation_tolerance else sol
+                why = f"{failure}; the iterate violates {what} by {v:.4g}" if v > cfg.violation_tolerance else failure
                 return self._fail(current, "qp_failed", f"kept the executing trajectory: QP ({cfg.qp_solver}) "
                                                          f"failed in SQP iteration {it}: {why}", t0, it, v)
-            dz = np.array(sol["x"]).ravel()
-            self._warm = dict(lam_x0=sol["lam_x"], lam_a0=sol["lam_a"])
-            decrease = -float(sol["cost"])  # the Gauss-Newton model's predicted cost decrease
-            predicted_cost = float(cost) - decrease
-            predicted_g = g + np.array(G @ dz).ravel()
+            dz = qp_out["x"].copy()
+            decrease = -float(qp_out["cost"][0])  # the Gauss-Newton model's predicted cost decrease
+            predicted_cost = cost - decrease
+            predicted_g = g + np.bincount(self._G_rows, self._G_nz * dz[self._G_cols], len(g))  # g + G dz
             z = z + dz
-            # the next linearisation; it is also the final check of the last iterate
+            # the next linearisation point; this pass is also the final check of the last iterate
             wit, lbg, dmin, pair = self._witness_vector(z, final=True)
             self._planes = (z[self.q_index].reshape(K - F, na).copy(), wit, lbg, dmin, pair)
-            H, grad, g, G, cost = self._eval(z, fixed, gvec, weights, dt, wit)
+            g, cost = self._check_call(z, *params, wit)
+            g, cost = g.copy(), float(cost[0])
             # Converged when the step stayed inside the trust region and the QP model predicted the
             # cost and constraints at the new iterate (then its solution is the local optimum).
             inside = np.all(np.abs(dz) < cfg.trust_region * 0.999)
-            model_err = abs(float(cost) - predicted_cost)
+            model_err = abs(cost - predicted_cost)
             # separation rows are re-assigned to the closest pairs at every iterate: not comparable
-            g_err = np.abs(np.array(g).ravel() - predicted_g)[self._smooth_rows]
+            g_err = np.abs(g - predicted_g)[self._smooth_rows]
             if np.abs(dz).max() < cfg.step_tolerance or (
                     inside and model_err <= cfg.model_tolerance * max(decrease, 0.0) + 1e-9
                     and (g_err.max(initial=0.0) < cfg.step_tolerance)):
                 status = "solved"
                 break
-        violation, what = self._violation(z, np.array(g).ravel(), lbg, dmin, pair, lo_z, hi_z)
+            if it < cfg.max_iterations:  # derivatives only where another QP follows
+                self._linearise(z, params, wit)
+        violation, what = self._violation(z, g, lbg, dmin, pair, lo_z, hi_z)
         if violation > cfg.violation_tolerance:
             return self._fail(current, "infeasible", f"kept the executing trajectory: {what} violated by "
                                                      f"{violation:.4g} after {it} SQP iterations", t0, it, violation)
         qa = z[self.q_index].reshape(K - F, na)
         q = np.vstack([current[:F], qa @ self.M.T + self.c])
-        return TrajoptResult(q, status, True, time.perf_counter() - t0, it, violation, "", float(cost))
+        return TrajoptResult(q, status, True, time.perf_counter() - t0, it, violation, "", cost)
 
-    def _solve_qp(self, args: dict) -> dict | str:
-        """The QP's solution, or why it failed: the plugin's own verdict (``stats()["success"]``, its
-        return status), an exception, or a non-finite step. Plugins run with error_on_fail=False, so
-        a failed solve returns some vector (often small, or the initial guess), which the SQP would
-        otherwise take for a converged step."""
+    def _linearise(self, z: np.ndarray, params: tuple, wit: np.ndarray) -> list[np.ndarray]:
+        out = self._lin(z, *params, wit)
+        for src, dst, idx in self._lin_copies:
+            dst[:] = np.where(idx >= 0, src[idx], 0.0)
+        return out
+
+    def _solve_qp(self) -> str:
+        """Solve the QP whose inputs are in ``_qp_in``: "" on success (the step in ``_qp_out``), or
+        why it failed: the plugin's own verdict (``stats()["success"]``, its return status), an
+        exception, or a non-finite step. Plugins run with error_on_fail=False, so a failed solve
+        returns some vector (often small, or the initial guess), which the SQP would otherwise take
+        for a converged step. The duals start from the last successful QP's (``_warm``)."""
+        if not self._warm:
+            self._qp_in["lam_x0"][:] = 0.0
+            self._qp_in["lam_a0"][:] = 0.0
         try:
-            sol = self._qp(**args)
+            self._qp_call()
         except RuntimeError as exc:
             lines = str(exc).strip().splitlines()
             return f"raised {lines[-1][:200] if lines else type(exc).__name__}"
-        stats = self._qp.stats()
+        stats = self._qp_call.stats()
         if not stats.get("success", False):
             return str(stats.get("return_status") or stats.get("unified_return_status") or "no success flag")
-        if not np.isfinite(np.array(sol["x"])).all():
+        if not np.isfinite(self._qp_out["x"]).all():
             return "non-finite step"
-        return sol
+        self._qp_in["lam_x0"][:] = self._qp_out["lam_x"]
+        self._qp_in["lam_a0"][:] = self._qp_out["lam_a"]
+        self._warm = True
+        return ""
 
     def _violation(self, z, g, lbg, dmin, pair, lo_z, hi_z) -> tuple[float, str]:
         """Largest constraint violation at z and what it is: the rows evaluated at z (separation
@@ -496,5 +603,5 @@ class TrajectoryOptimizer:
 
     def reset(self) -> None:
         """Forget the QP warm start and the last planes (after a jump in the executing trajectory)."""
-        self._warm = None
+        self._warm = False
         self._planes = None

@@ -129,6 +129,38 @@ def test_the_next_cycle_reuses_the_planes_of_its_shifted_knots_exactly(workcell)
     assert opt._shifted_planes(moved[F:, opt.act_index].ravel()[opt._expand]) is None
 
 
+def test_buffered_calls_give_the_values_of_ordinary_calls(workcell):
+    """solve() evaluates the SQP function, the final check and the QP through CasADi buffers wired
+    into each other (H, gradient and G written into the QP's inputs): same values as plain calls."""
+    import casadi as ca
+
+    from services.trajopt.optimizer import BufferedFunction
+
+    model, opt = workcell
+    rng = np.random.default_rng(3)
+    F, S = opt.cfg.fixed_knots, opt.slots
+    z = np.tile(home()[opt.act_index], K - F) + 0.01 * rng.standard_normal(opt.nz)
+    wit = opt._witness_vector(z)[0]
+    params = (np.tile(home()[opt.act_index], F), rng.uniform(0, 0.3, opt._eval.nnz_in(2)),
+              rng.uniform(0.5, 1, opt._eval.nnz_in(3)), DT, wit)
+    assert S and np.abs(wit).max() > 0
+    ref = [np.asarray(ca.DM(x).nonzeros()) for x in opt._eval(z, *params)]
+    out = opt._lin(z, *params)
+    for r, o in zip(ref, out, strict=True):
+        np.testing.assert_array_equal(r, o)
+    assert out[0] is opt._qp_in["h"] and out[3] is opt._qp_in["a"]  # no copy on the way to the QP
+    g, cost = opt._check_call(z, *params)
+    np.testing.assert_array_equal(g, ref[2])
+    assert float(cost[0]) == float(ref[4][0])
+    G = np.zeros((len(g), opt.nz))
+    G[opt._G_rows, opt._G_cols] = ref[3]  # the (row, column) of each nonzero that solve() uses for G dz
+    np.testing.assert_allclose(G, np.array(opt._eval(z, *params)[3]), rtol=0, atol=0)
+    x = ca.SX.sym("x", 3)
+    f = BufferedFunction(ca.Function("f", [x], [2 * x, ca.sumsqr(x)]))
+    a, b = f(np.array([1.0, 2.0, 3.0]))
+    assert a.tolist() == [2.0, 4.0, 6.0] and b.tolist() == [14.0]
+
+
 def test_masked_goals_are_ignored_even_when_nan(workcell):
     _, opt = workcell
     opt.reset()
