@@ -280,7 +280,9 @@ def execute_main(args: argparse.Namespace) -> int:
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand}, success {r.success}, tracking {r.tracking_mm:.1f} mm, "
-                  f"module moved {r.object_motion_mm:.0f} mm, rejected solves {r.solves_rejected}", flush=True)
+                  f"module moved {r.object_motion_mm:.0f} mm, gripper closest {r.closest_mm:.0f} mm at opening "
+                  f"{r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
+                  f"rejected solves {r.solves_rejected}", flush=True)
     rate = float(np.mean([r["success"] for r in results]))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -20,11 +20,15 @@ from services.robot.board_sim import BoardSim
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from services.world.sim import WorldSim
-from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
 
 HAND_POINTS = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
+THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
+GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
+GRASP_EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
 
 
 @dataclass
@@ -37,14 +41,20 @@ class ExecutionResult:
     tracking_mm: float  # median distance of the robot's mapped points to the policy's goals
     solves_rejected: int
     object_motion_mm: float  # how far the camera module moved from its start
+    closest_mm: float  # closest approach of the gripper's finger-tip midpoint to the module's lens point
+    opening_mm: float  # gripper finger opening (sum of both fingers) at that moment
+    max_grasp_kpa: float  # largest predicted left thumb + index pressure (7.2.10), 0 without tactile
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
 
 
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
-                   knots: int = 20, horizon_s: float = 1.0) -> ExecutionResult:
-    """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop."""
+                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA) -> ExecutionResult:
+    """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
+
+    ``grasp_kpa``: above this predicted left thumb + index pressure the gripper is commanded shut
+    with an effort proportional to it (None: fingers follow the mapped thumb and index tips only)."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
@@ -67,11 +77,16 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     current, t_current = np.repeat(q[None], knots, axis=0), 0.0
     n = len(sim.joint_names)
     success, rejected, tracking = False, 0, []
+    fingers = [sim.joint_names.index(j) for j in GRIPPER_JOINTS]
+    tips = [opt.point_names.index(p) for p in ("left/4", "left/8")]
+    lens = names.index("camera/lens")
+    closest, opening, max_kpa = np.inf, np.nan, 0.0
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
-        runner.step(SceneObs(hands, hand_mask, objects, obj_mask))
-        hands = runner.state["pos"][:len(HAND_POINTS)].reshape(2, KEYPOINTS_PER_HAND, 3)
+        # the policy's own next hands (runner.state keeps the observation it was given)
+        hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:len(HAND_POINTS)].reshape(
+            2, KEYPOINTS_PER_HAND, 3)
         if k % plan_every == 0:
             horizon = runner.horizon(None, int(round(horizon_s / model.dt)) + 1)
             plan = PlanArrays(t, model.dt, HAND_POINTS + list(names), horizon,
@@ -96,7 +111,13 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         j = min(i + 1, knots - 1)
         q_cmd = current[i] + (s - i) * (current[j] - current[i])
         v_cmd = (current[j] - current[i]) / opt_dt
-        board.receive(CommandFrame(k, np.full(n, Mode.POSITION, np.uint8), q_cmd, v_cmd, np.zeros(n), np.zeros(n),
+        effort = np.zeros(n)
+        kpa = float(runner.efforts[0, THUMB] + runner.efforts[0, INDEX]) if runner.efforts.size else 0.0
+        max_kpa = max(max_kpa, kpa)
+        if grasp_kpa is not None and kpa > grasp_kpa:  # 7.2.10: predicted touch becomes squeeze
+            q_cmd[fingers] = 0.0
+            effort[fingers] = -GRASP_EFFORT_N_PER_KPA * kpa
+        board.receive(CommandFrame(k, np.full(n, Mode.POSITION, np.uint8), q_cmd, v_cmd, effort, np.zeros(n),
                                    np.zeros(n)), sim.time)
         for _ in range(physics_per_step):
             q, qd = sim.joint_state()
@@ -104,7 +125,14 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             sim.set_efforts(efforts)
             sim.step(1)
         success = success or sim.assembly_success()
+        if k % plan_every == 0:
+            q_now, _ = sim.joint_state()
+            _, objects = sim.object_keypoints()
+            gap = float(np.linalg.norm(opt.points(q_now)[tips].mean(axis=0) - objects[lens]))
+            if gap < closest:
+                closest, opening = gap, float(q_now[fingers].sum())
     _, objects = sim.object_keypoints()
     return ExecutionResult(seed, demo, sim.teacher.grasp_hand, bool(success), sim.time,
                            float(np.nanmedian(tracking) * 1e3) if tracking else float("nan"), rejected,
-                           float(np.linalg.norm(objects[cam].mean(axis=0) - cam0) * 1e3))
+                           float(np.linalg.norm(objects[cam].mean(axis=0) - cam0) * 1e3), closest * 1e3,
+                           opening * 1e3, max_kpa)

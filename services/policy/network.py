@@ -66,7 +66,7 @@ class PolicyConfig:
     noise_loss_ref: float = 0.0  # m; > 0 weighs each sample's velocity loss by ref / (ref + noise scale)
     reservoir: int = 32
     reservoir_radius: float = 0.98
-    w_dH_loss: float = 0.1  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
+    w_dH_loss: float = 1.0  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)
     hidden: tuple[int, ...] = (2048, 512, 512, 512)
     rec_in: int = 32
@@ -81,7 +81,7 @@ class PolicyConfig:
     pair_eps: float = 0.0025  # m^2 (5 cm): the bias of the 7.8 normalization
     pair_input_eps: float = 0.0  # m^2; > 0 feeds pairs as P / (|P|^2 + eps) (7.8's form) instead of raw P
     max_speed: float = 1.5  # m/s, bound applied before the consistency solve
-    steps: int = 1500
+    steps: int = 4000
     batch: int = 256
     lr: float = 1e-3
     eval_every: int = 500

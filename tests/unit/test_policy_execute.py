@@ -23,8 +23,34 @@ def test_policy_drives_the_simulated_robot_through_trajopt_and_the_board(tmp_pat
     # 4 plans in 0.4 s; an untrained net may ask for unreachable goals (rejected: the robot holds)
     assert abs(r.seconds - 0.4) < 0.05 and np.isfinite(r.tracking_mm) and r.solves_rejected <= 4
     assert not r.success and r.object_motion_mm < 5.0  # an untrained net does not assemble anything
+    assert np.isfinite(r.closest_mm) and 0.0 <= r.opening_mm <= 80.0 + 1e-6
     model.save(str(tmp_path / "p.pt"))
     assert eval_main(["--execute", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path)]) == 2
+
+
+def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
+    """The interactive neural simulation: each step observes the hands the previous step predicted
+    (it once observed its start hands over and over, so the robot followed a standing policy)."""
+    import services.policy.execute as ex
+
+    seen, returned = [], []
+    step = ex.PolicyRunner.step
+
+    def spy(self, scene):
+        seen.append(scene.hands.copy())
+        out = step(self, scene)
+        returned.append(out[:42].reshape(2, 21, 3).copy())
+        return out
+
+    monkeypatch.setattr(ex.PolicyRunner, "step", spy)
+    torch.set_num_threads(1)
+    model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
+    model.fit(assembly_protocol(0)[:2], progress=False)
+    execute_layout(model, seed=0, demo=4, seconds=0.1)
+    assert len(seen) >= 4
+    for k in range(1, len(seen)):
+        np.testing.assert_allclose(seen[k], returned[k - 1])
+    assert np.abs(seen[-1] - seen[0]).max() > 1e-6  # the hands moved
 
 
 def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
@@ -34,7 +60,7 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
 
     def fake(model, seed, demo, **kw):  # the loop itself is tested above; here only the report
         calls.append(demo)
-        return ex.ExecutionResult(seed, demo, "left", demo == 3, 9.0, 10.0, 0, 1.0)
+        return ex.ExecutionResult(seed, demo, "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0)
 
     monkeypatch.setattr(ex, "execute_layout", fake)
     demos = assembly_protocol(0)
