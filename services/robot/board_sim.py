@@ -7,6 +7,11 @@ On the real board the same behaviour lives in the FPGA (hdl/motor/: encoder read
 commutation, PWM, watchdog). When no command arrived for the watchdog timeout the board brakes:
 damping only (shorted windings), so the Z axes, which carry the arm's weight, sink slowly (about
 5 mm/s here) instead of dropping, as on the real robot (thesis 6.3).
+
+Joints with a muscle pair (the hand-arm's fingers, services/robot/pneumatic.py) also run the
+PNEUMATIC mode: the two-stage PID of thesis 7.3.2 sets the valves, the muscle pressures integrate
+here, and the joint effort is torque_per_bar x (flexor - extensor pressure). Outside that mode, and
+whenever the board brakes, both muscles vent; the brake itself is the same damper as for every axis.
 """
 
 from __future__ import annotations
@@ -15,6 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.robot.pneumatic import (
+    PNEUMATIC_JOINT_PREFIXES,
+    PneumaticParams,
+    TwoStageController,
+    muscle_pressures,
+    pneumatic_params,
+)
 from services.robot.safety import (
     WATCHDOG_TIMEOUT_S,
     CommandRejectedError,
@@ -39,11 +51,11 @@ from shared.protocols.robot_board import (
 )
 
 DEFAULT_DT = 0.001
-BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE = (int(m) for m in Mode)  # ints: fast array compares
+BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE, PNEUMATIC = (int(m) for m in Mode)  # ints: fast array compares
 
 
 ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")  # hand_arm.urdf
-HAND_FINGERS = ("thumb_", "index_", "middle_", "ring_")
+HAND_FINGERS = PNEUMATIC_JOINT_PREFIXES
 
 
 def encoder_lsb(name: str) -> float:
@@ -135,6 +147,14 @@ class BoardSim:
                          "brake_events": 0, "clamp_events": 0}
         self.last_reasons: list[str] = []
         self._braking = True
+        # Muscle pairs (PNEUMATIC mode): parameters per joint from pneumatic_params; joints without a
+        # drive get a zero torque scale (safety never lets them into the mode anyway).
+        muscles = [pneumatic_params(j) or PneumaticParams(torque_per_bar=0.0) for j in self.joint_names]
+        col = {f: np.array([getattr(m, f) for m in muscles]) for f in PneumaticParams.__dataclass_fields__}
+        self.torque_per_bar, self.fill_rate, self.leak = col["torque_per_bar"], col["fill_rate"], col["leak"]
+        self.pneumatic = TwoStageController(col["stiffness"], col["ki"], col["i_clamp"], col["kd"],
+                                            col["kp_pressure"], col["ki_pressure"], np.zeros(n), np.zeros((2, n)))
+        self.pressure = np.zeros((2, n))  # bar, flexor and extensor per joint; vented at power-up
 
     @property
     def brake_events(self) -> int:
@@ -195,6 +215,7 @@ class BoardSim:
         self.last_reasons = []
         if expired or self.command is None:
             effort = self._brake(qd, dt)
+            self._muscles(q, q, qd, np.zeros(n, bool), dt)  # vent
             joint_flags[:] = JOINT_BRAKING
             self.last_safe = None  # on resume, rate limits start from where the axes are
         else:
@@ -205,7 +226,7 @@ class BoardSim:
                 safe, joint_flags = CommandFrame.brake(0, n), np.full(n, JOINT_BRAKING, np.uint8)
             if self.last_reasons:
                 self.counters["clamp_events"] += 1
-            uses_position = (safe.mode == POSITION) | (safe.mode == IMPEDANCE)
+            uses_position = (safe.mode == POSITION) | (safe.mode == IMPEDANCE) | (safe.mode == PNEUMATIC)
             self.last_safe = np.where(uses_position, safe.position, q)
             effort = self._control(safe, q, qd, dt)
         effort = np.clip(effort, -self.limits.effort, self.limits.effort)
@@ -249,7 +270,26 @@ class BoardSim:
         effort = (pos * (self.kp * err + self.kd * verr) + vel * (self.kv * verr)
                   + (pos | vel) * self.integral + imp * (c.stiffness * err + c.damping * verr)
                   + (pos | vel | eff | imp) * c.effort)
-        return np.where(mode == BRAKE, self._damper(qd, dt), effort)
+        effort = np.where(mode == BRAKE, self._damper(qd, dt), effort)
+        pneumatic = mode == PNEUMATIC
+        muscle = self._muscles(c.position, q, qd, pneumatic, dt)
+        return np.where(pneumatic, muscle, effort)
+
+    def _muscles(self, target: np.ndarray, q: np.ndarray, qd: np.ndarray, active: np.ndarray,
+                 dt: float) -> np.ndarray:
+        """Muscle torques: ``active`` joints (PNEUMATIC mode) run the two-stage controller toward
+        ``target``, every other joint vents both muscles (and its controller starts from zero when it
+        enters the mode). The pressures integrate here; MuJoCo integrates the joint."""
+        if not active.any() and not self.pressure.any():
+            return np.zeros(len(q))
+        ctl = self.pneumatic
+        valves = -np.ones_like(self.pressure)
+        if active.any():
+            valves = np.where(active, ctl.valves(ctl.pressures(target, q, qd, dt), self.pressure, dt), valves)
+        ctl.integral = np.where(active, ctl.integral, 0.0)
+        ctl.p_integral = np.where(active, ctl.p_integral, 0.0)
+        self.pressure = muscle_pressures(self.pressure, valves, self.fill_rate, self.leak, dt)
+        return self.torque_per_bar * (self.pressure[0] - self.pressure[1])
 
     def _feedback(self, t: float, q: np.ndarray, qd: np.ndarray, effort: np.ndarray, expired: bool,
                   joint_flags: np.ndarray) -> FeedbackFrame:

@@ -6,6 +6,10 @@ joint position error into a pressure differential through a proportional stiffne
 narrowly clamped integral), added to and subtracted from a fixed bias. Against an obstacle the
 differential, and so the contact force, settles at stiffness x error instead of growing: the
 single-stage controller (position PID straight onto the valves) keeps filling the muscle.
+
+The simulated control board (services/robot/board_sim.py) runs this controller for joints in the
+PNEUMATIC mode (docs/protocols/robot_board.md): the pressures integrate with ``muscle_pressures``,
+MuJoCo integrates the joint. ``pneumatic_params`` is the one table of per-joint drive parameters.
 """
 
 from __future__ import annotations
@@ -16,6 +20,13 @@ import numpy as np
 
 P_MAX = 4.0  # bar
 BIAS = 1.5  # bar
+
+
+def muscle_pressures(p: np.ndarray, valves: np.ndarray, fill_rate, leak, dt: float) -> np.ndarray:
+    """Muscle pressures (bar) after ``dt`` under valve commands in [-1, 1] (fill > 0, vent < 0): each
+    valve fills at ``fill_rate`` bar/s per unit command, each muscle leaks ``leak`` x its pressure per
+    second; pressures stay in [0, P_MAX]. Works on one pair (2,) or on a board's joints (2, n)."""
+    return np.clip(p + (fill_rate * np.clip(valves, -1, 1) - leak * p) * dt, 0.0, P_MAX)
 
 
 @dataclass
@@ -34,7 +45,7 @@ class MusclePair:
 
     def step(self, valves: np.ndarray, dt: float) -> float:
         """Advance with valve commands in [-1, 1] (fill > 0, vent < 0); returns contact torque."""
-        self.p = np.clip(self.p + (self.fill_rate * np.clip(valves, -1, 1) - self.leak * self.p) * dt, 0.0, P_MAX)
+        self.p = muscle_pressures(self.p, valves, self.fill_rate, self.leak, dt)
         torque = self.torque_per_bar * (self.p[0] - self.p[1]) - self.damping * self.qd
         self.qd += torque / self.inertia * dt
         self.q += self.qd * dt
@@ -47,6 +58,9 @@ class MusclePair:
 
 @dataclass
 class TwoStageController:
+    """Gains and state are scalars for one joint or (n,) arrays (state: integral (n,), p_integral
+    (2, n)) for a board's joints; pressures and valve commands are then (2, n)."""
+
     stiffness: float = 6.0  # bar per rad: the proportional stiffness of the upper stage
     ki: float = 2.0
     i_clamp: float = 0.2  # bar: the narrowly clamped integral term
@@ -58,7 +72,7 @@ class TwoStageController:
 
     def pressures(self, q_des: float, q: float, qd: float, dt: float) -> np.ndarray:
         err = q_des - q
-        self.integral = float(np.clip(self.integral + self.ki * err * dt, -self.i_clamp, self.i_clamp))
+        self.integral = np.clip(self.integral + self.ki * err * dt, -self.i_clamp, self.i_clamp)
         diff = self.stiffness * err + self.integral - self.kd * qd
         return np.clip(np.array([BIAS + diff / 2, BIAS - diff / 2]), 0.0, P_MAX)
 
@@ -84,3 +98,42 @@ class SingleStageController:
         self.integral += err * dt
         u = self.kp * err + self.ki * self.integral
         return np.clip(np.array([u, -u]), -1.0, 1.0)
+
+
+# Joints of the hand-arm's four-finger hand (shared/robots/hand_arm.urdf): these have a muscle pair.
+PNEUMATIC_JOINT_PREFIXES = ("thumb_", "index_", "middle_", "ring_")
+
+
+@dataclass(frozen=True)
+class PneumaticParams:
+    """One joint's muscle pair and two-stage controller, as the board runs it (PNEUMATIC mode).
+
+    Pressure dynamics and gains are MusclePair's and TwoStageController's except two, scaled to
+    the hand-arm's finger joints in MuJoCo (services/world/model.py): each carries about 10x the
+    plant's inertia (1e-3 kg m^2 of armature per joint, the distal joint coupled to the middle one:
+    1.2e-3 to 2e-3 kg m^2 at the joint), so 0.5 N m/bar (10x) keeps the plant's stiffness/inertia
+    ratio, and the full differential (P_MAX, 4 bar) gives 2 N m, the URDF effort limit of the finger
+    joints. MuJoCo's finger damping (0.01 N m s/rad) is only 0.02 bar s/rad at that scale where the
+    plant's own damping is 0.2, so kd rises from 0.3 to 0.6 bar s/rad: measured on index_j1/j2 and
+    thumb_j0/j1 (0.4-0.8 rad steps), kd 0.3 ends in a limit cycle, 0.5 overshoots up to 0.1 rad,
+    0.6 is within 0.05 rad after 0.25-0.3 s with at most 0.035 rad overshoot.
+    """
+
+    torque_per_bar: float = 0.5  # N m / bar
+    fill_rate: float = 8.0  # bar/s per unit valve command
+    leak: float = 0.05  # 1/s
+    stiffness: float = 6.0  # bar/rad (upper stage)
+    ki: float = 2.0  # bar/(rad s)
+    i_clamp: float = 0.2  # bar
+    kd: float = 0.6  # bar s/rad
+    kp_pressure: float = 4.0  # valve command per bar (lower stage)
+    ki_pressure: float = 2.0  # valve command per bar s
+
+
+def has_pneumatic_drive(name: str) -> bool:
+    return name.startswith(PNEUMATIC_JOINT_PREFIXES)
+
+
+def pneumatic_params(name: str) -> PneumaticParams | None:
+    """The joint's pneumatic drive, or None where it has none (arm joints, the workcell gantry)."""
+    return PneumaticParams() if has_pneumatic_drive(name) else None

@@ -4,16 +4,19 @@ The same rules run on the host (services/robot) before a command is sent and on 
 (the simulated one: services/robot/board_sim.py) before it reaches the motors, so a bad command is
 stopped twice and both places count why. Reasons are ``"<kind>:<joint>"`` strings, kinds:
 ``non_finite``, ``unknown_mode``, ``position_limit``, ``velocity_limit``, ``effort_limit``,
-``impedance_gain``, ``sensor_fault``.
+``impedance_gain``, ``sensor_fault``, ``no_pneumatic_drive`` (PNEUMATIC mode asked of a joint
+without a muscle pair: that joint brakes, like an unknown mode).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
 
+from services.robot.pneumatic import has_pneumatic_drive
 from shared.protocols.robot_board import (
     JOINT_BRAKING,
     JOINT_EFFORT_LIMIT,
@@ -28,7 +31,15 @@ from shared.protocols.robot_board import (
 WATCHDOG_TIMEOUT_S = 0.010  # thesis 6.3
 CLAMP_TOLERANCE = 1e-4  # m or rad: smaller corrections are float32 rounding, not limit events
 # Plain ints: comparing arrays with IntEnum members is slow, and this runs every control tick.
-_BRAKE, _POSITION, _VELOCITY, _EFFORT, _IMPEDANCE = (int(m) for m in Mode)
+_BRAKE, _POSITION, _VELOCITY, _EFFORT, _IMPEDANCE, _PNEUMATIC = (int(m) for m in Mode)
+
+
+@lru_cache(maxsize=16)
+def pneumatic_joints(names: tuple[str, ...]) -> np.ndarray:
+    """(n,) bool: which of these joints have a muscle pair (may run the PNEUMATIC mode)."""
+    mask = np.array([has_pneumatic_drive(n) for n in names], bool)
+    mask.flags.writeable = False
+    return mask
 
 
 class LimitsError(ValueError):
@@ -135,7 +146,9 @@ def enforce(command: CommandFrame, state: JointStateLike, limits: Limits,
     Positions are clamped into the joint range and rate-limited to the velocity limit from the last
     safe setpoint (``state.last_safe`` if given, else the measured position); velocities and efforts
     are clamped; a velocity or effort command pushing further past a position limit is zeroed; a joint
-    with any non-finite value holds its last safe position (zero feed-forward). Raises
+    with any non-finite value holds its last safe position (zero feed-forward); a PNEUMATIC joint's
+    target is clamped like a position setpoint, and a joint without a muscle pair asked for PNEUMATIC
+    brakes (reason ``no_pneumatic_drive``). Raises
     CommandRejectedError if the joint count is wrong (nothing of such a frame can be trusted).
     """
     safe, reasons, _ = enforce_with_flags(command, state, limits, dt)
@@ -163,10 +176,15 @@ def enforce_with_flags(command: CommandFrame, state: JointStateLike, limits: Lim
             flags[i] |= bit
 
     mode = out.mode.astype(int)
-    unknown = mode > _IMPEDANCE
+    unknown = mode > _PNEUMATIC
     if unknown.any():
         reasons += [f"unknown_mode:{limits.names[i]}" for i in np.flatnonzero(unknown)]
         out.mode[unknown] = _BRAKE
+    no_drive = (mode == _PNEUMATIC) & ~pneumatic_joints(limits.names)
+    if no_drive.any():
+        reasons += [f"no_pneumatic_drive:{limits.names[i]}" for i in np.flatnonzero(no_drive)]
+        out.mode[no_drive] = _BRAKE
+        unknown = unknown | no_drive
     fields = np.stack([out.position, out.velocity, out.effort, out.stiffness, out.damping])
     non_finite = ~np.isfinite(fields).all(axis=0) & ~unknown
     flag("non_finite", non_finite, JOINT_NON_FINITE)
@@ -185,7 +203,7 @@ def enforce_with_flags(command: CommandFrame, state: JointStateLike, limits: Lim
     for f in ("position", "velocity", "effort", "stiffness", "damping"):
         getattr(out, f)[braking] = 0.0
 
-    uses_position = (mode == _POSITION) | (mode == _IMPEDANCE)
+    uses_position = (mode == _POSITION) | (mode == _IMPEDANCE) | (mode == _PNEUMATIC)
     p = np.where(uses_position, out.position, ref)
     clamped = np.clip(p, limits.lower, limits.upper)
     flag("position_limit", uses_position & (np.abs(clamped - p) > CLAMP_TOLERANCE), JOINT_POSITION_LIMIT)

@@ -9,13 +9,30 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.robot.driver import BoardDriver
-from services.robot.safety import CommandRejectedError, Limits, check_finite, limit_step
+from services.robot.safety import CommandRejectedError, Limits, check_finite, limit_step, pneumatic_joints
 from services.robot.tracking import TrajectoryFollower
 from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
 from shared.runtime import Node, latest
+
+
+def command_modes(joint_names: list[str], finger_mode: str = "position") -> np.ndarray:
+    """The board mode per joint: POSITION, or PNEUMATIC for joints with a muscle pair when
+    ``finger_mode`` is "pneumatic". Raises ValueError for an unknown finger mode or a robot without
+    pneumatic joints (the board would brake them: services/robot/safety.py)."""
+    modes = np.full(len(joint_names), Mode.POSITION, np.uint8)
+    if finger_mode == "position":
+        return modes
+    if finger_mode != "pneumatic":
+        raise ValueError(f"robot: finger_mode must be 'position' or 'pneumatic', got {finger_mode!r}")
+    drive = pneumatic_joints(tuple(joint_names))
+    if not drive.any():
+        raise ValueError("robot: finger_mode = 'pneumatic', but no joint of this robot has a pneumatic drive "
+                         "(only the hand-arm's finger joints do)")
+    modes[drive] = Mode.PNEUMATIC
+    return modes
 
 
 class RobotService:
@@ -26,6 +43,9 @@ class RobotService:
         robot: str = "workcell"
         command_rate_hz: float = 250.0
         state_rate_hz: float = 100.0
+        # "pneumatic": joints with a muscle pair (the hand-arm's fingers) follow the trajectory in the
+        # board's PNEUMATIC mode (two-stage pressure PID, thesis 7.3.2) instead of POSITION.
+        finger_mode: str = "position"
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -33,6 +53,7 @@ class RobotService:
         model = load_robot(params.robot)
         self.joint_names = model.joint_names
         self.limits = Limits.from_model(model)
+        self.modes = command_modes(self.joint_names, params.finger_mode)
         self.follower = TrajectoryFollower(self.joint_names)
         self.driver = BoardDriver(params.port, params.baudrate, self.joint_names, node.log)
         if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
@@ -86,8 +107,7 @@ class RobotService:
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)
-        mode = np.full(len(self.joint_names), Mode.POSITION, np.uint8)
-        self.driver.send(mode, self.target, velocity, np.zeros(len(self.target)))
+        self.driver.send(self.modes, self.target, velocity, np.zeros(len(self.target)))
 
     async def _publish_state(self) -> None:
         async for t in self.node.clock.ticks(self.p.state_rate_hz):

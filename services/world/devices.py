@@ -155,7 +155,11 @@ class BoardDevice:
             self.feedback_frames += 1
 
     def stats(self) -> dict:
+        cmd = self.board.command
+        modes = {} if cmd is None else {m.name.lower(): int((cmd.mode == m).sum()) for m in robot_board.Mode
+                                        if (cmd.mode == m).any()}
         return {"feedback_frames": self.feedback_frames, "dropped_bytes": self.pty.dropped_bytes,
+                "command_modes": modes, "muscle_pressure_max_bar": float(self.board.pressure.max()),
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}
 
     def close(self) -> None:

@@ -38,6 +38,7 @@ class Mode(IntEnum):
     VELOCITY = 2  # PI on velocity, effort as feed-forward
     EFFORT = 3  # effort (N or N m) straight to the current loop
     IMPEDANCE = 4  # effort = stiffness*(q_d - q) + damping*(qd_d - qd) + effort_ff
+    PNEUMATIC = 5  # position is the target of the two-stage muscle-pressure PID (hand-arm fingers only)
 
 
 # Feedback flags (u16).
@@ -307,7 +308,7 @@ def vector_cases() -> list[dict]:
     cmd = CommandFrame(42, np.array([1] * 9 + [4], np.uint8), np.array(_f32(np.linspace(-0.1, 0.1, n))),
                        np.zeros(n), np.full(n, 0.5), np.full(n, 100.0), np.full(n, 5.0))
     mixed = CommandFrame.from_joints(0xFFFFFFFF, [
-        JointCommand(Mode(k % 5), *_f32([0.01 * k, -0.125 * k, 2.5 - k, 50.0 * k, 0.25 * k]))
+        JointCommand(Mode(k % len(Mode)), *_f32([0.01 * k, -0.125 * k, 2.5 - k, 50.0 * k, 0.25 * k]))
         for k in range(n)])
     for c in (cmd, mixed):
         fields = {f: getattr(c, f).tolist() for f in CMD_JOINT.names}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from services.world.pty_device import PtyDevice
 from shared import msgs
@@ -227,15 +228,17 @@ def test_world_with_the_hand_arm_serves_its_board_and_follows_a_position_command
         assert world.stop() in (0, -15), world.output()
 
 
-def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(router, tmp_path):
+@pytest.mark.parametrize("finger_mode", ["position", "pneumatic"])
+def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(router, tmp_path, finger_mode):
     """The robot service, instance hand_arm, on the world's simulated hand-arm board: it publishes
-    xm/robot/hand_arm/state with the 19 joints, holds the arm where it stands, and follows a trajectory."""
+    xm/robot/hand_arm/state with the 19 joints, holds the arm where it stands, and follows a trajectory
+    (fingers on the board's position loops, or on its two-stage pneumatic PID)."""
     endpoint, session = router
     run = tmp_path / "run"
     port = str(run / "board")
     dep = write_deployment(tmp_path / "d.toml", endpoint, {
         "world": {"sim": {"robot": "hand_arm", "robot_port": port}},
-        "robot": {"hand_arm": {"robot": "hand_arm", "port": port}}}, clock="sim")
+        "robot": {"hand_arm": {"robot": "hand_arm", "port": port, "finger_mode": finger_mode}}}, clock="sim")
     world = ServiceProcess("world", dep, "sim", tmp_path / "world.log")
     names = load_robot("hand_arm").joint_names
     states: list = []
@@ -246,9 +249,12 @@ def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(ro
         try:
             assert wait_for(lambda: len(states) > 20, 30), robot.output()
             assert list(states[-1].name) == names
+            if finger_mode == "pneumatic":
+                time.sleep(1.0)  # the vented muscles fill to their bias (~0.2 s without stiffness: a sag)
             held = np.asarray(states[-1].position)
             time.sleep(1.0)
-            assert np.abs(np.asarray(states[-1].position) - held).max() < 0.01, "the arm holds where it stands"
+            drift = np.abs(np.asarray(states[-1].position) - held)
+            assert drift.max() < 0.01, f"the arm holds where it stands: {names[drift.argmax()]} moved {drift.max()}"
             goal = held.copy()
             goal[names.index("shoulder_pan")] += 0.2
             goal[names.index("index_j2")] = goal[names.index("index_j3")] = 0.5
@@ -260,6 +266,11 @@ def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(ro
             session.put("xm/trajopt/main/trajectory", msgs.serialize(msgs.make(
                 "trajectory_msgs/msg/JointTrajectory", header=msgs.header(clock), joint_names=names, points=points)))
             assert wait_for(lambda: np.abs(np.asarray(states[-1].position) - goal).max() < 0.01, 15), robot.output()
+            board = query_json(session, "xm/world/sim/@health")[0]["devices"]["robot"]
+            fingers = sum(n.startswith(("thumb_", "index_", "middle_", "ring_")) for n in names)
+            assert board["command_modes"] == ({"position": len(names)} if finger_mode == "position" else
+                                              {"position": len(names) - fingers, "pneumatic": fingers})
+            assert (board["muscle_pressure_max_bar"] > 1.0) == (finger_mode == "pneumatic")
         finally:
             assert robot.stop() in (0, -15), robot.output()
     finally:

@@ -52,6 +52,16 @@ def test_joint_commands_round_trip_through_a_frame():
     assert msg.joint(0).mode is rb.Mode.IMPEDANCE
 
 
+def test_pneumatic_mode_round_trips_and_is_in_the_vectors():
+    joints = [rb.JointCommand(rb.Mode.PNEUMATIC, 0.75), rb.JointCommand(rb.Mode.POSITION, -0.25)]
+    msg = rb.decode(rb.encode(rb.CommandFrame.from_joints(3, joints)))
+    assert msg.joint(0).mode is rb.Mode.PNEUMATIC and msg.joint(0).position == 0.75
+    assert [msg.joint(i) for i in range(msg.n)] == joints
+    # The mixed vector's sixth joint: after the frame header, sequence and n, and five 21-byte rows.
+    assert rb.Mode.PNEUMATIC == 5 and bytes.fromhex(VECTORS[1]["bytes"])[5 + 5 + 5 * 21] == 5
+    assert VECTORS[1]["command"]["mode"][5] == 5
+
+
 def test_non_finite_setpoints_travel_unchanged_so_the_board_can_reject_them():
     c = rb.CommandFrame.hold(1, np.array([np.nan, np.inf, -np.inf]))
     out = rb.decode(rb.encode(c))

@@ -133,6 +133,34 @@ def test_unknown_modes_brake_and_wrong_joint_counts_are_rejected_whole():
         enforce(CommandFrame.hold(0, np.zeros(3)), still(), limits(), 0.004)
 
 
+def test_pneumatic_mode_only_where_a_muscle_pair_drives_the_joint():
+    """Gantry axes have no muscles: PNEUMATIC brakes them with a reason, on the board as on the host.
+    The hand-arm's fingers accept it, their targets clamped into range and to the velocity limit."""
+    cmd = CommandFrame.hold(0, inside())
+    cmd.mode[Z] = Mode.PNEUMATIC
+    safe, reasons = enforce(cmd, still(), limits(), 0.004)
+    assert safe.mode[Z] == Mode.BRAKE and reasons == ["no_pneumatic_drive:left_z"]
+    assert safe.position[Z] == 0.0 and (safe.mode[np.arange(N) != Z] == Mode.POSITION).all()
+    board = BoardSim(JOINTS, limits())
+    board.receive(cmd, 0.0)
+    _, fb = board.step(0.0, inside(), np.zeros(N), 0.001)
+    assert board.last_reasons == ["no_pneumatic_drive:left_z"] and fb.joint_flags[Z] & rb.JOINT_BRAKING
+    assert fb.flags & rb.CLAMPED
+
+    model = load_robot("hand_arm")
+    lim = Limits.from_model(model)
+    n, i = len(model.joint_names), model.joint_names.index("index_j2")
+    q = np.zeros(n)
+    finger = CommandFrame.hold(0, q)
+    finger.mode[i], finger.position[i] = Mode.PNEUMATIC, 2.5  # beyond the 1.57 rad stop
+    safe, reasons = enforce(finger, SafetyState(q, np.zeros(n), np.where(np.arange(n) == i, 1.565, q)), lim, 0.004)
+    assert safe.mode[i] == Mode.PNEUMATIC and safe.position[i] == pytest.approx(1.57)
+    assert reasons == ["position_limit:index_j2"]
+    safe, reasons = enforce(finger, SafetyState(q, np.zeros(n)), lim, 0.004)  # from 0: 2 rad/s x 4 ms
+    assert safe.position[i] == pytest.approx(0.008) and "velocity_limit:index_j2" in reasons
+    assert safe.mode[i] == Mode.PNEUMATIC
+
+
 def test_limit_step_for_the_service_clamps_positions_and_velocities():
     model = load_robot("workcell")
     lim = Limits.from_model(model)
