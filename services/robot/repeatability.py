@@ -47,6 +47,14 @@ class Rig:
         self.names = self.sim.joint_names
         self.seq = 0
 
+    def home(self) -> np.ndarray:
+        """The measuring pose: both arms raised clear of the table, the gripper slightly open."""
+        q = np.zeros(len(self.names))
+        q[self.names.index("left_z")] = 0.2
+        q[self.names.index("right_z")] = 0.1
+        q[self.names.index("left_finger_a")] = 0.01
+        return q
+
     def move(self, target: np.ndarray, duration: float) -> None:
         """Linear interpolation to target over ``duration``, then settle; commands at 250 Hz.
         Coupled joints (the gripper's second finger) follow their masters."""
@@ -78,10 +86,7 @@ def run(seed: int = 0, progress: bool = True) -> list[dict]:
     rng = np.random.default_rng(seed)
     rig = Rig(seed)
     names = rig.names
-    home = np.zeros(len(names))
-    home[names.index("left_z")] = 0.2
-    home[names.index("right_z")] = 0.1
-    home[names.index("left_finger_a")] = 0.01
+    home = rig.home()
     rig.move(home, 1.0)
     results = []
     total = sum(c.repeats for c in CASES)

@@ -13,13 +13,9 @@ def test_gripper_fingers_use_their_own_gains():
 
 def test_gripper_reaches_and_repeats_its_commanded_opening():
     rig = Rig(0)
-    names = rig.names
-    home = np.zeros(len(names))
-    home[names.index("left_z")] = 0.2
-    home[names.index("right_z")] = 0.1
-    home[names.index("left_finger_a")] = 0.01
+    home = rig.home()
     rig.move(home, 1.0)
-    j = names.index("left_finger_a")
+    j = rig.names.index("left_finger_a")
     opened = home.copy()
     opened[j] = 0.02
     reached = []
