@@ -84,35 +84,16 @@ def object_groups(object_names: list[str]) -> np.ndarray:
     return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
 
 
-# finger chains from the wrist (0) plus the palm's knuckle line: the bones of a 21-point hand
-_CHAINS = [(0, 1, 2, 3, 4), (0, 5, 6, 7, 8), (0, 9, 10, 11, 12), (0, 13, 14, 15, 16), (0, 17, 18, 19, 20),
-           (5, 9, 13, 17)]
-HAND_BONES = np.array([(c[i], c[i + 1]) for c in _CHAINS for i in range(len(c) - 1)])
-
-
-def bone_pairs(hands: int = 2, per_hand: int = 21) -> np.ndarray:
-    """(n,2) point indices of every bone of ``hands`` hands laid out one after the other."""
-    return np.concatenate([HAND_BONES + h * per_hand for h in range(hands)])
-
-
-def keep_bone_lengths(pos: np.ndarray, bones: np.ndarray, lengths: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Positions moved as little as possible (equal weights, Gauss-Seidel over the bones, projected
-    per iteration) so that every bone has its length: bone lengths of a hand are constant, and the
-    network's independent point velocities otherwise let the hand's shape drift in long rollouts."""
-    p = pos.copy()
-    i, j = bones[:, 0], bones[:, 1]
-    for _ in range(iterations):
-        d = p[j] - p[i]
-        n = np.linalg.norm(d, axis=1, keepdims=True)
-        corr = 0.5 * (n - lengths[:, None]) * d / np.maximum(n, 1e-9)
-        delta = np.zeros_like(p)
-        count = np.zeros(len(p))
-        np.add.at(delta, i, corr)
-        np.add.at(delta, j, -corr)
-        np.add.at(count, i, 1)
-        np.add.at(count, j, 1)
-        p += delta / np.maximum(count, 1)[:, None]
-    return p
+def rigid_fit(v: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares rigid motion (c, v_c, w) of points p (n,3) moving with v (n,3), such that
+    v_i ~ v_c + w x (p_i - c); w = 0 for fewer than two points (a rotation is not observable)."""
+    c, vc = p.mean(axis=0), v.mean(axis=0)
+    if len(p) < 2:
+        return c, vc, np.zeros(3)
+    r = p - c
+    # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T)
+    M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
+    return c, vc, np.linalg.lstsq(M, np.cross(r, v - vc).sum(axis=0), rcond=None)[0]
 
 
 def follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, bodies: np.ndarray) -> np.ndarray:
@@ -124,16 +105,9 @@ def follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, bodies: np.
     for b in np.unique(bodies[~trusted]):
         idx = np.flatnonzero(bodies == b)
         seen, hidden = idx[trusted[idx]], idx[~trusted[idx]]
-        if not len(seen):
-            continue
-        c = p[seen].mean(axis=0)
-        vc = v[seen].mean(axis=0)
-        w = np.zeros(3)
-        if len(seen) >= 3:
-            r = p[seen] - c
-            M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
-            w = np.linalg.lstsq(M, np.cross(r, v[seen] - vc).sum(axis=0), rcond=None)[0]
-        out[hidden] = vc + np.cross(w, p[hidden] - c)
+        if len(seen):
+            c, vc, w = rigid_fit(v[seen], p[seen])
+            out[hidden] = vc + np.cross(w, p[hidden] - c)
     return out
 
 
@@ -143,15 +117,6 @@ def rigid_velocities(v: np.ndarray, p: np.ndarray, groups: np.ndarray) -> np.nda
     out = np.empty_like(v)
     for g in np.unique(groups):
         idx = np.flatnonzero(groups == g)
-        c = p[idx].mean(axis=0)
-        r = p[idx] - c
-        vc = v[idx].mean(axis=0)
-        if len(idx) < 2:
-            out[idx] = vc
-            continue
-        # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T)
-        M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
-        b = np.cross(r, v[idx] - vc).sum(axis=0)
-        w = np.linalg.lstsq(M, b, rcond=None)[0]
-        out[idx] = vc + np.cross(w, r)
+        c, vc, w = rigid_fit(v[idx], p[idx])
+        out[idx] = vc + np.cross(w, p[idx] - c)
     return out

@@ -46,7 +46,6 @@ class PolicyConfig:
     recurrent: bool = False  # recurrent branch (7.2.6) trained on trajectories (7.2.7)
     denoise: bool = True  # 7.2.2
     masks: bool = True  # masked inputs/losses, masks predicted (7.2.5)
-    keep_bones: bool = False  # inference: hand bone lengths held at their first observed lengths (measured worse)
     follow_unobserved: bool = True  # inference: unobserved points move rigidly with their body's seen points
     velocity_input: bool = False  # current velocities as inputs; off measured better (docs/policy.md)
     phase_input: bool = False  # seconds since the episode start as an input (a clock for the phase)

@@ -13,16 +13,8 @@ import numpy as np
 import torch
 
 from services.policy import dataset as D
-from services.policy.consistency import (
-    ConsistencySolver,
-    bone_pairs,
-    follow_bodies,
-    keep_bone_lengths,
-    object_groups,
-    rigid_velocities,
-)
+from services.policy.consistency import ConsistencySolver, follow_bodies, object_groups, rigid_velocities
 from services.policy.network import (
-    HAND_POINTS,
     PAIR_SCALE,
     PRESETS,
     TACTILE_SCALE,
@@ -321,12 +313,6 @@ class Ours:
                 am = state["mask"][lay.anchors]
                 pmask = (am[lay.pair_j] & am[lay.pair_i]).astype(float)
         pos = solver.positions(state["pos"], v, pairs, pmask)
-        if cfg.keep_bones:
-            bones = bone_pairs()
-            if "bones" not in state:  # lengths from the first state of the episode (the observed hand)
-                p0 = state["pos"][bones]
-                state["bones"] = np.linalg.norm(p0[:, 1] - p0[:, 0], axis=1)
-            pos[:HAND_POINTS] = keep_bone_lengths(pos[:HAND_POINTS], bones, state["bones"])
         if observed_objects is not None:
             pos[2 * KEYPOINTS_PER_HAND:] = observed_objects
         nxt = dict(state)
