@@ -240,6 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--checkpoint", default="runs/policy/policy.pt",
                         help="--execute: policy checkpoint (default %(default)s; `make policy` trains it)")
     parser.add_argument("--layouts", type=int, default=12, help="--execute: how many validation layouts (default 12)")
+    parser.add_argument("--teacher", action="store_true",
+                        help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
+                        "perfect policy)")
     args = parser.parse_args(argv)
     if args.execute:
         return execute_main(args)
@@ -262,15 +265,18 @@ def execute_main(args: argparse.Namespace) -> int:
     from services.policy.ours import Ours, PolicyError
 
     path = Path(args.checkpoint)
-    if not path.exists():
+    if args.teacher:
+        model, path = None, Path("teacher")
+    elif not path.exists():
         print(f"error: no policy checkpoint at {path}; train one with `make policy` or give --checkpoint",
               file=sys.stderr)
         return 2
-    try:
-        model = Ours.load(str(path))
-    except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-        print(f"error: cannot load {path}: {exc}", file=sys.stderr)
-        return 2
+    else:
+        try:
+            model = Ours.load(str(path))
+        except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
+            print(f"error: cannot load {path}: {exc}", file=sys.stderr)
+            return 2
     import torch
 
     torch.set_num_threads(1)
@@ -279,10 +285,11 @@ def execute_main(args: argparse.Namespace) -> int:
         r = execute_layout(model, args.seed, demo)
         results.append(r.to_dict())
         if args.no_progress:
-            print(f"layout {demo}: grasp {r.grasp_hand}, success {r.success}, tracking {r.tracking_mm:.1f} mm, "
-                  f"module moved {r.object_motion_mm:.0f} mm, gripper closest {r.closest_mm:.0f} mm at opening "
-                  f"{r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
-                  f"rejected solves {r.solves_rejected}", flush=True)
+            print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
+                  f"{r.tracking_mm:.1f} mm, module moved {r.object_motion_mm:.0f} mm, gripper closest "
+                  f"{r.closest_mm:.1f} mm at opening {r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
+                  f"connector gap {r.connector_gap_mm:.1f} mm, seated {r.seated}, rejected solves "
+                  f"{r.solves_rejected}", flush=True)
     rate = float(np.mean([r["success"] for r in results]))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

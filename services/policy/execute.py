@@ -7,6 +7,14 @@ period (hands from its own prediction, objects observed from the world's truth: 
 neural simulation of 7.6.1), the trajectory optimizer of 7.4 replanning on every plan, and the
 simulated control board (position mode, watchdog, limits) stepped with the physics. Success is
 the world's assembly test (camera module seated on the board's connector, board lifted).
+
+Roles, not sides: the workcell has its gripper on the left arm and a pressing finger on the right
+(the arms share one rail and cannot cross), so the hand the policy grasps with drives the gripper
+and the other hand's index tip drives the finger. Which hand grasps is read from the policy's own
+neural simulation of the first seconds (the hand whose pinch comes closest to the module).
+Predicted touch becomes effort (7.2.10): grasping thumb + index pressure shuts the gripper,
+pressing index pressure pushes the finger down. ``TeacherReplay`` runs the same loop on the
+teacher's own hands: what the cell achieves with a perfect policy.
 """
 
 from __future__ import annotations
@@ -18,24 +26,106 @@ import numpy as np
 from services.policy.simulate import PolicyRunner, SceneObs
 from services.robot.board_sim import BoardSim
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
-from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
+from services.trajopt.optimizer import WORKCELL_AXES_MAP, TrajectoryOptimizer, TrajoptConfig
 from services.world.sim import WorldSim
+from services.world.teacher import Teacher
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
 
-HAND_POINTS = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
 GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
+PRESS_JOINT = "right_z"  # positive effort pushes the finger down
+GRIPPER_Z = "left_z"
+PUSH_STIFFNESS, PUSH_DAMPING = 3000.0, 200.0  # N/m, N s/m: the Z axes' position-loop gains
+PRESS_BESIDE_M = 0.08  # a finger goal this close (xy) to the gripper's: the gripper presses instead
 THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
 GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
-GRASP_EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
+EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
+LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
+SLOWDOWN = 1.0  # robot seconds per demonstration second
+FRAME_EVERY = 2  # physics steps (2 ms) per command frame
+PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
+
+
+def hand_point_names(grasp_hand: str, flipped: bool = False) -> list[str]:
+    """Plan names for the policy's hands (left block, then right) so that the grasping hand maps
+    to the robot's gripper ("left/*") and the pressing hand to its finger ("right/*"); ``flipped``
+    swaps the grasping thumb and index (see gripper_flipped)."""
+    sides = HAND_NAMES if grasp_hand == "left" else HAND_NAMES[::-1]
+    names = [f"{h}/{k}" for h in sides for k in range(KEYPOINTS_PER_HAND)]
+    if flipped:  # the gripper's two fingers trade their goals
+        a, b = names.index("left/4"), names.index("left/8")
+        names[a], names[b] = names[b], names[a]
+    return names
+
+
+def sample_trajectory(q: np.ndarray, s: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position (linear between knots) and velocity of a knot trajectory (knots, n) at knot time s."""
+    s = float(np.clip(s, 0, len(q) - 1))
+    i = int(s)
+    j = min(i + 1, len(q) - 1)
+    return q[i] + (s - i) * (q[j] - q[i]), (q[j] - q[i]) / dt
+
+
+def gripper_flipped(thumb: np.ndarray, index: np.ndarray, wrist0: float = 0.0,
+                    limit: float = 2 * np.pi) -> bool:
+    """thumb, index (T,3): the grasping hand's tips over a look-ahead. The parallel gripper is
+    symmetric, so the thumb may drive either finger; True when driving finger b keeps the wrist
+    (yaw = thumb->index angle + 90 deg, or - 90 deg flipped) further inside its travel (+-limit)
+    when the unflipped one would come within 0.2 rad of it.
+    Decided once per run: flipping while holding the module would turn it over."""
+    d = index - thumb
+    phi = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    worst = []
+    for offset in (np.pi / 2, -np.pi / 2):
+        theta = phi + offset
+        theta += 2 * np.pi * np.round((wrist0 - theta[0]) / (2 * np.pi))  # start from the wrist's turn
+        worst.append(np.abs(theta).max())
+    return bool(worst[1] < worst[0] and worst[0] > limit - 0.2)
+
+
+def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
+    """hands (T,2,21,3) of a rollout, lens (3,) the module: the hand whose thumb-index midpoint
+    comes closest to the module."""
+    pinch = 0.5 * (hands[:, :, 4] + hands[:, :, 8])
+    return HAND_NAMES[int(np.argmin(np.linalg.norm(pinch - lens, axis=-1).min(axis=0)))]
+
+
+class TeacherReplay:
+    """The teacher's hands and glove pressure in place of the policy (same interface as
+    PolicyRunner): the upper bound of execution, and a check that the cell can do the task."""
+
+    def __init__(self, teacher: Teacher, dt: float = 0.02) -> None:
+        self.teacher, self.dt, self.t = teacher, dt, 0.0
+        self.efforts = np.zeros((2, len(TACTILE_REGIONS)))
+        self.scene: SceneObs | None = None
+
+    def _hands(self, t: float) -> np.ndarray:
+        return self.teacher.state(min(t, self.teacher.duration)).hands
+
+    def observe(self, scene: SceneObs) -> None:
+        self.scene = scene
+
+    def step(self, scene: SceneObs) -> np.ndarray:
+        self.scene = scene
+        self.t += self.dt
+        st = self.teacher.state(min(self.t, self.teacher.duration))
+        self.efforts = st.forces * 10.0  # N over ~1 cm^2 -> kPa, as the glove reports
+        return np.concatenate([st.hands.reshape(-1, 3), scene.objects])
+
+    def horizon(self, scene: SceneObs | None, steps: int) -> np.ndarray:
+        if scene is not None:
+            self.scene = scene
+        return np.stack([np.concatenate([self._hands(self.t + (i + 1) * self.dt).reshape(-1, 3), self.scene.objects])
+                         for i in range(steps)])
 
 
 @dataclass
 class ExecutionResult:
     seed: int
     demo: int
-    grasp_hand: str
+    grasp_hand: str  # the teacher's
+    chosen_hand: str  # the hand the policy grasped with in its look-ahead (drives the gripper)
     success: bool
     seconds: float  # simulated
     tracking_mm: float  # median distance of the robot's mapped points to the policy's goals
@@ -43,55 +133,83 @@ class ExecutionResult:
     object_motion_mm: float  # how far the camera module moved from its start
     closest_mm: float  # closest approach of the gripper's finger-tip midpoint to the module's lens point
     opening_mm: float  # gripper finger opening (sum of both fingers) at that moment
-    max_grasp_kpa: float  # largest predicted left thumb + index pressure (7.2.10), 0 without tactile
+    max_grasp_kpa: float  # largest predicted grasping thumb + index pressure (7.2.10), 0 without tactile
+    connector_gap_mm: float  # closest approach of the module's connector to the board's (seated under 3)
+    seated: bool  # the connector snapped home (pressed while aligned)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
 
 
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
-                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA) -> ExecutionResult:
+                   slowdown: float = SLOWDOWN,
+                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
+                   trace: list | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
-    ``grasp_kpa``: above this predicted left thumb + index pressure the gripper is commanded shut
-    with an effort proportional to it (None: fingers follow the mapped thumb and index tips only)."""
+    ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
+    ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
+    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
+    ``slowdown``: robot time per policy time (the policy's 9 s run in ``seconds * slowdown``).
+    ``trace``: if given, one dict per plan is appended (time, module and gripper positions, ...)."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
     sim.set_robot_mode("robot")
     robot = load_robot("workcell")
-    opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots))
+    opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=WORKCELL_AXES_MAP, contact_slots=8,
+                                                   point_weights={"right/8": PRESS_WEIGHT}))
     board = BoardSim(sim.joint_names)
-    runner = PolicyRunner(model)
+    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
+    dt = runner.dt if model is None else model.dt
     opt_dt = horizon_s / knots
-    steps = int(round(seconds / model.dt))
-    plan_every = max(1, int(round(plan_period_s / model.dt)))
-    physics_per_step = max(1, int(round(model.dt / sim.physics_dt)))
+    rdt = dt * slowdown  # robot time per policy step
+    steps = int(round(seconds / dt))
+    plan_every = max(1, int(round(plan_period_s / rdt)))
+    physics_per_step = max(1, int(round(rdt / sim.physics_dt)))
     names, objects = sim.object_keypoints()
     cam = [i for i, n in enumerate(names) if n.startswith("camera/")]
     cam0 = objects[cam].mean(axis=0)
     hand_mask = np.ones((2, KEYPOINTS_PER_HAND), bool)
     obj_mask = np.ones(len(names), bool)
     hands = start_hands
+    look = runner.horizon(SceneObs(hands, hand_mask, objects, obj_mask), int(round(LOOKAHEAD_S / dt)))
+    grasp_hand = grasping_hand(look[:, :2 * KEYPOINTS_PER_HAND].reshape(len(look), 2, KEYPOINTS_PER_HAND, 3),
+                               objects[names.index("camera/lens")])
+    g, p = HAND_NAMES.index(grasp_hand), 1 - HAND_NAMES.index(grasp_hand)
+    look_g = look[:, g * KEYPOINTS_PER_HAND:(g + 1) * KEYPOINTS_PER_HAND]
+    wrist = robot.joint_names.index("left_wrist")
+    flipped = gripper_flipped(look_g[:, 4], look_g[:, 8], float(sim.joint_state()[0][wrist]), float(robot.upper[wrist]))
+    plan_names = hand_point_names(grasp_hand, flipped) + list(names)
+    press = sim.joint_names.index(PRESS_JOINT)
+    gripper_z = sim.joint_names.index(GRIPPER_Z)
     q, _ = sim.joint_state()
     current, t_current = np.repeat(q[None], knots, axis=0), 0.0
     n = len(sim.joint_names)
     success, rejected, tracking = False, 0, []
     fingers = [sim.joint_names.index(j) for j in GRIPPER_JOINTS]
     tips = [opt.point_names.index(p) for p in ("left/4", "left/8")]
+    finger = opt.point_names.index("right/8")
     lens = names.index("camera/lens")
-    closest, opening, max_kpa = np.inf, np.nan, 0.0
+    closest, opening, max_kpa, min_gap = np.inf, np.nan, 0.0, np.inf
+    frame, q_cmd, press_beside = 0, current[0], False
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
         # the policy's own next hands (runner.state keeps the observation it was given)
-        hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:len(HAND_POINTS)].reshape(
+        hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
             2, KEYPOINTS_PER_HAND, 3)
         if k % plan_every == 0:
-            horizon = runner.horizon(None, int(round(horizon_s / model.dt)) + 1)
-            plan = PlanArrays(t, model.dt, HAND_POINTS + list(names), horizon,
-                              np.ones(horizon.shape[:2], bool))
+            horizon = runner.horizon(None, int(round(horizon_s / rdt)) + 1)
+            plan = PlanArrays(t, rdt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
+            # the finger yields where it would work beside the gripper: on one rail the carriages
+            # cannot come that close, and the gripper then presses instead (below)
+            beside = np.linalg.norm(goals[:, finger, :2] - goals[:, tips, :2].mean(axis=1), axis=-1) < PRESS_BESIDE_M
+            mask[:, finger] &= ~beside
+            press_beside = bool(beside[0])
+            # as close as the gantry gets: the optimizer rejects goals outside its reach
+            goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
             shift = max(0, min(knots - 1, round((t - t_current) / opt_dt)))
             if shift:
                 current = np.concatenate([current[shift:], np.repeat(current[-1:], shift, 0)])
@@ -105,21 +223,29 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             reached = opt.points(q_now)
             tracking.append(float(np.median(np.linalg.norm(reached - goals[0], axis=-1)[mask[0]]))
                             if mask[0].any() else np.nan)
-        # the executing trajectory, sampled now: linear between knots
-        s = np.clip((t - t_current) / opt_dt, 0, knots - 1)
-        i = int(s)
-        j = min(i + 1, knots - 1)
-        q_cmd = current[i] + (s - i) * (current[j] - current[i])
-        v_cmd = (current[j] - current[i]) / opt_dt
         effort = np.zeros(n)
-        kpa = float(runner.efforts[0, THUMB] + runner.efforts[0, INDEX]) if runner.efforts.size else 0.0
+        kpa = float(runner.efforts[g, THUMB] + runner.efforts[g, INDEX])
         max_kpa = max(max_kpa, kpa)
-        if grasp_kpa is not None and kpa > grasp_kpa:  # 7.2.10: predicted touch becomes squeeze
-            q_cmd[fingers] = 0.0
-            effort[fingers] = -GRASP_EFFORT_N_PER_KPA * kpa
-        board.receive(CommandFrame(k, np.full(n, Mode.POSITION, np.uint8), q_cmd, v_cmd, effort, np.zeros(n),
-                                   np.zeros(n)), sim.time)
-        for _ in range(physics_per_step):
+        squeeze = grasp_kpa is not None and kpa > grasp_kpa  # 7.2.10: predicted touch becomes squeeze
+        if squeeze:
+            effort[fingers] = -EFFORT_N_PER_KPA * kpa
+        # ... and push: with the finger, or where the finger would press beside the gripper (the
+        # two carriages cannot come that close on their rail) with the gripper on what it holds
+        # (impedance mode on that axis while pushing: the position loop's integral would undo the push)
+        push = EFFORT_N_PER_KPA * max(0.0, float(runner.efforts[p, INDEX]))
+        pusher = gripper_z if press_beside else press
+        effort[pusher] = push
+        modes = np.full(n, Mode.POSITION, np.uint8)
+        stiffness, damping = np.zeros(n), np.zeros(n)
+        if push > 0.5:
+            modes[pusher], stiffness[pusher], damping[pusher] = Mode.IMPEDANCE, PUSH_STIFFNESS, PUSH_DAMPING
+        for sub in range(physics_per_step):
+            if sub % FRAME_EVERY == 0:  # a frame every 4 ms, well inside the board's 10 ms watchdog
+                q_cmd, v_cmd = sample_trajectory(current, (sim.time - t_current) / opt_dt, opt_dt)
+                if squeeze:
+                    q_cmd[fingers] = 0.0
+                board.receive(CommandFrame(frame, modes, q_cmd, v_cmd, effort, stiffness, damping), sim.time)
+                frame += 1
             q, qd = sim.joint_state()
             efforts, _ = board.step(sim.time, q, qd, sim.physics_dt)
             sim.set_efforts(efforts)
@@ -131,8 +257,16 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             gap = float(np.linalg.norm(opt.points(q_now)[tips].mean(axis=0) - objects[lens]))
             if gap < closest:
                 closest, opening = gap, float(q_now[fingers].sum())
+            min_gap = min(min_gap, sim.connector_gap())
+            if trace is not None:
+                pts = opt.points(q_now)
+                trace.append({"t": sim.time, "q": q_now.tolist(), "q_cmd": q_cmd.tolist(), "ok": bool(result.ok),
+                              "reason": result.reason, "tips": pts[tips].tolist(), "goal_tips": goals[0, tips].tolist(),
+                              "lens": objects[lens].tolist(), "opening": float(q_now[fingers].sum()),
+                              "grasp_kpa": kpa, "push_n": float(effort[press] + effort[gripper_z]),
+                              "connector_gap": sim.connector_gap(), "seated": sim.seated_at is not None})
     _, objects = sim.object_keypoints()
-    return ExecutionResult(seed, demo, sim.teacher.grasp_hand, bool(success), sim.time,
+    return ExecutionResult(seed, demo, sim.teacher.grasp_hand, grasp_hand, bool(success), sim.time,
                            float(np.nanmedian(tracking) * 1e3) if tracking else float("nan"), rejected,
                            float(np.linalg.norm(objects[cam].mean(axis=0) - cam0) * 1e3), closest * 1e3,
-                           opening * 1e3, max_kpa)
+                           opening * 1e3, max_kpa, min_gap * 1e3, sim.seated_at is not None)

@@ -28,10 +28,32 @@ def plan_arrays(msg) -> PlanArrays:
     return PlanArrays(msgs.stamp_seconds(msg.header.stamp), float(msg.dt), names, pos.reshape(steps, points, 3), mask)
 
 
+GRIP_AXIS_M = 0.03  # the workcell's left_grip_axis point: 3 cm from the pads along their closing axis
+
+
+def with_grip_axis(plan: PlanArrays, hand: str = "left") -> PlanArrays:
+    """Adds the derived point ``<hand>/grip_axis`` (pinch midpoint + 3 cm along thumb -> index, level):
+    it gives the gripper's yaw a lever; the fingertips alone are 5 mm apart. Unchanged when the plan
+    lacks either fingertip or already has the point."""
+    names = plan.names
+    thumb, index, axis = f"{hand}/4", f"{hand}/8", f"{hand}/grip_axis"
+    if axis in names or thumb not in names or index not in names:
+        return plan
+    a, b = plan.positions[:, names.index(thumb)], plan.positions[:, names.index(index)]
+    d = (b - a) * [1.0, 1.0, 0.0]
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    ok = plan.mask[:, names.index(thumb)] & plan.mask[:, names.index(index)] & (norm[:, 0] > 1e-4)
+    point = 0.5 * (a + b) + GRIP_AXIS_M * d / np.maximum(norm, 1e-9)
+    return PlanArrays(plan.stamp, plan.dt, names + [axis], np.concatenate([plan.positions, point[:, None]], axis=1),
+                      np.concatenate([plan.mask, ok[:, None]], axis=1))
+
+
 def goals_for_horizon(plan: PlanArrays, wanted: list[str], t0: float, dt: float, knots: int) -> tuple[np.ndarray,
                                                                                                      np.ndarray]:
     """Goals (knots, len(wanted), 3) at times t0 + k*dt, interpolated in the plan; mask False where
-    the plan lacks a point, masks it, or the time lies outside the plan."""
+    the plan lacks a point, masks it, or the time lies outside the plan. Derived points (the
+    gripper's grip axis) are added from the fingertips first."""
+    plan = with_grip_axis(plan)
     goals = np.zeros((knots, len(wanted), 3))
     mask = np.zeros((knots, len(wanted)), bool)
     index = {n: i for i, n in enumerate(plan.names)}

@@ -29,6 +29,8 @@ from shared.kinematics import RobotModel
 # Plan keypoint (hand/index of the 21-point hand) -> robot frame. The gripper executes the left
 # hand's thumb and index tips, the single finger the right index tip (thesis 7.6).
 WORKCELL_MAP = {"left/4": "left_tip_a", "left/8": "left_tip_b", "right/8": "right_tip"}
+# With the gripper's yaw pinned by a derived point (mapping.with_grip_axis): robot execution
+WORKCELL_AXES_MAP = dict(WORKCELL_MAP, **{"left/grip_axis": "left_grip_axis"})
 HAND_ARM_MAP = {"right/0": "wrist_point", "right/4": "thumb_tip", "right/8": "index_tip", "right/12": "middle_tip",
                 "right/16": "ring_tip"}
 TABLE = ((0.0, 0.0, -1.0), 0.0)  # N . p <= P - r  <=>  z >= r

@@ -22,6 +22,11 @@ FRAME_SIZE = 0.8
 CAMERA_HEIGHT = 0.8
 CAMERA_FOVY_DEG = 60.0
 PHYSICS_DT = 0.002
+LATCH = "connector_latch"  # weld equality camera -> board
+# Contacts of the task objects: MuJoCo's soft contacts scale with the bodies' mass, and with the
+# default 20 ms time constant a gripper squeezing a 3 g module sinks millimetres into it; the
+# shortest time constant the step allows keeps that to a fraction of a millimetre.
+OBJECT_SOLREF = [2 * PHYSICS_DT, 1.0]
 
 # (x, y) of the 7 cameras on the top beams; the front beam is set back (thesis 5.4).
 CAMERA_XY = [(-0.4, -0.4), (-0.4, 0.0), (-0.4, 0.4), (0.4, -0.4), (0.4, 0.4), (0.15, -0.4), (0.15, 0.4)]
@@ -29,11 +34,11 @@ LOOK_AT = np.array([0.03, 0.0, 0.02])
 
 OBJECTS = {  # name -> list of (geom type, size (half extents), offset, rgba, mass)
     "assembly": {
-        "board": [("box", (0.020, 0.015, 0.0008), (0.0, 0.0, 0.0008), (0.1, 0.5, 0.2, 1), 0.005),
-                  ("box", (0.003, 0.003, 0.0007), (0.010, 0.0, 0.0023), (0.8, 0.8, 0.8, 1), 0.0005)],
+        "board": [("box", (0.030, 0.015, 0.0008), (0.0, 0.0, 0.0008), (0.1, 0.5, 0.2, 1), 0.007),
+                  ("box", (0.003, 0.003, 0.0007), (-0.012, 0.0, 0.0023), (0.8, 0.8, 0.8, 1), 0.0005)],
         "camera": [("box", (0.003, 0.003, 0.002), (0.0, 0.0, 0.002), (0.05, 0.05, 0.05, 1), 0.002),
                    ("box", (0.016, 0.0025, 0.0002), (0.018, 0.0, 0.0005), (0.8, 0.5, 0.1, 1), 0.0005),
-                   ("box", (0.003, 0.002, 0.0007), (0.036, 0.0, 0.0012), (0.7, 0.7, 0.7, 1), 0.0005)],
+                   ("box", (0.003, 0.002, 0.0007), (0.036, 0.0, 0.0022), (0.7, 0.7, 0.7, 1), 0.0005)],
     },
     "pick_place": {
         "box": [("box", (0.025, 0.025, 0.025), (0.0, 0.0, 0.025), (0.8, 0.3, 0.1, 1), 0.05)],
@@ -77,6 +82,8 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         raise ValueError(f"robot must be one of {ROBOTS}, got {robot!r}")
     spec = mujoco.MjSpec.from_file(str(ROBOTS_DIR / f"{robot}.urdf"))
     spec.option.timestep = PHYSICS_DT
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps that do not creep
+    spec.option.impratio = 10.0
     spec.visual.quality.shadowsize = 0  # software GL: shadows cost more than they show
     spec.visual.global_.offwidth = max(width, 640)
     spec.visual.global_.offheight = max(height, 480)
@@ -102,7 +109,11 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         for gtype, size, offset, rgba, mass in geoms:
             body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX if gtype == "box" else mujoco.mjtGeom.mjGEOM_SPHERE,
                           size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001],
-                          contype=1, conaffinity=3)
+                          contype=1, conaffinity=3, solref=OBJECT_SOLREF)
+    if task == "assembly":  # the connector's snap-fit, engaged by WorldSim when pressed home (robot mode)
+        spec.add_equality(name=LATCH, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
+                          name1="camera", name2="board", active=0,
+                          solref=[2 * PHYSICS_DT, 1.0])  # as stiff as the step allows
     for h, hand in enumerate(("left", "right")):
         rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
         for k in range(21):

@@ -10,13 +10,15 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from services.world.model import PHYSICS_DT, ROBOT_HOME, build_model, camera_specs
+from services.world.model import LATCH, PHYSICS_DT, ROBOT_HOME, build_model, camera_specs
 from services.world.teacher import Teacher, occlusion
 from shared.demo import HAND_NAMES, TACTILE_REGIONS
 from shared.kinematics import load_robot
 
 PAUSE_BETWEEN_DEMOS_S = 1.0
-TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 1 kHz
+TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 500 Hz
+SEAT_GAP_M = 0.003  # module connector this close to the board's: aligned (the success test uses it too)
+SEAT_FORCE_N = 2.0  # module-on-board normal force that snaps an aligned connector home (robot mode)
 
 
 class WorldSim:
@@ -42,6 +44,9 @@ class WorldSim:
         self._free = {b: m.jnt_qposadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._free_dof = {b: m.jnt_dofadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._mocap = np.array([[m.body_mocapid[m.body(f"{h}_kp{k}").id] for k in range(21)] for h in HAND_NAMES])
+        self._latch = m.equality(LATCH).id if task == "assembly" else None
+        self._seat_bodies = {m.body("camera").id, m.body("board").id} if task == "assembly" else set()
+        self.seated_at: float | None = None  # simulated time the connector snapped home (robot mode)
         self.robot_mode = "teacher"
         self.demo = 0
         self.reset(seed)
@@ -69,6 +74,7 @@ class WorldSim:
         self.teacher = Teacher(self.task, self.base_seed * 1000 + self.demo, grasp_hand=grasp, tactile_hand=tactile)
         self.demo_start = float(self.data.time)
         self._applied_at = 0.0
+        self._engage_latch(False)
         self._apply_teacher(0.0)
 
     @property
@@ -97,6 +103,47 @@ class WorldSim:
                 else:
                     self._hold_objects()
             mujoco.mj_step(self.model, self.data)
+            if self.robot_mode == "robot" and self._latch is not None and self.seated_at is None:
+                self._check_seat()
+
+    # --- the connector's snap-fit (robot mode) -----------------------------------------------
+    def connector_gap(self) -> float:
+        names, pts = self.object_keypoints()
+        return float(np.linalg.norm(pts[names.index("camera/connector")] - pts[names.index("board/connector")]))
+
+    def _seat_force(self) -> float:
+        """Total normal force between the module and the board (N)."""
+        total, f6 = 0.0, np.zeros(6)
+        for i in range(self.data.ncon):
+            c = self.data.contact[i]
+            if {self.model.geom_bodyid[c.geom1], self.model.geom_bodyid[c.geom2]} == self._seat_bodies:
+                mujoco.mj_contactForce(self.model, self.data, i, f6)
+                total += abs(f6[0])
+        return total
+
+    def _check_seat(self) -> None:
+        if self.connector_gap() < SEAT_GAP_M and self._seat_force() >= SEAT_FORCE_N:
+            self._engage_latch(True)
+
+    def _engage_latch(self, on: bool) -> None:
+        """Welds the board to the module where they are now (on) or releases it."""
+        if self._latch is None:
+            return
+        if on:
+            # weld data: anchor (3), pose of body2 (the board) in body1's (the module's) frame (3 + 4)
+            cam, board = self.model.body("camera").id, self.model.body("board").id
+            R_cam = self.data.xmat[cam].reshape(3, 3)
+            rel_pos = R_cam.T @ (self.data.xpos[board] - self.data.xpos[cam])
+            rel_quat, inv = np.zeros(4), np.zeros(4)
+            mujoco.mju_negQuat(inv, self.data.xquat[cam])
+            mujoco.mju_mulQuat(rel_quat, inv, self.data.xquat[board])
+            self.model.eq_data[self._latch, 0:3] = 0.0
+            self.model.eq_data[self._latch, 3:6] = rel_pos
+            self.model.eq_data[self._latch, 6:10] = rel_quat
+            self.seated_at = self.time
+        else:
+            self.seated_at = None
+        self.data.eq_active[self._latch] = int(on)
 
     def _apply_teacher(self, t: float) -> None:
         state = self.teacher.state(t)
@@ -170,9 +217,8 @@ class WorldSim:
         if self.task != "assembly":
             return False
         names, pts = self.object_keypoints()
-        cam_conn, board_conn = pts[names.index("camera/connector")], pts[names.index("board/connector")]
         board_z = min(pts[names.index(f"board/c{i}")][2] for i in range(4))
-        return bool(np.linalg.norm(cam_conn - board_conn) < 0.003 and board_z > 0.02)
+        return bool(self.connector_gap() < SEAT_GAP_M and board_z > 0.02)
 
 
 def _has_body(model: mujoco.MjModel, name: str) -> bool:

@@ -21,7 +21,7 @@ from services.world.hand import local_keypoints, local_to_world, pinch_shape, po
 from shared.demo import FINGERTIPS, HAND_NAMES, TACTILE_REGIONS, Demo
 
 TABLE_Z = 0.0
-BOARD_SIZE = (0.040, 0.030, 0.0016)
+BOARD_SIZE = (0.060, 0.030, 0.0016)  # long enough that the seated module lies on it, lens end included
 CAMERA_LEN = 0.036  # lens to connector along the flex cable
 GRASP_FORCE_N = 2.0
 PRESS_FORCE_N = 6.0
@@ -30,8 +30,8 @@ PRESS_PITCH = 1.2
 
 OBJECT_POINTS = {
     "assembly": {
-        "board": {"c0": (-0.020, -0.015, 0.0016), "c1": (0.020, -0.015, 0.0016), "c2": (0.020, 0.015, 0.0016),
-                  "c3": (-0.020, 0.015, 0.0016), "connector": (0.010, 0.0, 0.0030)},
+        "board": {"c0": (-0.030, -0.015, 0.0016), "c1": (0.030, -0.015, 0.0016), "c2": (0.030, 0.015, 0.0016),
+                  "c3": (-0.030, 0.015, 0.0016), "connector": (-0.012, 0.0, 0.0030)},
         "camera": {"lens": (0.0, 0.0, 0.004), "cable": (0.018, 0.0, 0.001), "connector": (CAMERA_LEN, 0.0, 0.0015)},
     },
     "pick_place": {
@@ -66,6 +66,16 @@ def sample_layout(task: str, rng: np.random.Generator) -> dict:
         return {"box": [rng.uniform(-0.1, 0.1), rng.uniform(0.05, 0.15), rng.uniform(-0.5, 0.5)],
                 "plate": [rng.uniform(-0.1, 0.1), rng.uniform(-0.15, -0.05), 0.0]}
     raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
+
+
+def square_pinch_yaw(hand: str) -> float:
+    """Hand yaw (added to the module's) that puts the thumb-index line of the pinch at right angles to
+    the module's x axis, so the fingertips sit on two opposite faces of the lens body: the grasp a
+    parallel gripper makes too (the hand model's own line is 8.9 deg off at yaw 0)."""
+    pts = local_to_world(hand, 0.0, PINCH_PITCH, local_keypoints(pinch_shape(), 1.0, 0.005))
+    d = pts[FINGERTIPS["index"]] - pts[FINGERTIPS["thumb"]]
+    off = (np.pi / 2 - np.arctan2(d[1], d[0])) % np.pi
+    return float(off - np.pi if off > np.pi / 2 else off)
 
 
 def _min_jerk(s: np.ndarray) -> np.ndarray:
@@ -159,8 +169,9 @@ class Teacher:
                    .add(T(5.8), board_conn + [0, 0, 0.0045]).hold(T(6.1))
                    .add(T(6.5), board_conn + [-0.04, 0.03 * side[p], 0.07])
                    .add(T(8.0), start_p))
-            self.pinch_yaw = Track().add(0, 0.0 if g == "left" else 0.0).hold(T(0.5)).add(T(2.4), cyaw).hold(T(3.5)) \
-                .add(T(4.6), place_yaw).hold(T(8.0))
+            square = square_pinch_yaw(g)  # thumb-index line across the lens body's faces
+            self.pinch_yaw = Track().add(0, 0.0).hold(T(0.5)).add(T(2.4), cyaw + square).hold(T(3.5)) \
+                .add(T(4.6), place_yaw + square).hold(T(8.0))
             self.press_yaw = Track().add(0, 0.0).hold(T(1.0)).add(T(2.2), byaw * 0.5).hold(T(8.0))
             self.aperture = Track().add(0, 0.04).hold(T(2.0)).add(T(2.5), 0.025).add(T(2.9), 0.005).hold(T(6.5)) \
                 .hold(T(8.0))

@@ -7,10 +7,13 @@ an X slide (``<arm>_x``, value = world x), a vertical Z axis that lowers the col
 (``<arm>_z``, axis -z, value = how far down), and a wrist rotating about z. The carriage joint
 (``<arm>_y``) counts from the arm's home on the rail (y = +0.15 left, -0.15 right), so the
 all-zero joint vector is a safe home pose with the carriages 30 cm apart; the carriages cover
-world y in [-0.05, 0.35] (left) and [-0.35, 0.05] (right) and can touch: a collision pair. The left arm carries a
+world y in [-0.12, 0.35] (left) and [-0.35, 0.12] (right) and can touch: a collision pair. The left arm carries a
 two-finger parallel gripper (``left_finger_b`` mimics ``left_finger_a``; each finger opens 0..4 cm
 in opposite directions), the right arm a single rigid finger 2 cm off the wrist axis.
-Fingertips are at z = 0.26 - q_z, so the Z travel of 0.25 m reaches 1 cm above the table.
+Gripper finger ends are at z = 0.26 - q_z, so the Z travel of 0.259 m reaches 1 mm above the table:
+the camera module's lens body is 4 mm tall. The gripper's keypoints (``left_tip_a/b``) are the finger
+pads' centres, 3 mm above the finger ends and 1 mm inside the inner faces: that is where the
+teacher's thumb and index tips go when they pinch.
 
 Run: .venv/bin/python -m shared.robots.make_workcell_urdf  (writes workcell.urdf + meshes/)
 """
@@ -31,12 +34,15 @@ X_DROP = 0.04  # carriage centre -> X slide centre
 Z_DROP = 0.03  # X slide centre -> top of the Z column
 COLUMN = 0.25  # column length: Z column top -> wrist joint
 TIP = 0.08  # wrist joint -> fingertips
-Z_TRAVEL = 0.25
+Z_TRAVEL = 0.259  # finger ends down to 1 mm above the table
+PAD_HEIGHT = 0.003  # finger end -> pad centre (the gripper keypoints)
+GRIP_AXIS = 0.03
 Y_HOME = {"left": 0.15, "right": -0.15}
-Y_RANGE = {"left": (-0.05, 0.35), "right": (-0.35, 0.05)}  # world y of the carriage
+Y_RANGE = {"left": (-0.12, 0.35), "right": (-0.35, 0.12)}  # world y of the carriage (shared rail)
 X_RANGE = (-0.3, 0.3)
 LINEAR = dict(velocity=0.5, effort=200.0)  # belt-driven 57BL axes
 WRIST = dict(velocity=6.0, effort=5.0)  # 42BLF with 5:1 reduction
+WRIST_TRAVEL = 6.28319  # +-1 turn (a cable wrap): a pinch that turns ~200 deg stays inside it
 FINGER = dict(velocity=0.2, effort=40.0)
 GRIPPER_MESH = "meshes/gripper_head.stl"
 HEAD_HEIGHT = 0.035
@@ -58,20 +64,23 @@ def arm(side: str) -> str:
     out += joint(f"{side}_z", "prismatic", f"{side}_slide", f"{side}_column", f"0 0 {-Z_DROP}", "0 0 -1",
                  0.0, Z_TRAVEL, **LINEAR)
     out += joint(f"{side}_wrist", "revolute", f"{side}_column", f"{side}_hand", f"0 0 {-COLUMN}", "0 0 1",
-                 -3.14159, 3.14159, **WRIST)
+                 -WRIST_TRAVEL, WRIST_TRAVEL, **WRIST)
     out += link(f"{side}_carriage", 1.2, [("box", "0 0 0", (0.10, 0.08, 0.04))], "dark")
     out += link(f"{side}_slide", 0.8, [("box", "0 0 0", (0.07, 0.06, 0.03))], "dark")
     out += link(f"{side}_column", 0.6, [("box", f"0 0 {-COLUMN / 2}", (0.03, 0.03, COLUMN - 0.01))])
     out += point(f"{side}_wrist_point", f"{side}_hand", "0 0 0")
     if side == "left":
         out += link("left_hand", 0.35, [("mesh", "0 0 0", (GRIPPER_MESH, (0.03, 0.045, HEAD_HEIGHT / 2)))])
+        # 3 cm from the pads' midpoint along the closing axis (finger_b's side): fixes the gripper's
+        # yaw, which the 4-5 mm between the two pad points determines poorly
+        out += point("left_grip_axis", "left_hand", f"0 {-GRIP_AXIS} {-TIP + PAD_HEIGHT}")
         for f, s in (("a", 1), ("b", -1)):
             out += joint(f"left_finger_{f}", "prismatic", "left_hand", f"left_finger_{f}", f"0 0 {-HEAD_HEIGHT}",
                          f"0 {s} 0", 0.0, 0.04, mimic="left_finger_a" if f == "b" else "", **FINGER)
             length = TIP - HEAD_HEIGHT
             out += link(f"left_finger_{f}", 0.04, [("box", f"0 {0.004 * s} {-length / 2}", (0.012, 0.006, length))],
                         "steel")
-            out += point(f"left_tip_{f}", f"left_finger_{f}", f"0 {0.002 * s} {-length}")
+            out += point(f"left_tip_{f}", f"left_finger_{f}", f"0 {0.002 * s} {-length + PAD_HEIGHT}")
     else:
         out += link("right_hand", 0.3, [("cylinder", f"0 0 {-HEAD_HEIGHT / 2}", (0.025, HEAD_HEIGHT))])
         out += joint("right_finger_mount", "fixed", "right_hand", "right_finger", f"0.02 0 {-HEAD_HEIGHT}")

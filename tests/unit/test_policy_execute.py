@@ -1,4 +1,5 @@
-"""Robot in the loop (`xm eval --execute`): one validation layout, a few tenths of a second."""
+"""Robot in the loop (`xm eval --execute`): the loop with an untrained policy for a few tenths of a
+second, the whole assembly with the teacher's own hands, and the pure helpers."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import torch
 
 from services.policy.evaluate import main as eval_main
-from services.policy.execute import execute_layout
+from services.policy.execute import execute_layout, grasping_hand, gripper_flipped, hand_point_names
 from services.policy.ours import Ours, preset
 from services.world.teacher import assembly_protocol
 
@@ -60,7 +61,8 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
 
     def fake(model, seed, demo, **kw):  # the loop itself is tested above; here only the report
         calls.append(demo)
-        return ex.ExecutionResult(seed, demo, "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0)
+        return ex.ExecutionResult(seed, demo, "left", "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0, 5.0,
+                                  demo == 3)
 
     monkeypatch.setattr(ex, "execute_layout", fake)
     demos = assembly_protocol(0)
@@ -71,3 +73,36 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
                       str(tmp_path), "--no-progress"]) == 0
     report = json.loads((tmp_path / "execute.json").read_text())
     assert calls == [3, 4] and report["success_rate"] == 0.5
+
+
+def test_the_cell_assembles_the_camera_with_the_teachers_own_hands(tmp_path):
+    """Everything but the policy, physically: the gripper reaches the 4 mm lens body, grasps and
+    carries the 3 g module, the wrist follows the pinch's yaw, the connector is placed within 3 mm,
+    pressed home (the snap-fit latches) and the board comes up with the module. Layout 5 is a
+    right-hand demonstration: the grasping hand drives the gripper whatever its side."""
+    for demo, hand in ((4, "left"), (5, "right")):
+        r = execute_layout(None, seed=0, demo=demo)
+        assert r.grasp_hand == r.chosen_hand == hand
+        assert r.closest_mm < 3.0 and r.object_motion_mm > 100.0
+        assert r.connector_gap_mm < 3.0 and r.seated and r.success, r
+    assert eval_main(["--execute", "--teacher", "--layouts", "1", "--out", str(tmp_path), "--no-progress"]) == 0
+    report = json.loads((tmp_path / "execute.json").read_text())
+    assert report["checkpoint"] == "teacher" and report["success_rate"] == 1.0
+
+
+def test_roles_are_read_from_the_rollout_and_the_gripper_keeps_its_wrist_in_range():
+    t = np.linspace(0, 1, 50)[:, None]
+    hands = np.zeros((50, 2, 21, 3))
+    hands[:, 0] = [0.2, 0.3, 0.1]  # the left hand stays away
+    reach = (1 - t) * np.array([0.0, -0.3, 0.1]) + t * np.array([0.05, 0.05, 0.004])
+    hands[:, 1] = reach[:, None]  # the right one reaches the module
+    assert grasping_hand(hands, np.array([0.05, 0.05, 0.0])) == "right"
+    names = hand_point_names("right", flipped=True)
+    assert names[21 + 4] == "left/8" and names[21 + 8] == "left/4" and names[0] == "right/0" and names[4] == "right/4"
+    assert hand_point_names("left")[4] == "left/4"
+    # a pinch line turning from 80 to 280 deg: unflipped the wrist would need 170..370 deg
+    ang = np.radians(np.linspace(80, 280, 30))
+    thumb = np.zeros((30, 3))
+    index = np.stack([np.cos(ang), np.sin(ang), np.zeros(30)], axis=1) * 0.005
+    assert gripper_flipped(thumb, index)
+    assert not gripper_flipped(thumb, index[:1].repeat(30, 0))  # a still line near 170 deg fits either way

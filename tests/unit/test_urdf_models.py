@@ -26,24 +26,27 @@ def test_workcell_layout_limits_and_keypoints():
     model = load_robot("workcell")
     assert model.joint_names == JOINTS
     assert [j.name for j in model.actuated] == [n for n in JOINTS if n != "left_finger_b"]
-    assert set(model.keypoints) == {"left_wrist_point", "left_tip_a", "left_tip_b", "right_wrist_point", "right_tip"}
+    assert set(model.keypoints) == {"left_wrist_point", "left_tip_a", "left_tip_b", "left_grip_axis",
+                                    "right_wrist_point", "right_tip"}
     lim = dict(zip(JOINTS, zip(model.lower, model.upper, model.max_velocity, strict=True), strict=True))
-    assert lim["left_y"][:2] == (-0.2, 0.2) and lim["right_y"][:2] == (-0.2, 0.2)  # from home y = +-0.15
+    assert lim["left_y"][:2] == (-0.27, 0.2) and lim["right_y"][:2] == (-0.2, 0.27)  # from home y = +-0.15
     assert lim["left_x"][:2] == (-0.3, 0.3) and lim["left_finger_a"][:2] == (0.0, 0.04)
     assert lim["left_x"][2] == 0.5 and lim["left_wrist"][2] == 6.0 and lim["left_finger_a"][2] == 0.2
     kinds = {s.kind for s in model.shapes}
     assert {"box", "cylinder", "sphere", "mesh"} <= kinds
     mesh = next(s for s in model.shapes if s.kind == "mesh")
     assert mesh.vertices.shape == (8, 3)
-    # the reach: tips 26 cm above the table at the top, 1 cm at the bottom, inside the 0.8 m frame
+    # the reach: tips 26 cm above the table at the top; at the bottom the finger ends 1 mm above the
+    # table (the gripper's pad points 3 mm above the ends), all inside the 0.8 m frame
     q = np.zeros(10)
     home = model.fk(q)
-    assert home["right_tip"][2, 3] == pytest.approx(0.26)
+    assert home["left_tip_a"][2, 3] == pytest.approx(0.263) and home["right_tip"][2, 3] == pytest.approx(0.26)
     assert home["left_carriage"][1, 3] - home["right_carriage"][1, 3] == pytest.approx(0.3)  # safe home
     q[[2, 8]] = model.upper[[2, 8]]
     q[[0, 1, 6, 7]] = [0.3, 0.2, -0.3, -0.2]
     poses = model.fk(q)
-    assert poses["left_tip_a"][2, 3] == pytest.approx(0.01)
+    assert poses["left_tip_a"][2, 3] == pytest.approx(0.004)
+    assert poses["right_tip"][2, 3] == pytest.approx(0.001)
     assert poses["left_carriage"][1, 3] == pytest.approx(0.35) and poses["right_carriage"][1, 3] == pytest.approx(-0.35)
     q[[1, 7]] = -0.2, 0.2  # both carriages towards the middle: they overlap (the optimizer's job)
     poses = model.fk(q)
@@ -95,7 +98,9 @@ def test_world_builds_the_hand_arm_with_motors_equalities_and_matching_kinematic
     assert sim.joint_names == model.joint_names
     motors = {m.actuator(i).name: m.actuator_ctrlrange[i][1] for i in range(m.nu)}
     assert motors == {j.name: j.effort for j in model.actuated}
-    assert m.neq == 4 and all(m.eq_type[i] == mujoco.mjtEq.mjEQ_JOINT for i in range(m.neq))
+    joints = [i for i in range(m.neq) if m.eq_type[i] == mujoco.mjtEq.mjEQ_JOINT]
+    assert len(joints) == 4 and m.neq == 5  # the mimic couplings, and the connector's snap-fit weld
+    assert m.eq_type[m.equality("connector_latch").id] == mujoco.mjtEq.mjEQ_WELD
     rng = np.random.default_rng(3)
     frames = [j.child for j in model.joints]  # links and keypoint frames
     for _ in range(3):
