@@ -24,25 +24,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.policy.simulate import PolicyRunner, SceneObs
-from services.robot.board_sim import BoardSim
+from services.robot.board_sim import BoardSim, axis_params
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
 from services.trajopt.optimizer import WORKCELL_AXES_MAP, TrajectoryOptimizer, TrajoptConfig
 from services.world.sim import WorldSim
-from services.world.teacher import Teacher
-from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
+from services.world.teacher import KPA_PER_N, Teacher
+from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
 
 GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
 PRESS_JOINT = "right_z"  # positive effort pushes the finger down
 GRIPPER_Z = "left_z"
-PUSH_STIFFNESS, PUSH_DAMPING = 3000.0, 200.0  # N/m, N s/m: the Z axes' position-loop gains
 PRESS_BESIDE_M = 0.08  # a finger goal this close (xy) to the gripper's: the gripper presses instead
 THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
+THUMB_TIP, INDEX_TIP = FINGERTIPS["thumb"], FINGERTIPS["index"]
 GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
 EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
 LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
-SLOWDOWN = 1.0  # robot seconds per demonstration second
 FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
 
@@ -87,7 +86,7 @@ def gripper_flipped(thumb: np.ndarray, index: np.ndarray, wrist0: float = 0.0,
 def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
     """hands (T,2,21,3) of a rollout, lens (3,) the module: the hand whose thumb-index midpoint
     comes closest to the module."""
-    pinch = 0.5 * (hands[:, :, 4] + hands[:, :, 8])
+    pinch = 0.5 * (hands[:, :, THUMB_TIP] + hands[:, :, INDEX_TIP])
     return HAND_NAMES[int(np.argmin(np.linalg.norm(pinch - lens, axis=-1).min(axis=0)))]
 
 
@@ -100,24 +99,21 @@ class TeacherReplay:
         self.efforts = np.zeros((2, len(TACTILE_REGIONS)))
         self.scene: SceneObs | None = None
 
-    def _hands(self, t: float) -> np.ndarray:
-        return self.teacher.state(min(t, self.teacher.duration)).hands
-
-    def observe(self, scene: SceneObs) -> None:
-        self.scene = scene
+    def _state(self, t: float):
+        return self.teacher.state(min(t, self.teacher.duration))
 
     def step(self, scene: SceneObs) -> np.ndarray:
         self.scene = scene
         self.t += self.dt
-        st = self.teacher.state(min(self.t, self.teacher.duration))
-        self.efforts = st.forces * 10.0  # N over ~1 cm^2 -> kPa, as the glove reports
+        st = self._state(self.t)
+        self.efforts = st.forces * KPA_PER_N  # as the glove reports
         return np.concatenate([st.hands.reshape(-1, 3), scene.objects])
 
     def horizon(self, scene: SceneObs | None, steps: int) -> np.ndarray:
         if scene is not None:
             self.scene = scene
-        return np.stack([np.concatenate([self._hands(self.t + (i + 1) * self.dt).reshape(-1, 3), self.scene.objects])
-                         for i in range(steps)])
+        return np.stack([np.concatenate([self._state(self.t + (i + 1) * self.dt).hands.reshape(-1, 3),
+                                         self.scene.objects]) for i in range(steps)])
 
 
 @dataclass
@@ -142,16 +138,12 @@ class ExecutionResult:
 
 
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
-                   slowdown: float = SLOWDOWN,
-                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
-                   trace: list | None = None) -> ExecutionResult:
+                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
     ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
-    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
-    ``slowdown``: robot time per policy time (the policy's 9 s run in ``seconds * slowdown``).
-    ``trace``: if given, one dict per plan is appended (time, module and gripper positions, ...)."""
+    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only)."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
@@ -163,10 +155,9 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
     dt = runner.dt if model is None else model.dt
     opt_dt = horizon_s / knots
-    rdt = dt * slowdown  # robot time per policy step
     steps = int(round(seconds / dt))
-    plan_every = max(1, int(round(plan_period_s / rdt)))
-    physics_per_step = max(1, int(round(rdt / sim.physics_dt)))
+    plan_every = max(1, int(round(plan_period_s / dt)))
+    physics_per_step = max(1, int(round(dt / sim.physics_dt)))
     names, objects = sim.object_keypoints()
     cam = [i for i, n in enumerate(names) if n.startswith("camera/")]
     cam0 = objects[cam].mean(axis=0)
@@ -179,7 +170,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     g, p = HAND_NAMES.index(grasp_hand), 1 - HAND_NAMES.index(grasp_hand)
     look_g = look[:, g * KEYPOINTS_PER_HAND:(g + 1) * KEYPOINTS_PER_HAND]
     wrist = robot.joint_names.index("left_wrist")
-    flipped = gripper_flipped(look_g[:, 4], look_g[:, 8], float(sim.joint_state()[0][wrist]), float(robot.upper[wrist]))
+    flipped = gripper_flipped(look_g[:, THUMB_TIP], look_g[:, INDEX_TIP], float(sim.joint_state()[0][wrist]),
+                              float(robot.upper[wrist]))
     plan_names = hand_point_names(grasp_hand, flipped) + list(names)
     press = sim.joint_names.index(PRESS_JOINT)
     gripper_z = sim.joint_names.index(GRIPPER_Z)
@@ -192,7 +184,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     finger = opt.point_names.index("right/8")
     lens = names.index("camera/lens")
     closest, opening, max_kpa, min_gap = np.inf, np.nan, 0.0, np.inf
-    frame, q_cmd, press_beside = 0, current[0], False
+    frame, press_beside = 0, False
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
@@ -200,8 +192,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
             2, KEYPOINTS_PER_HAND, 3)
         if k % plan_every == 0:
-            horizon = runner.horizon(None, int(round(horizon_s / rdt)) + 1)
-            plan = PlanArrays(t, rdt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
+            horizon = runner.horizon(None, int(round(horizon_s / dt)) + 1)
+            plan = PlanArrays(t, dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
             # the finger yields where it would work beside the gripper: on one rail the carriages
             # cannot come that close, and the gripper then presses instead (below)
@@ -238,7 +230,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         modes = np.full(n, Mode.POSITION, np.uint8)
         stiffness, damping = np.zeros(n), np.zeros(n)
         if push > 0.5:
-            modes[pusher], stiffness[pusher], damping[pusher] = Mode.IMPEDANCE, PUSH_STIFFNESS, PUSH_DAMPING
+            gains = axis_params(sim.joint_names[pusher])  # the axis's own position-loop gains
+            modes[pusher], stiffness[pusher], damping[pusher] = Mode.IMPEDANCE, gains.kp, gains.kd
         for sub in range(physics_per_step):
             if sub % FRAME_EVERY == 0:  # a frame every 4 ms, well inside the board's 10 ms watchdog
                 q_cmd, v_cmd = sample_trajectory(current, (sim.time - t_current) / opt_dt, opt_dt)
@@ -258,13 +251,6 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             if gap < closest:
                 closest, opening = gap, float(q_now[fingers].sum())
             min_gap = min(min_gap, sim.connector_gap())
-            if trace is not None:
-                pts = opt.points(q_now)
-                trace.append({"t": sim.time, "q": q_now.tolist(), "q_cmd": q_cmd.tolist(), "ok": bool(result.ok),
-                              "reason": result.reason, "tips": pts[tips].tolist(), "goal_tips": goals[0, tips].tolist(),
-                              "lens": objects[lens].tolist(), "opening": float(q_now[fingers].sum()),
-                              "grasp_kpa": kpa, "push_n": float(effort[press] + effort[gripper_z]),
-                              "connector_gap": sim.connector_gap(), "seated": sim.seated_at is not None})
     _, objects = sim.object_keypoints()
     return ExecutionResult(seed, demo, sim.teacher.grasp_hand, grasp_hand, bool(success), sim.time,
                            float(np.nanmedian(tracking) * 1e3) if tracking else float("nan"), rejected,

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared import msgs
+from shared.robots.make_workcell_urdf import GRIP_AXIS
 
 
 @dataclass
@@ -28,11 +29,9 @@ def plan_arrays(msg) -> PlanArrays:
     return PlanArrays(msgs.stamp_seconds(msg.header.stamp), float(msg.dt), names, pos.reshape(steps, points, 3), mask)
 
 
-GRIP_AXIS_M = 0.03  # the workcell's left_grip_axis point: 3 cm from the pads along their closing axis
-
-
 def with_grip_axis(plan: PlanArrays, hand: str = "left") -> PlanArrays:
-    """Adds the derived point ``<hand>/grip_axis`` (pinch midpoint + 3 cm along thumb -> index, level):
+    """Adds the derived point ``<hand>/grip_axis`` (pinch midpoint + GRIP_AXIS along thumb -> index,
+    level), the goal of the workcell's ``left_grip_axis``:
     it gives the gripper's yaw a lever; the fingertips alone are 5 mm apart. Unchanged when the plan
     lacks either fingertip or already has the point."""
     names = plan.names
@@ -43,7 +42,7 @@ def with_grip_axis(plan: PlanArrays, hand: str = "left") -> PlanArrays:
     d = (b - a) * [1.0, 1.0, 0.0]
     norm = np.linalg.norm(d, axis=-1, keepdims=True)
     ok = plan.mask[:, names.index(thumb)] & plan.mask[:, names.index(index)] & (norm[:, 0] > 1e-4)
-    point = 0.5 * (a + b) + GRIP_AXIS_M * d / np.maximum(norm, 1e-9)
+    point = 0.5 * (a + b) + GRIP_AXIS * d / np.maximum(norm, 1e-9)
     return PlanArrays(plan.stamp, plan.dt, names + [axis], np.concatenate([plan.positions, point[:, None]], axis=1),
                       np.concatenate([plan.mask, ok[:, None]], axis=1))
 

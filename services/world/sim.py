@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 
 from services.world.model import LATCH, PHYSICS_DT, ROBOT_HOME, build_model, camera_specs
-from services.world.teacher import Teacher, occlusion
+from services.world.teacher import OBJECT_POINTS, Teacher, occlusion
 from shared.demo import HAND_NAMES, TACTILE_REGIONS
 from shared.kinematics import load_robot
 
@@ -46,6 +46,8 @@ class WorldSim:
         self._mocap = np.array([[m.body_mocapid[m.body(f"{h}_kp{k}").id] for k in range(21)] for h in HAND_NAMES])
         self._latch = m.equality(LATCH).id if task == "assembly" else None
         self._seat_bodies = {m.body("camera").id, m.body("board").id} if task == "assembly" else set()
+        self._connectors = [(m.body(b).id, np.array(OBJECT_POINTS["assembly"][b]["connector"]))
+                            for b in ("camera", "board")] if task == "assembly" else []
         self.seated_at: float | None = None  # simulated time the connector snapped home (robot mode)
         self.robot_mode = "teacher"
         self.demo = 0
@@ -108,8 +110,11 @@ class WorldSim:
 
     # --- the connector's snap-fit (robot mode) -----------------------------------------------
     def connector_gap(self) -> float:
-        names, pts = self.object_keypoints()
-        return float(np.linalg.norm(pts[names.index("camera/connector")] - pts[names.index("board/connector")]))
+        """Distance between the module's connector and the board's (m)."""
+        (cam, c_local), (board, b_local) = self._connectors
+        c = self.data.xmat[cam].reshape(3, 3) @ c_local + self.data.xpos[cam]
+        b = self.data.xmat[board].reshape(3, 3) @ b_local + self.data.xpos[board]
+        return float(np.linalg.norm(c - b))
 
     def _seat_force(self) -> float:
         """Total normal force between the module and the board (N)."""

@@ -25,6 +25,7 @@ BOARD_SIZE = (0.060, 0.030, 0.0016)  # long enough that the seated module lies o
 CAMERA_LEN = 0.036  # lens to connector along the flex cable
 GRASP_FORCE_N = 2.0
 PRESS_FORCE_N = 6.0
+KPA_PER_N = 10.0  # what the glove reports: force over a fingertip's ~1 cm^2
 PINCH_PITCH = 0.9  # rad: fingers tilted down so the tucked fingers clear the table
 PRESS_PITCH = 1.2
 
@@ -333,7 +334,7 @@ def generate_demo(task: str, seed: int, tactile_hand: str | None = None, grasp_h
     tactile_mask[:, HAND_NAMES.index(teacher.tactile_hand)] = 1
     forces = np.array(forces, np.float32)
     # What the glove reports: region pressure in kPa (force over a fingertip's ~1 cm^2), gloved hand only.
-    tactile = forces * 10.0 * tactile_mask
+    tactile = forces * KPA_PER_N * tactile_mask
     return Demo(dt=dt, hands=np.array(hands, np.float32), hand_mask=np.array(hmask, np.uint8),
                 object_names=teacher.names, objects=np.array(objs, np.float32), object_mask=np.array(omask, np.uint8),
                 tactile=tactile.astype(np.float32), tactile_mask=tactile_mask, phase=phases,

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.trajopt.mapping import GRIP_AXIS_M, PlanArrays, goals_for_horizon, with_grip_axis
+from services.trajopt.mapping import PlanArrays, goals_for_horizon, with_grip_axis
 from services.world.sim import SEAT_FORCE_N, WorldSim
 from services.world.teacher import OBJECT_POINTS, Teacher, rot_z
+from shared.robots.make_workcell_urdf import GRIP_AXIS
 
 CAMERA = OBJECT_POINTS["assembly"]["camera"]
 BOARD = OBJECT_POINTS["assembly"]["board"]
@@ -85,7 +86,7 @@ def test_the_grip_axis_point_gives_the_gripper_yaw_a_lever():
     mask[2, 0] = False
     plan = with_grip_axis(PlanArrays(0.0, 0.1, names, pos, mask))
     assert plan.names[-1] == "left/grip_axis"
-    np.testing.assert_allclose(plan.positions[0, -1], [0.0, 0.0025 + GRIP_AXIS_M, 0.01])
+    np.testing.assert_allclose(plan.positions[0, -1], [0.0, 0.0025 + GRIP_AXIS, 0.01])
     assert plan.mask[:, -1].tolist() == [True, True, False]  # needs both fingertips
     goals, gmask = goals_for_horizon(PlanArrays(0.0, 0.1, names, pos, mask), ["left/grip_axis"], 0.0, 0.1, 2)
     np.testing.assert_allclose(goals[0, 0], plan.positions[0, -1]) and gmask[0, 0]
