@@ -39,12 +39,13 @@ class ConsistencySolver:
         self._flat_ii = layout.pair_i * A + layout.pair_i
         self._flat_ij = layout.pair_i * A + layout.pair_j
         self._flat_ji = layout.pair_j * A + layout.pair_i
+        self._pinch = layout.pinch
 
     def velocities(self, v_hands: np.ndarray, v_objects: np.ndarray, J: np.ndarray | None) -> np.ndarray:
         """Reconciles object velocities with 7.15; returns all point velocities (P,3).
         v_hands (42,3), v_objects (K,3), J (K,2) or None."""
         if J is not None and self.w_dyn > 0:
-            pinch = v_hands[self.layout.pinch].mean(axis=1)  # (2,3) pinch-point velocities
+            pinch = 0.5 * (v_hands[self._pinch[:, 0]] + v_hands[self._pinch[:, 1]])  # (2,3) pinch-point velocities
             v_objects = (v_objects + self.w_dyn * (J @ pinch)) / (1.0 + self.w_dyn)
         return np.concatenate([v_hands, v_objects], axis=0)
 
@@ -84,30 +85,46 @@ def object_groups(object_names: list[str]) -> np.ndarray:
     return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for (3,) and (n,3) arrays; np.cross costs more than the arithmetic at these sizes."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+_EYE3 = np.eye(3)
+
+
 def rigid_fit(v: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares rigid motion (c, v_c, w) of points p (n,3) moving with v (n,3), such that
     v_i ~ v_c + w x (p_i - c); w = 0 for fewer than two points (a rotation is not observable)."""
-    c, vc = p.mean(axis=0), v.mean(axis=0)
-    if len(p) < 2:
+    n = len(p)
+    c, vc = p.sum(axis=0) / n, v.sum(axis=0) / n
+    if n < 2:
         return c, vc, np.zeros(3)
     r = p - c
-    # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T)
-    M = np.einsum("ij,ij->", r, r) * np.eye(3) - r.T @ r
-    return c, vc, np.linalg.lstsq(M, np.cross(r, v - vc).sum(axis=0), rcond=None)[0]
+    # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T), right side sum_i r_i x u_i
+    S, C = r.T @ r, r.T @ (v - vc)
+    tr = S[0, 0] + S[1, 1] + S[2, 2]
+    b = np.array([C[1, 2] - C[2, 1], C[2, 0] - C[0, 2], C[0, 1] - C[1, 0]])
+    # a tiny ridge: points on a line leave the spin about it unobservable; it stays zero, as with lstsq
+    return c, vc, np.linalg.solve((tr * (1.0 + 2e-9) + 1e-12) * _EYE3 - S, b)
 
 
 def follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, bodies: np.ndarray) -> np.ndarray:
     """Velocities of points the network was not trained for at this step (unobserved now or next,
     7.2.5: their losses are masked) replaced by the rigid motion of their body fitted to its
-    trusted points; bodies without a trusted point keep the network's velocities.
+    trusted points; bodies without a trusted point keep the network's velocities. Returns ``v``
+    itself when every point is trusted.
     v, p (P,3), trusted (P,) bool, bodies (P,) int (each hand and object one body)."""
+    if trusted.all():
+        return v
     out = v.copy()
-    for b in np.unique(bodies[~trusted]):
+    for b in set(bodies[~trusted].tolist()):
         idx = np.flatnonzero(bodies == b)
         seen, hidden = idx[trusted[idx]], idx[~trusted[idx]]
         if len(seen):
             c, vc, w = rigid_fit(v[seen], p[seen])
-            out[hidden] = vc + np.cross(w, p[hidden] - c)
+            out[hidden] = vc + _cross(w, p[hidden] - c)
     return out
 
 
@@ -118,5 +135,5 @@ def rigid_velocities(v: np.ndarray, p: np.ndarray, groups: np.ndarray) -> np.nda
     for g in np.unique(groups):
         idx = np.flatnonzero(groups == g)
         c, vc, w = rigid_fit(v[idx], p[idx])
-        out[idx] = vc + np.cross(w, p[idx] - c)
+        out[idx] = vc + _cross(w, p[idx] - c)
     return out

@@ -14,6 +14,7 @@ import torch
 
 from services.policy import dataset as D
 from services.policy.consistency import ConsistencySolver, follow_bodies, object_groups, rigid_velocities
+from services.policy.folded import FoldedNet, foldable
 from services.policy.network import (
     PAIR_SCALE,
     PRESETS,
@@ -49,7 +50,11 @@ class Ours:
         self.losses: list[float] = []
         self.train_seconds = 0.0
         self.K, self.dt, self.object_names = 0, 0.02, []
-        self._infer: PolicyNet | None = None  # int8 copy for the control loop (use_int8)
+        self.fold_inference = True  # batch-one inference through folded() (P4); False: plain PolicyNet
+        self._folded: FoldedNet | None = None
+        self._folded_net: PolicyNet | None = None
+        self._folded_tensors: list[torch.Tensor] = []
+        self._folded_stamp: tuple = ()
 
     # --- setup --------------------------------------------------------------------------------
     def setup(self, train: list[Demo]) -> D.StepData:
@@ -248,27 +253,31 @@ class Ours:
             state["rec"] = np.zeros(self.cfg.rec_hidden)
         return state
 
-    def use_int8(self, enabled: bool = True) -> None:
-        """Inference through a dynamically int8-quantized copy of the dense layers: at batch size one
-        the float weights (17 MB) do not fit the cache, the int8 ones do. Training is unaffected."""
-        if not enabled:
-            self._infer = None
-            return
-        import copy
-        import warnings
+    def folded(self) -> FoldedNet | None:
+        """The folded copy of the network for batch-one inference (folded.py), rebuilt whenever
+        the weights or statistics changed since it was made; None where the config cannot fold."""
+        if self.net is None or self.net.training or not foldable(self.net):
+            return None
+        if self._folded is None or self._folded_net is not self.net:
+            self._folded_tensors = [*self.net.parameters(), *self.net.buffers()]
+        stamp = tuple(t._version for t in self._folded_tensors)  # any in-place update (optimizer, loading) bumps it
+        if self._folded is None or self._folded_net is not self.net or self._folded_stamp != stamp:
+            keys = [k for k in self.net.slices if k != "pairs" or (self.cfg.w_pair > 0)]
+            self._folded, self._folded_net, self._folded_stamp = FoldedNet(self.net, tuple(keys)), self.net, stamp
+        return self._folded
 
-        from torch.ao.quantization import quantize_dynamic
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            self._infer = quantize_dynamic(copy.deepcopy(self.net).eval(), {torch.nn.Linear}, dtype=torch.qint8)
-
-    def network_outputs(self, state: dict) -> dict[str, np.ndarray]:
-        """The plain forward pass of one state (no consistency solve)."""
+    def network_outputs(self, state: dict, fold: bool | None = None) -> dict[str, np.ndarray]:
+        """The forward pass of one state (no consistency solve): folded where the config allows
+        (``fold_inference``); ``fold=False`` runs the plain PolicyNet (the reference the folded
+        pass is tested and benchmarked against)."""
         s = state
-        net = self._infer if self._infer is not None else self.net
+        vm = s["mask"] if self.cfg.masks else np.ones(len(s["mask"]), bool)
+        fast = self.folded() if (self.fold_inference if fold is None else fold) else None
+        if fast is not None:
+            return fast(s["pos"], s["vel"], vm, vm, s["tactile"], s["tmask"], s.get("H"), s.get("t", 0.0))
+        net = self.net
         with torch.inference_mode():
-            vm = s["mask"].astype(np.float32) if self.cfg.masks else np.ones(len(s["mask"]), np.float32)
+            vm = vm.astype(np.float32)
             x, _, _ = net.inputs(_t(s["pos"][None]), _t(s["vel"][None]), _t(vm[None]), _t(vm[None]),
                                  _t(s["tactile"][None]), _t(s["tmask"][None].astype(np.float32)),
                                  _t(s["H"][None]) if self.cfg.memory else None,
@@ -289,21 +298,23 @@ class Ours:
         if not all(np.isfinite(v).all() for v in out.values()):
             raise PolicyError("network output contains NaN or inf")
         P = len(state["pos"])
-        v = np.clip(out["vel"].reshape(P, 3) / VEL_SCALE, -cfg.max_speed, cfg.max_speed)
+        vmax = cfg.max_speed
+        v = np.minimum(np.maximum(out["vel"].reshape(P, 3) / VEL_SCALE, -vmax), vmax)  # np.clip costs more
+        J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
         trusted = None
         if cfg.masks and cfg.follow_unobserved:
             trusted = state["mask"] & (out["mask"] > 0.0)
-            v = follow_bodies(v, state["pos"], trusted, self.body)
-        J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
-        v = np.clip(solver.velocities(v[:2 * KEYPOINTS_PER_HAND], v[2 * KEYPOINTS_PER_HAND:], J),
-                    -cfg.max_speed, cfg.max_speed)
+            hand = self.body < 2  # with J the objects follow after their velocities are reconciled (below)
+            v = follow_bodies(v, state["pos"], trusted | ~hand if J is not None else trusted, self.body)
+        v = np.minimum(np.maximum(solver.velocities(v[:2 * KEYPOINTS_PER_HAND], v[2 * KEYPOINTS_PER_HAND:], J),
+                                  -vmax), vmax)
         if trusted is not None and J is not None:  # object points unseen follow their reconciled object
-            v = follow_bodies(v, state["pos"], trusted, self.body)
+            v = follow_bodies(v, state["pos"], trusted | hand, self.body)
         if cfg.rigid_objects:
             n = 2 * KEYPOINTS_PER_HAND
             v[n:] = rigid_velocities(v[n:], state["pos"][n:], object_groups(self.object_names))
         pairs, pmask = None, None
-        if cfg.pair_outputs:
+        if cfg.pair_outputs and "pairs" in out and solver.w_pair > 0:
             lay = self.net.layout
             a = state["pos"][lay.anchors]
             change = np.clip(out["pairs"].reshape(-1, 3) / PAIR_SCALE, -2 * cfg.max_speed * self.dt,

@@ -254,3 +254,53 @@ def test_simulate_follows_observed_objects(trained, demos):
     np.testing.assert_allclose(roll.objects[1:], d.objects[1:10], atol=1e-6)
     with pytest.raises(PolicyInputError):
         simulate(trained, d, 10, observed_objects=np.full((10, K, 3), np.nan))
+
+
+FOLD_CASES = {
+    "multimodal": {},
+    "no_tactile": {"tactile": False},
+    "single_state": {"tactile": False, "memory": False},
+    "velocity_and_phase_inputs": {"velocity_input": True, "phase_input": True},
+    "pair_constraint_on": {"w_pair": 1.0},
+    "no_masks": {"masks": False},
+}
+
+
+@pytest.mark.parametrize("case", sorted(FOLD_CASES))
+def test_folded_forward_equals_the_network(demos, case):
+    """The folded batch-one pass (P4) is the same function as PolicyNet, masked points included."""
+    torch.set_num_threads(1)
+    method = Ours(tiny(preset("multimodal", **FOLD_CASES[case])))
+    method.setup(demos[:2])
+    method.net.eval()
+    assert method.folded() is not None
+    rng = np.random.default_rng(0)
+    state = method.initial_state(demos[2])
+    P = len(state["pos"])
+    for masked in ([], [0], [4, 8, 44], [0, 20, 21, 42, 43, 44, 45], list(range(0, P, 2))):
+        s = dict(state, pos=state["pos"] + rng.normal(0, 0.02, (P, 3)), vel=rng.normal(0, 0.1, (P, 3)),
+                 tactile=rng.uniform(0, 30, (2, 6)), tmask=rng.random((2, 6)) < 0.5, t=0.7)
+        mask = np.ones(P, bool)
+        mask[masked] = False
+        s["mask"] = mask
+        fast, plain = method.network_outputs(s), method.network_outputs(s, fold=False)
+        assert "pairs" in fast or FOLD_CASES[case].get("w_pair", 0.0) == 0.0
+        for key, value in fast.items():
+            np.testing.assert_allclose(value, plain[key], rtol=1e-4, atol=1e-4 * np.abs(plain[key]).max(),
+                                       err_msg=f"{key} with points {masked} masked")
+
+
+def test_folded_copy_follows_weight_updates(trained, demos):
+    state = trained.initial_state(demos[2])
+    before = trained.network_outputs(state)["vel"]
+    first = trained.net.trunk[0]
+    with torch.no_grad():
+        saved = first.weight.clone()
+        first.weight.mul_(1.5)
+    try:
+        after = trained.network_outputs(state)["vel"]
+        assert not np.allclose(after, before)
+        np.testing.assert_allclose(after, trained.network_outputs(state, fold=False)["vel"], rtol=1e-4, atol=1e-5)
+    finally:
+        with torch.no_grad():
+            first.weight.copy_(saved)
