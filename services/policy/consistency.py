@@ -85,10 +85,10 @@ def object_groups(object_names: list[str]) -> np.ndarray:
     return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for (3,) and (n,3) arrays; np.cross costs more than the arithmetic at these sizes."""
-    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+def _cross(w: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """w x r_i for one vector w (3,) and points r (n,3), as r @ [w]x^T (one small product)."""
+    x, y, z = w.tolist()
+    return r @ np.array([[0.0, z, -y], [-z, 0.0, x], [y, -x, 0.0]])
 
 
 _EYE3 = np.eye(3)

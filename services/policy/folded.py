@@ -100,38 +100,45 @@ class FoldedNet:
         self.head_w = net.head.weight.detach()[idx].clone().contiguous()
         self.head_b = net.head.bias.detach()[idx].clone()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
-
-    def small_inputs(self, mask: np.ndarray, tactile: np.ndarray | None, tmask: np.ndarray | None,
-                     H: np.ndarray | None, t: float) -> np.ndarray:
-        parts = [mask.astype(np.float64)]
-        if self.tactile:
-            tm = tmask.reshape(-1).astype(np.float64)
-            parts += [tactile.reshape(-1) * TACTILE_SCALE * tm, tm]
-        if self.memory:
-            parts.append(H)
-        if self.phase:
-            parts.append([t])
-        z = np.concatenate(parts) - self.mean_small
-        if self.tactile:  # a masked tactile feature is zero after normalization
-            n, R = len(mask), tmask.size
-            z[n:n + R] *= tmask.reshape(-1)
-        return z
+        self._x = np.zeros(self.W1.shape[1], np.float32)
+        self._xt = torch.from_numpy(self._x)
+        self._z = np.zeros(3 * P + 1)  # positions and a zero (the "minus" of a height feature)
 
     def __call__(self, pos: np.ndarray, vel: np.ndarray, mask: np.ndarray, vmask: np.ndarray,
                  tactile: np.ndarray | None = None, tmask: np.ndarray | None = None,
                  H: np.ndarray | None = None, t: float = 0.0) -> dict[str, np.ndarray]:
         """pos, vel (P,3) metres and m/s; mask, vmask (P,) bool. Returns float64 outputs."""
         flat = pos.reshape(-1)
-        parts = [flat]
-        if self.vel_input:
-            parts.append(vel.reshape(-1))
-        parts.append(self.small_inputs(mask, tactile, tmask, H, t))
-        x = torch.from_numpy(np.concatenate(parts).astype(np.float32))
+        x, n = self._x, len(flat)  # one float32 input buffer, shared with torch (no copies per call)
+        x[:n] = flat
+        i = n
+        if self.vel_input:  # VEL_SCALE is folded into its columns
+            x[i:i + n] = vel.reshape(-1)
+            i += n
+        # the inputs used as they are, minus their mean (their std is folded into W1)
+        start = i
+        x[i:i + len(mask)] = mask
+        i += len(mask)
+        if self.tactile:
+            tm = tmask.reshape(-1)
+            tactile_at = i
+            x[i:i + tm.size] = tactile.reshape(-1) * TACTILE_SCALE
+            x[i + tm.size:i + 2 * tm.size] = tm
+            i += 2 * tm.size
+        if self.memory:
+            x[i:i + len(H)] = H
+            i += len(H)
+        if self.phase:
+            x[i] = t
+        x[start:] -= self.mean_small
+        if self.tactile:  # a masked tactile reading is zero after normalization
+            x[tactile_at:tactile_at + tm.size] *= tm
         with torch.inference_mode():
-            h = torch.addmv(self.b1, self.W1, x)
+            h = torch.addmv(self.b1, self.W1, self._xt)
             hidden = np.flatnonzero(~mask)
             if len(hidden):  # masked features: their normalized value is zero, not (x - mean) / std
-                z = np.append(flat, 0.0)
+                z = self._z
+                z[:-1] = flat
                 for p in hidden:
                     plus, minus, scale, mean = self.point_terms[p]
                     d = (scale * (z[plus] - z[minus]) - mean).astype(np.float32)

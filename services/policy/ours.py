@@ -295,7 +295,7 @@ class Ours:
         cfg = self.cfg
         solver = solver or self.solver()
         out = self.network_outputs(state)
-        if not all(np.isfinite(v).all() for v in out.values()):
+        if not np.isfinite(np.concatenate(list(out.values()))).all():
             raise PolicyError("network output contains NaN or inf")
         P = len(state["pos"])
         vmax = cfg.max_speed
@@ -333,13 +333,13 @@ class Ours:
         if cfg.masks:
             nxt["mask"] = out["mask"] > 0.0
         if cfg.tactile:
-            nxt["tactile"] = np.clip(out["tactile"].reshape(2, -1) / TACTILE_SCALE, 0.0, MAX_TACTILE_KPA)
+            nxt["tactile"] = np.minimum(np.maximum(out["tactile"].reshape(2, -1) / TACTILE_SCALE, 0.0), MAX_TACTILE_KPA)
         if cfg.memory:
             Hp = out["H"]
             dH = out["dH"] * self.net.dH_std.numpy() / self.net.H_std.numpy()
             # bounded to +-5 training standard deviations: a linear reservoir driven by demonstration
             # speeds never leaves that range, and an untrained net must not run away through it
-            nxt["H"] = np.clip(solver.memory(Hp, state["H"], dH, self.dt, cfg.w_memory_prior), -5.0, 5.0)
+            nxt["H"] = np.minimum(np.maximum(solver.memory(Hp, state["H"], dH, self.dt, cfg.w_memory_prior), -5.0), 5.0)
         if cfg.recurrent:
             nxt["rec"] = out["rec"]
         if not np.isfinite(pos).all():
