@@ -91,9 +91,6 @@ def _cross(w: np.ndarray, r: np.ndarray) -> np.ndarray:
     return r @ np.array([[0.0, z, -y], [-z, 0.0, x], [y, -x, 0.0]])
 
 
-_EYE3 = np.eye(3)
-
-
 def rigid_fit(v: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares rigid motion (c, v_c, w) of points p (n,3) moving with v (n,3), such that
     v_i ~ v_c + w x (p_i - c); w = 0 for fewer than two points (a rotation is not observable)."""
@@ -103,11 +100,24 @@ def rigid_fit(v: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
         return c, vc, np.zeros(3)
     r = p - c
     # sum_i |w x r_i - (v_i - vc)|^2: normal matrix sum_i (|r_i|^2 I - r_i r_i^T), right side sum_i r_i x u_i
-    S, C = r.T @ r, r.T @ (v - vc)
-    tr = S[0, 0] + S[1, 1] + S[2, 2]
-    b = np.array([C[1, 2] - C[2, 1], C[2, 0] - C[0, 2], C[0, 1] - C[1, 0]])
-    # a tiny ridge: points on a line leave the spin about it unobservable; it stays zero, as with lstsq
-    return c, vc, np.linalg.solve((tr * (1.0 + 2e-9) + 1e-12) * _EYE3 - S, b)
+    S, C = r.T @ r, (r.T @ (v - vc)).tolist()
+    b = (C[1][2] - C[2][1], C[2][0] - C[0][2], C[0][1] - C[1][0])
+    return c, vc, _solve_sym3(S, b)
+
+
+def _solve_sym3(S: np.ndarray, b: tuple[float, float, float]) -> np.ndarray:
+    """w with (tr(S) I - S) w = b, S (3,3) symmetric, by the adjugate in plain floats (this runs
+    every policy step; np.linalg.solve's call overhead is most of its cost at 3 x 3). A tiny
+    ridge: points on a line leave the spin about it unobservable; it stays zero, as with lstsq."""
+    (s00, s01, s02), (_, s11, s12), (_, _, s22) = S.tolist()
+    k = (s00 + s11 + s22) * (1.0 + 2e-9) + 1e-12
+    a, d, f, u, x, y = k - s00, k - s11, k - s22, -s01, -s02, -s12  # [[a,u,x],[u,d,y],[x,y,f]]
+    A00, A01, A02 = d * f - y * y, x * y - u * f, u * y - x * d
+    A11, A12, A22 = a * f - x * x, u * x - a * y, a * d - u * u
+    det = a * A00 + u * A01 + x * A02
+    bx, by, bz = b
+    return np.array([A00 * bx + A01 * by + A02 * bz, A01 * bx + A11 * by + A12 * bz,
+                     A02 * bx + A12 * by + A22 * bz]) / det
 
 
 def follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, bodies: np.ndarray) -> np.ndarray:
