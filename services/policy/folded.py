@@ -7,14 +7,15 @@ the standardization and the first dense layer fold into one matrix acting on the
     W1 ((x - mean) / std) = (W1 / std) T pos - (W1 / std) mean        (every feature observed)
 
 which shrinks the first layer from n_in (~1000) to 3P (~150) columns. Features masked this step
-(7.2.5: their normalized value is zero) are taken back out exactly, by the columns of the masked
-features only. Output rows the control loop does not read (the pair translations when their
-constraint weight is zero) are dropped from the head. Weights stay float32: at batch size one the
-folded net (about 9 MB) is read from the L3 cache instead of memory.
+(7.2.5: their normalized value is zero) are taken back out exactly: each point keeps the rows of
+the features it takes part in, contiguous, so a masked point costs one read of its own rows. Output
+rows the control loop does not read (the pair translations when their constraint weight is zero)
+are dropped from the head. Weights stay float32: at batch size one the folded net (about 9 MB) is
+read from the L3 cache instead of memory.
 
 Configurations whose inputs are not linear in the positions (side models, 7.8-normalized input
-pairs, the recurrent branch reading the whole input) are not folded: ``fold`` returns None and
-the caller keeps the plain forward pass.
+pairs, the recurrent branch reading the whole input) are not folded (``foldable`` is False) and
+keep the plain forward pass.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ def foldable(net: PolicyNet) -> bool:
 
 class FoldedNet:
     """Forward pass of a ``PolicyNet`` in eval mode for one state; outputs as ``PolicyNet.forward``
-    (only the keys in ``keys``). Built once per set of weights; pure function of its inputs."""
+    (only the keys in ``keys``). Built once per set of weights; one input buffer, so one caller
+    (thread) at a time."""
 
     def __init__(self, net: PolicyNet, keys: tuple[str, ...]) -> None:
         cfg, P = net.cfg, net.layout.P
@@ -90,13 +92,13 @@ class FoldedNet:
         self.m_vel = net.m_vel.numpy()
         linears = [m for m in net.trunk if isinstance(m, torch.nn.Linear)]
         self.layers = [(m.weight.detach().clone().contiguous(), m.bias.detach().clone()) for m in linears[1:]]
-        rows, self.slices, width = [], {}, 0
+        head_rows, self.slices, width = [], {}, 0
         for key in keys:
             s = net.slices[key]
-            rows.append(torch.arange(s.start, s.stop))
+            head_rows.append(torch.arange(s.start, s.stop))
             self.slices[key] = slice(width, width + s.stop - s.start)
             width += s.stop - s.start
-        idx = torch.cat(rows)
+        idx = torch.cat(head_rows)
         self.head_w = net.head.weight.detach()[idx].clone().contiguous()
         self.head_b = net.head.bias.detach()[idx].clone()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
