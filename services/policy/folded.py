@@ -51,7 +51,7 @@ class FoldedNet:
             n_lin = net.n_geo - 3 * P - P  # local, pairs, heights
             T = geo[:, :n_lin].double().T  # (n_lin, 3P)
             vel0 = n_lin
-            mask0 = vel0 + 3 * P  # then the masks, tactile, glove mask, memory, phase: used as they are
+            mask0 = vel0 + 3 * P  # then the masks; then tactile, glove mask, memory, phase: used as they are
         # each linear feature is s * (pos[plus] - pos[minus]) (minus = 3P: a zero)
         Tn = T.numpy()
         plus = np.argmax(Tn > 0, axis=1)
@@ -74,8 +74,12 @@ class FoldedNet:
             c = c - G[:, vel0:mask0] @ mean[vel0:mask0]
             self.mean_vel = mean[vel0:mask0].numpy()
         n_in = net.n_in
-        cols.append(G[:, mask0:n_in])
-        self.mean_small = mean[mask0:n_in].numpy()
+        # the mask inputs (1 = observed) as if every point were observed; a masked point's own 1 -> 0
+        # is taken out with its features below
+        small0 = mask0 + P
+        c = c + G[:, mask0:small0] @ (1.0 - mean[mask0:small0])
+        cols.append(G[:, small0:n_in])
+        self.mean_small = mean[small0:n_in].numpy()
         self.W1 = torch.cat(cols, dim=1).float().contiguous()
         self.b1 = c.float()
         self.G_vel_rows = G[:, vel0:mask0].T.float().contiguous() if self.vel_input else None
@@ -86,8 +90,11 @@ class FoldedNet:
         # masked point costs one read of its own rows (a gather of scattered rows costs a copy)
         rows = G[:, :n_lin].T.float()
         self.point_features = [np.flatnonzero((self.m_a == p) | (self.m_b == p)) for p in range(P)]
-        self.point_rows = [rows[torch.from_numpy(f)].contiguous() for f in self.point_features]
+        mask_rows = G[:, mask0:small0].T.float()
+        self.point_rows = [torch.cat([rows[torch.from_numpy(f)], mask_rows[p:p + 1]]).contiguous()
+                           for p, f in enumerate(self.point_features)]
         self.point_terms = [(plus[f], minus[f], scale[f], mean[:n_lin].numpy()[f]) for f in self.point_features]
+        self._d = [np.ones(len(f) + 1, np.float32) for f in self.point_features]  # the last 1: the mask input
         self.G_lin_rows = rows.contiguous()
         self.m_vel = net.m_vel.numpy()
         linears = [m for m in net.trunk if isinstance(m, torch.nn.Linear)]
@@ -119,8 +126,6 @@ class FoldedNet:
             i += n
         # the inputs used as they are, minus their mean (their std is folded into W1)
         start = i
-        x[i:i + len(mask)] = mask
-        i += len(mask)
         if self.tactile:
             tm = tmask.reshape(-1)
             tactile_at = i
@@ -143,7 +148,8 @@ class FoldedNet:
                 z[:-1] = flat
                 for p in hidden:
                     plus, minus, scale, mean = self.point_terms[p]
-                    d = (scale * (z[plus] - z[minus]) - mean).astype(np.float32)
+                    d = self._d[p]
+                    d[:-1] = scale * (z[plus] - z[minus]) - mean
                     h -= torch.from_numpy(d) @ self.point_rows[p]
                 if len(hidden) > 1:  # a feature of two masked points was taken out twice
                     twice = np.flatnonzero(~mask[self.m_a] & ~mask[self.m_b] & (self.m_a != self.m_b))
