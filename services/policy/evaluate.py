@@ -239,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
                         "through trajopt and the control board on the 12 validation layouts; writes execute.json")
     parser.add_argument("--checkpoint", default="runs/policy/policy.pt",
                         help="--execute: policy checkpoint (default %(default)s; `make policy` trains it)")
+    parser.add_argument("--hand-feedback", action="store_true",
+                        help="--execute: the policy observes its grasping hand where the robot's gripper is "
+                             "(moved rigidly onto the pads) instead of its own prediction")
     parser.add_argument("--layouts", type=int, default=12, help="--execute: how many validation layouts (default 12)")
     parser.add_argument("--teacher", action="store_true",
                         help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
@@ -282,18 +285,20 @@ def execute_main(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     results = []
     for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        r = execute_layout(model, args.seed, demo)
+        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback)
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
                   f"{r.tracking_mm:.1f} mm, module moved {r.object_motion_mm:.0f} mm, gripper closest "
-                  f"{r.closest_mm:.1f} mm at opening {r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
+                  f"{r.closest_mm:.1f} mm (policy's own pinch {r.policy_closest_mm:.1f} mm) at opening "
+                  f"{r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
                   f"connector gap {r.connector_gap_mm:.1f} mm, seated {r.seated}, rejected solves "
                   f"{r.solves_rejected}", flush=True)
     rate = float(np.mean([r["success"] for r in results]))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
+                                                  "hand_feedback": args.hand_feedback,
                                                   "layouts": results}, indent=2))
     print(f"success {rate * 100:.0f} % of {len(results)} layouts (target 90 %); details in {out / 'execute.json'}")
     return 0

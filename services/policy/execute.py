@@ -132,18 +132,24 @@ class ExecutionResult:
     max_grasp_kpa: float  # largest predicted grasping thumb + index pressure (7.2.10), 0 without tactile
     connector_gap_mm: float  # closest approach of the module's connector to the board's (seated under 3)
     seated: bool  # the connector snapped home (pressed while aligned)
+    policy_closest_mm: float = float("nan")  # closest approach of the policy's own grasping pinch to the lens
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
 
 
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
-                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA) -> ExecutionResult:
+                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
+                   feedback: bool = False) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
     ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
-    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only)."""
+    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
+    ``feedback``: the robot's own points are observed as the policy's hands (7.6.8: the robot's
+    end-effector keypoints are detected like the objects'): each step the grasping hand is moved
+    rigidly so its pinch lies between the gripper's pads, instead of the policy running on its own
+    predicted hands."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
@@ -183,14 +189,20 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     tips = [opt.point_names.index(p) for p in ("left/4", "left/8")]
     finger = opt.point_names.index("right/8")
     lens = names.index("camera/lens")
-    closest, opening, max_kpa, min_gap = np.inf, np.nan, 0.0, np.inf
+    closest, opening, max_kpa, min_gap, policy_closest = np.inf, np.nan, 0.0, np.inf, np.inf
     frame, press_beside = 0, False
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
         # the policy's own next hands (runner.state keeps the observation it was given)
+        if feedback and k:
+            pads = opt.points(sim.joint_state()[0])[tips].mean(axis=0)
+            hands = hands.copy()
+            hands[g] += pads - 0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP])
         hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
             2, KEYPOINTS_PER_HAND, 3)
+        policy_closest = min(policy_closest, float(np.linalg.norm(
+            0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP]) - objects[lens])))
         if k % plan_every == 0:
             horizon = runner.horizon(None, int(round(horizon_s / dt)) + 1)
             plan = PlanArrays(t, dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
@@ -255,4 +267,4 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     return ExecutionResult(seed, demo, sim.teacher.grasp_hand, grasp_hand, bool(success), sim.time,
                            float(np.nanmedian(tracking) * 1e3) if tracking else float("nan"), rejected,
                            float(np.linalg.norm(objects[cam].mean(axis=0) - cam0) * 1e3), closest * 1e3,
-                           opening * 1e3, max_kpa, min_gap * 1e3, sim.seated_at is not None)
+                           opening * 1e3, max_kpa, min_gap * 1e3, sim.seated_at is not None, policy_closest * 1e3)

@@ -54,6 +54,36 @@ def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
     assert np.abs(seen[-1] - seen[0]).max() > 1e-6  # the hands moved
 
 
+def test_hand_feedback_moves_the_grasping_hand_onto_the_gripper(monkeypatch):
+    """--hand-feedback: from the second step the grasping hand the policy observes is its own
+    prediction moved rigidly (every point by one translation) onto the gripper's pads; the pressing
+    hand stays the policy's own."""
+    import services.policy.execute as ex
+
+    seen, returned = [], []
+    step = ex.PolicyRunner.step
+
+    def spy(self, scene):
+        seen.append(scene.hands.copy())
+        out = step(self, scene)
+        returned.append(out[:42].reshape(2, 21, 3).copy())
+        return out
+
+    monkeypatch.setattr(ex.PolicyRunner, "step", spy)
+    torch.set_num_threads(1)
+    model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
+    model.fit(assembly_protocol(0)[:2], progress=False)
+    r = execute_layout(model, seed=0, demo=4, seconds=0.1, feedback=True)  # layout 4: a left-hand grasp
+    g, p = (0, 1) if r.chosen_hand == "left" else (1, 0)
+    shifts = [seen[k][g] - returned[k - 1][g] for k in range(1, len(seen))]
+    for s in shifts:
+        np.testing.assert_allclose(s, np.repeat(s[:1], 21, axis=0), atol=1e-12)  # one rigid translation
+    assert max(np.abs(s).max() for s in shifts) > 1e-4  # the robot is not where the policy's hand is
+    for k in range(1, len(seen)):
+        np.testing.assert_allclose(seen[k][p], returned[k - 1][p])
+    assert np.isfinite(r.policy_closest_mm)
+
+
 def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
     import services.policy.execute as ex
 
