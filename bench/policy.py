@@ -67,6 +67,17 @@ def p4(model: Ours, d: Demo) -> dict:
     return report
 
 
+def cpu_model() -> str:
+    """The host's CPU as /proc/cpuinfo names it: the figures differ about 3x between hosts."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short training for P5")
@@ -96,7 +107,7 @@ def main() -> int:
                    "P5_best_rollout_object_m": min(e["object"] for e in res.evals)}
     report |= p4(model, va[0])
     report |= {"preset": model.cfg.name, "threads": {"P4": 1, "P5": 2}, "quick": args.quick,
-               "checkpoint": args.checkpoint}
+               "checkpoint": args.checkpoint, "cpu": cpu_model()}
     out_path = Path(args.out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(report, indent=2))
