@@ -29,9 +29,9 @@ def test_policy_drives_the_simulated_robot_through_trajopt_and_the_board(tmp_pat
     assert eval_main(["--execute", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path)]) == 2
 
 
-def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
-    """The interactive neural simulation: each step observes the hands the previous step predicted
-    (it once observed its start hands over and over, so the robot followed a standing policy)."""
+def _spied_tiny_policy(monkeypatch) -> tuple[list, list, Ours]:
+    """A briefly trained net, and lists that fill with the hands each policy step observes and
+    the hands it returns."""
     import services.policy.execute as ex
 
     seen, returned = [], []
@@ -47,6 +47,13 @@ def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
     torch.set_num_threads(1)
     model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
     model.fit(assembly_protocol(0)[:2], progress=False)
+    return seen, returned, model
+
+
+def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
+    """The interactive neural simulation: each step observes the hands the previous step predicted
+    (it once observed its start hands over and over, so the robot followed a standing policy)."""
+    seen, returned, model = _spied_tiny_policy(monkeypatch)
     execute_layout(model, seed=0, demo=4, seconds=0.1)
     assert len(seen) >= 4
     for k in range(1, len(seen)):
@@ -58,21 +65,7 @@ def test_hand_feedback_moves_the_grasping_hand_onto_the_gripper(monkeypatch):
     """--hand-feedback: from the second step the grasping hand the policy observes is its own
     prediction moved rigidly (every point by one translation) onto the gripper's pads; the pressing
     hand stays the policy's own."""
-    import services.policy.execute as ex
-
-    seen, returned = [], []
-    step = ex.PolicyRunner.step
-
-    def spy(self, scene):
-        seen.append(scene.hands.copy())
-        out = step(self, scene)
-        returned.append(out[:42].reshape(2, 21, 3).copy())
-        return out
-
-    monkeypatch.setattr(ex.PolicyRunner, "step", spy)
-    torch.set_num_threads(1)
-    model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
-    model.fit(assembly_protocol(0)[:2], progress=False)
+    seen, returned, model = _spied_tiny_policy(monkeypatch)
     r = execute_layout(model, seed=0, demo=4, seconds=0.1, feedback=True)  # layout 4: a left-hand grasp
     g, p = (0, 1) if r.chosen_hand == "left" else (1, 0)
     shifts = [seen[k][g] - returned[k - 1][g] for k in range(1, len(seen))]
