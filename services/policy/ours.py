@@ -55,6 +55,7 @@ class Ours:
         self._folded_net: PolicyNet | None = None
         self._folded_tensors: list[torch.Tensor] = []
         self._folded_stamp: tuple = ()
+        self.frame_idx, self.frame_ref = np.zeros(0, int), np.zeros((0, 2))  # canonical frame (setup)
 
     # --- setup --------------------------------------------------------------------------------
     def setup(self, train: list[Demo]) -> D.StepData:
@@ -70,22 +71,32 @@ class Ours:
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)
         self.body = self.bodies()
+        if cfg.canonical_frame:
+            idx, self.frame_ref = D.reference_object(self.object_names, train[0].objects[0].astype(np.float64))
+            self.frame_idx = idx + 2 * KEYPOINTS_PER_HAND
         if cfg.memory:
             rng = np.random.default_rng(cfg.seed + 1)
-            Hs = Reservoir.rotated(data.H, rng.uniform(0, 2 * np.pi, len(data)) if cfg.rotate else 0.0)
-            nHs = Reservoir.rotated(data.next_H, 0.0)
+            if cfg.canonical_frame:
+                angle = -self.yaw(data.pos)
+            else:
+                angle = rng.uniform(0, 2 * np.pi, len(data)) if cfg.rotate else 0.0
+            Hs = Reservoir.rotated(data.H, angle)
             self.net.H_mean.copy_(_t(Hs.mean(0)))
             self.net.H_std.copy_(_t(Hs.std(0) + 1e-6))
             dH = (data.next_H[0] - data.H[0]) / self.dt
             self.net.dH_std.copy_(_t(np.sqrt((dH ** 2).mean(0)) + 1e-6))
             starts = data.step_index == 0
-            self.net.H0.copy_(_t(Reservoir.rotated(data.H[:, starts], 0.0).mean(0)))
-            del nHs
+            a0 = angle[starts] if cfg.canonical_frame else 0.0
+            self.net.H0.copy_(_t(Reservoir.rotated(data.H[:, starts], a0).mean(0)))
         rng = np.random.default_rng(cfg.seed + 2)
         with torch.no_grad():
             x = self.batch_inputs(self.make_batch(data, rng, 2048, noise=False))[0]
         self.net.set_statistics(x)
         return data
+
+    def yaw(self, pos: np.ndarray) -> np.ndarray:
+        """Yaw of the reference object in positions (..., P, 3): the canonical frame's turn."""
+        return D.frame_yaw(pos[..., self.frame_idx, :], self.frame_ref)
 
     def bodies(self) -> np.ndarray:
         """Rigid body per point: 0 and 1 the hands, then one per object."""
@@ -100,7 +111,7 @@ class Ours:
     def make_batch(self, data: D.StepData, rng: np.random.Generator, n: int, noise: bool = True) -> dict:
         """A numpy batch with the denoising corruption (7.6-7.7) applied."""
         cfg = self.cfg
-        b = D.sample_batch(data, rng, n, cfg.rotate)
+        b = D.sample_batch(data, rng, n, cfg.rotate and not cfg.canonical_frame)
         P = b["pos"].shape[1]
         scale = np.zeros(n)
         if cfg.denoise and noise:
@@ -112,11 +123,30 @@ class Ours:
             R = z * scale[:, None, None]
         else:
             R = np.zeros_like(b["pos"])
-        gain = min(cfg.noise_gain, 1.0 / data.dt)
+        gain = self.correction_gain(scale, data.dt)[:, None, None]
         b["clean_pos"] = b["pos"]
         b["pos"] = b["pos"] + R  # 7.6
         b["target_vel"] = b["next_vel"] - R * gain  # 7.7
+        if cfg.goal_relative and "goal" in b:
+            # the object noise stands for a new layout: each hand's target moves with the object it
+            # acts on next (dataset.goal_bodies), so the hand learns to follow that object's position
+            n_obj = len(self.body) - 2 * KEYPOINTS_PER_HAND
+            groups = self.body[2 * KEYPOINTS_PER_HAND:] - 2
+            shift = np.stack([R[:, 2 * KEYPOINTS_PER_HAND:][:, groups == g].mean(1) for g in range(groups.max() + 1)]
+                             + [np.zeros((n, 3))], axis=1) if n_obj else np.zeros((n, 1, 3))
+            for h in range(2):
+                pts = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
+                b["target_vel"][:, pts] += shift[np.arange(n), b["goal"][:, h]][:, None] * gain
         b["scale"] = scale
+        if cfg.canonical_frame:  # turned as inference turns it: by the yaw seen in the noisy input
+            back = -self.yaw(b["pos"])
+            for key in ("pos", "clean_pos", "vel", "next_pos", "next_vel", "target_vel"):
+                b[key] = D.rotate_z(b[key], back[:, None])
+            if data.H is not None:
+                from services.policy.reservoir import Reservoir
+
+                b["H"] = Reservoir.rotated(data.H[:, b["index"]], back)
+                b["next_H"] = Reservoir.rotated(data.next_H[:, b["index"]], back)
         if cfg.memory:
             Hn = (b["H"] - self.net.H_mean.numpy()) / self.net.H_std.numpy()
             nHn = (b["next_H"] - self.net.H_mean.numpy()) / self.net.H_std.numpy()
@@ -124,6 +154,16 @@ class Ours:
             b["H_in"] = Hn + rng.normal(0, 1, Hn.shape) * (scale * cfg.reservoir_noise)[:, None]
             del nHn
         return b
+
+    def correction_gain(self, scale: np.ndarray, dt: float) -> np.ndarray:
+        """Per-sample gain of the denoising target (7.7): f_n, raised for small noise scales so that
+        a displacement of ``scale`` is corrected at ``correction_speed`` or more (capped at 1/dt):
+        near the demonstration the correction then still outruns the net's velocity bias."""
+        cfg = self.cfg
+        gain = np.full(len(scale), min(cfg.noise_gain, 1.0 / dt))
+        if cfg.correction_speed > 0:
+            gain = np.maximum(gain, np.minimum(cfg.correction_speed / np.maximum(scale, 1e-9), 1.0 / dt))
+        return gain
 
     def batch_inputs(self, b: dict) -> tuple[torch.Tensor, torch.Tensor, dict]:
         mask = b["mask"] if self.cfg.masks else np.ones_like(b["mask"])
@@ -202,7 +242,10 @@ class Ours:
             raise PolicyError(f"seq_len {L} is longer than every demonstration")
         p = data.prob[ok] / data.prob[ok].sum()
         rows = rng.choice(ok, n, p=p)[:, None] + np.arange(L)[None]  # (n, L)
-        angle = rng.uniform(0, 2 * np.pi, n) if cfg.rotate else np.zeros(n)
+        if cfg.canonical_frame:
+            angle = -self.yaw(data.pos[rows[:, 0]])
+        else:
+            angle = rng.uniform(0, 2 * np.pi, n) if cfg.rotate else np.zeros(n)
         gain = min(cfg.noise_gain, 1.0 / data.dt)
         pos_sim, vel_sim, rec, total = None, None, None, 0.0
         parts: dict[str, float] = {}
@@ -291,7 +334,18 @@ class Ours:
     def step(self, state: dict, solver: ConsistencySolver | None = None,
              observed_objects: np.ndarray | None = None) -> dict:
         """One policy step with the consistency solve; returns the next state. ``observed_objects``
-        (K,3), where given, replace the predicted object points (live-driven neural simulation)."""
+        (K,3), where given, replace the predicted object points (live-driven neural simulation).
+        With ``canonical_frame`` the step runs in the scene turned to the reference object's yaw 0
+        and its positions and velocities are turned back; the memory stays in that frame."""
+        if not self.cfg.canonical_frame:
+            return self._step(state, solver, observed_objects)
+        yaw = float(self.yaw(state["pos"]))
+        turned = dict(state, pos=D.rotate_z(state["pos"], -yaw), vel=D.rotate_z(state["vel"], -yaw))
+        nxt = self._step(turned, solver, None if observed_objects is None else D.rotate_z(observed_objects, -yaw))
+        nxt["pos"], nxt["vel"] = D.rotate_z(nxt["pos"], yaw), D.rotate_z(nxt["vel"], yaw)
+        return nxt
+
+    def _step(self, state: dict, solver: ConsistencySolver | None, observed_objects: np.ndarray | None) -> dict:
         cfg = self.cfg
         solver = solver or self.solver()
         out = self.network_outputs(state)
@@ -362,7 +416,8 @@ class Ours:
 
     # --- checkpoints (state_dict + JSON config; torch.load(weights_only=True)) -----------------
     def state(self) -> dict:
-        meta = {"K": self.K, "dt": self.dt, "object_names": self.object_names, "config": self.cfg.to_json()}
+        meta = {"K": self.K, "dt": self.dt, "object_names": self.object_names, "config": self.cfg.to_json(),
+                "frame_idx": self.frame_idx.tolist(), "frame_ref": self.frame_ref.tolist()}
         tensors = dict(self.net.state_dict())
         if self.reservoir is not None:
             tensors["reservoir.W_R"] = torch.from_numpy(self.reservoir.W_R)
@@ -377,6 +432,9 @@ class Ours:
         meta = ckpt["meta"]
         self = cls(PolicyConfig.from_json(meta["config"]))
         self.K, self.dt, self.object_names = int(meta["K"]), float(meta["dt"]), list(meta["object_names"])
+        if self.cfg.canonical_frame:
+            self.frame_idx = np.array(meta["frame_idx"], int)
+            self.frame_ref = np.array(meta["frame_ref"], np.float64).reshape(-1, 2)
         self.net = PolicyNet(self.cfg, self.K)
         self.body = self.bodies()
         sd = dict(ckpt["state_dict"])

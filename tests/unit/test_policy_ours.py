@@ -83,6 +83,77 @@ def test_reservoir_components_equal_rerun_on_rotated_velocities():
                                atol=1e-9)
 
 
+def test_frame_yaw_recovers_the_turn_of_the_widest_object():
+    rng = np.random.default_rng(3)
+    small, wide = rng.normal(0, 0.005, (2, 3)), rng.normal(0, 0.03, (4, 3))
+    idx, ref = D.reference_object(["a/0", "a/1", "b/0", "b/1", "b/2", "b/3"], np.concatenate([small, wide]))
+    assert idx.tolist() == [2, 3, 4, 5]
+    for turn in (0.0, 0.4, -2.9):
+        moved = D.rotate_z(wide, turn) + [0.1, -0.2, 0.05]
+        assert float(D.frame_yaw(moved, ref)) == pytest.approx(turn, abs=1e-9)
+    with pytest.raises(D.DatasetError):
+        D.reference_object(["a/0"], small[:1])
+
+
+def turned(d: Demo, angle: float, shift: tuple = (0.03, -0.02, 0.0)) -> Demo:
+    return Demo(**{**d.__dict__, "hands": (D.rotate_z(d.hands.astype(float), angle) + shift).astype(np.float32),
+                   "objects": (D.rotate_z(d.objects.astype(float), angle) + shift).astype(np.float32)})
+
+
+@pytest.mark.parametrize("canonical", [True, False])
+def test_canonical_frame_makes_the_policy_turn_with_the_scene(demos, canonical):
+    """7.2.4 by construction: a scene turned about gravity (and shifted) gives the turned rollout;
+    the augmented net only approximates that."""
+    torch.set_num_threads(1)
+    method = Ours(tiny(preset("multimodal"), canonical_frame=canonical))
+    method.fit(demos[:2], progress=False)
+    angle, shift = 0.9, np.array([0.03, -0.02, 0.0])
+    hands, objects = method.rollout(demos[2], 10)
+    hands_t, objects_t = method.rollout(turned(demos[2], angle, tuple(shift)), 10)
+    gap = max(np.abs(D.rotate_z(hands, angle) + shift - hands_t).max(),
+              np.abs(D.rotate_z(objects, angle) + shift - objects_t).max())
+    assert (gap < 1e-4) if canonical else (gap > 1e-3)
+    assert np.abs(hands[-1] - hands[0]).max() > 1e-3  # the rollout moves at all
+
+
+def test_goal_body_is_the_unmoved_object_the_pinch_reaches_next():
+    T, dt = 200, 0.02
+    t = np.arange(T) * dt
+    pos = np.zeros((T, 44, 3))
+    pos[:, 21:42] = [0.0, -0.4, 0.2]  # the other hand stays away
+    obj = np.array([0.1, 0.0, 0.0])
+    pinch = obj + np.array([0.3, 0.0, 0.0]) * np.clip(1 - t / 2.0, 0, 1)[:, None]  # reaches it at 2 s
+    pinch[:, 2] += np.clip(t - 2.5, 0, None) * 0.1  # lifts it from 2.5 s
+    pos[:, :21] = pinch[:, None]
+    pos[:, 42] = pos[:, 43] = obj
+    pos[:, 42:44, 2] += np.clip(t - 2.5, 0, None)[:, None] * 0.1
+    goal = D.goal_bodies(pos, np.ones((T, 44), bool), np.array([0, 0]), dt)
+    assert (goal[:, 1] == -1).all()
+    # 5 cm from the object at 1.67 s: a goal from 0.67 s (1 s ahead) until the object moves (2.55 s)
+    assert (goal[:30, 0] == -1).all() and (goal[36:125, 0] == 0).all() and (goal[130:, 0] == -1).all()
+
+
+def test_goal_relative_noise_moves_the_hand_target_with_its_goal_object(demos):
+    cfg = tiny(preset("no_tactile"), goal_relative=True, canonical_frame=False, memory=False)
+    method = Ours(cfg)
+    data = method.setup(demos[:2])
+    b = method.make_batch(data, np.random.default_rng(0), 64)
+    R = b["pos"] - b["clean_pos"]
+    shift = np.where((b["goal"] == 0)[:, :, None], R[:, 42:].mean(1)[:, None], 0.0)  # one object body
+    want = b["next_vel"].copy()
+    want -= R * cfg.noise_gain
+    want[:, :42] += np.repeat(shift, 21, axis=1) * cfg.noise_gain
+    assert (b["goal"] == 0).any() and (b["goal"] == -1).any()
+    np.testing.assert_allclose(b["target_vel"], want, atol=1e-9)
+
+
+def test_correction_speed_raises_the_gain_only_for_small_noise():
+    method = Ours(preset("no_tactile", correction_speed=0.05))
+    gain = method.correction_gain(np.array([1e-4, 0.002, 0.00625, 0.05]), 0.02)
+    np.testing.assert_allclose(gain, [50.0, 25.0, 8.0, 8.0])  # capped at 1/dt, f_n = 8/s for large noise
+    np.testing.assert_allclose(Ours(preset("no_tactile")).correction_gain(np.array([1e-4, 0.05]), 0.02), 8.0)
+
+
 def test_hand_sampling_is_sixty_forty():
     left = np.array([True] * 10 + [False] * 30)
     p = D.hand_weights(left, 0.6)
