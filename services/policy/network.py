@@ -52,6 +52,7 @@ class PolicyConfig:
     rigid_objects: bool = False  # inference: object keypoint velocities projected onto rigid motions
     pair_outputs: bool = True  # pairwise translation outputs and constraint (7.8)
     dynamics: bool = True  # object dynamics J_D, plausibility loss, constraint (7.13-7.15)
+    body_dynamics: bool = False  # J_D shared by the points of one rigid object (trained where any of them is seen)
     tactile_model: bool = False  # 7.2.9 model-based tactile
     object_model: bool = False  # 7.2.9 object-state model
     rotate: bool = True  # 7.2.4: random rotations about gravity (ignored where canonical_frame)
@@ -107,9 +108,9 @@ class PolicyConfig:
 
 
 PRESETS: dict[str, PolicyConfig] = {
-    "multimodal": PolicyConfig(),
-    "no_tactile": PolicyConfig(name="no_tactile", tactile=False),
-    "single_state": PolicyConfig(name="single_state", tactile=False, memory=False),
+    "multimodal": PolicyConfig(body_dynamics=True),
+    "no_tactile": PolicyConfig(name="no_tactile", tactile=False, body_dynamics=True),
+    "single_state": PolicyConfig(name="single_state", tactile=False, memory=False, body_dynamics=True),
 }
 
 

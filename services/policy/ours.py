@@ -155,6 +155,18 @@ class Ours:
             del nHn
         return b
 
+    def body_pooled(self, J):
+        """With ``body_dynamics``: each object point's J_D replaced by its body's mean, so that a
+        point hidden in the hand (never seen moving, so never trained) moves like its seen ones."""
+        if not self.cfg.body_dynamics:
+            return J
+        groups = object_groups(self.object_names)
+        A = (groups[:, None] == groups[None]).astype(np.float64)
+        A /= A.sum(1, keepdims=True)
+        if isinstance(J, torch.Tensor):
+            return torch.einsum("kj,njh->nkh", _t(A), J)
+        return A @ J
+
     def correction_gain(self, scale: np.ndarray, dt: float) -> np.ndarray:
         """Per-sample gain of the denoising target (7.7): f_n, raised for small noise scales so that
         a displacement of ``scale`` is corrected at ``correction_speed`` or more (capped at 1/dt):
@@ -210,11 +222,22 @@ class Ours:
             res = (out["pairs"].reshape(n, -1, 3) - _t(tgt * PAIR_SCALE)) * _t(w * pm)
             parts["pairs"] = (res ** 2).mean() * 3
         if cfg.dynamics:  # 7.14 on the clean input velocities
-            J = out["J"].reshape(n, self.K, 2)
+            J = self.body_pooled(out["J"].reshape(n, self.K, 2))
             v = b["vel"] * VEL_SCALE
-            vp = _t(v[:, lay.pinch].mean(axis=2))  # (n,2,3)
             vo = _t(v[:, 2 * KEYPOINTS_PER_HAND:])
-            ok = b["vmask"][:, 2 * KEYPOINTS_PER_HAND:] & b["vmask"][:, lay.pinch].all(axis=(1, 2))[:, None]
+            if cfg.body_dynamics:
+                # a hand holding an object hides its own thumb and index: where they are not both seen,
+                # its seen points' mean velocity stands in for the pinch's (else no sample where an
+                # object moves would train J_D)
+                hv = v[:, :2 * KEYPOINTS_PER_HAND].reshape(n, 2, KEYPOINTS_PER_HAND, 3)
+                hm = b["vmask"][:, :2 * KEYPOINTS_PER_HAND].reshape(n, 2, KEYPOINTS_PER_HAND)
+                pinch_seen = b["vmask"][:, lay.pinch].all(axis=2)  # (n,2)
+                seen_mean = (hv * hm[..., None]).sum(2) / np.maximum(hm.sum(2), 1)[..., None]
+                vp = _t(np.where(pinch_seen[..., None], v[:, lay.pinch].mean(axis=2), seen_mean))
+                ok = b["vmask"][:, 2 * KEYPOINTS_PER_HAND:] & hm.any(2).all(1)[:, None]
+            else:
+                vp = _t(v[:, lay.pinch].mean(axis=2))  # (n,2,3)
+                ok = b["vmask"][:, 2 * KEYPOINTS_PER_HAND:] & b["vmask"][:, lay.pinch].all(axis=(1, 2))[:, None]
             okt = _t(ok.astype(float))[..., None]
             parts["dyn"] = ((torch.einsum("nkh,nhd->nkd", J, vp) - vo) ** 2 * okt).sum() / okt.sum().clamp_min(1)
             force = b["tactile"].sum(-1) * TACTILE_SCALE  # (n,2)
@@ -354,7 +377,7 @@ class Ours:
         P = len(state["pos"])
         vmax = cfg.max_speed
         v = np.minimum(np.maximum(out["vel"].reshape(P, 3) / VEL_SCALE, -vmax), vmax)  # np.clip costs more
-        J = out["J"].reshape(self.K, 2) if cfg.dynamics else None
+        J = self.body_pooled(out["J"].reshape(self.K, 2)) if cfg.dynamics else None
         trusted = None
         if cfg.masks and cfg.follow_unobserved:
             trusted = state["mask"] & (out["mask"] > 0.0)
