@@ -160,9 +160,11 @@ class Ours:
         point hidden in the hand (never seen moving, so never trained) moves like its seen ones."""
         if not self.cfg.body_dynamics:
             return J
-        groups = object_groups(self.object_names)
-        A = (groups[:, None] == groups[None]).astype(np.float64)
-        A /= A.sum(1, keepdims=True)
+        if getattr(self, "_pool_names", None) != self.object_names:  # built once per object list
+            groups = object_groups(self.object_names)
+            A = (groups[:, None] == groups[None]).astype(np.float64)
+            self._pool, self._pool_names = A / A.sum(1, keepdims=True), list(self.object_names)
+        A = self._pool
         if isinstance(J, torch.Tensor):
             return torch.einsum("kj,njh->nkh", _t(A), J)
         return A @ J
