@@ -79,12 +79,6 @@ class ConsistencySolver:
         return (w_pred * H_pred + H_prev + dH * dt) / (1.0 + w_pred)
 
 
-def object_groups(object_names: list[str]) -> np.ndarray:
-    """Body index per object keypoint from names "<object>/<point>"."""
-    bodies: dict[str, int] = {}
-    return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
-
-
 def _cross(w: np.ndarray, r: np.ndarray) -> np.ndarray:
     """w x r_i for one vector w (3,) and points r (n,3), as r @ [w]x^T (one small product)."""
     x, y, z = w.tolist()

@@ -40,15 +40,20 @@ def rotate_z(x: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
     return out
 
 
+def object_groups(object_names: list[str]) -> np.ndarray:
+    """Body index per object keypoint from names "<object>/<point>" (first seen, first numbered)."""
+    bodies: dict[str, int] = {}
+    return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
+
+
 # --- canonical frame (7.2.4 without augmentation) ------------------------------------------------
 def reference_object(object_names: list[str], objects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The object whose keypoints spread widest horizontally in ``objects`` (K,3): its keypoint
     indices and their horizontal offsets from its centroid (the reference shape, yaw 0)."""
-    bodies: dict[str, list[int]] = {}
-    for i, name in enumerate(object_names):
-        bodies.setdefault(name.split("/")[0], []).append(i)
+    groups = object_groups(object_names)
     best, spread = None, -1.0
-    for idx in bodies.values():
+    for g in range(groups.max() + 1 if len(groups) else 0):
+        idx = np.flatnonzero(groups == g)
         xy = objects[idx, :2] - objects[idx, :2].mean(0)
         if len(idx) >= 2 and (xy ** 2).sum() > spread:
             best, spread = idx, float((xy ** 2).sum())
@@ -133,13 +138,7 @@ def demo_arrays(demo: Demo) -> DemoArrays:
                       tmask=demo.tactile_mask.astype(bool), left=demo.meta.get("grasp_hand", "left") == "left",
                       dt=float(demo.dt), name=f"{demo.meta.get('task', '?')}#{demo.meta.get('demo', '?')}"
                       + (" (mirrored)" if demo.meta.get("mirrored") else ""),
-                      goal=goal_bodies(pos, mask, object_bodies(demo.object_names), demo.dt))
-
-
-def object_bodies(object_names: list[str]) -> np.ndarray:
-    """Body index per object keypoint from names "<object>/<point>" (first seen, first numbered)."""
-    bodies: dict[str, int] = {}
-    return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
+                      goal=goal_bodies(pos, mask, object_groups(demo.object_names), demo.dt))
 
 
 GOAL_LOOKAHEAD_S = 1.0  # s: what a hand comes to within the next second is what it is heading for

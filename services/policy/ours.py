@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from services.policy import dataset as D
-from services.policy.consistency import ConsistencySolver, follow_bodies, object_groups, rigid_velocities
+from services.policy.consistency import ConsistencySolver, follow_bodies, rigid_velocities
 from services.policy.folded import FoldedNet, foldable
 from services.policy.network import (
     PAIR_SCALE,
@@ -56,6 +56,7 @@ class Ours:
         self._folded_tensors: list[torch.Tensor] = []
         self._folded_stamp: tuple = ()
         self.frame_idx, self.frame_ref = np.zeros(0, int), np.zeros((0, 2))  # canonical frame (setup)
+        self._pool, self._pool_names = np.zeros((0, 0)), None  # body_pooled's averaging matrix and its names
 
     # --- setup --------------------------------------------------------------------------------
     def setup(self, train: list[Demo]) -> D.StepData:
@@ -100,7 +101,7 @@ class Ours:
 
     def bodies(self) -> np.ndarray:
         """Rigid body per point: 0 and 1 the hands, then one per object."""
-        return np.concatenate([np.repeat([0, 1], KEYPOINTS_PER_HAND), 2 + object_groups(self.object_names)])
+        return np.concatenate([np.repeat([0, 1], KEYPOINTS_PER_HAND), 2 + D.object_groups(self.object_names)])
 
     def solver(self) -> ConsistencySolver:
         c = self.cfg
@@ -130,10 +131,11 @@ class Ours:
         if cfg.goal_relative and "goal" in b:
             # the object noise stands for a new layout: each hand's target moves with the object it
             # acts on next (dataset.goal_bodies), so the hand learns to follow that object's position
-            n_obj = len(self.body) - 2 * KEYPOINTS_PER_HAND
-            groups = self.body[2 * KEYPOINTS_PER_HAND:] - 2
-            shift = np.stack([R[:, 2 * KEYPOINTS_PER_HAND:][:, groups == g].mean(1) for g in range(groups.max() + 1)]
-                             + [np.zeros((n, 3))], axis=1) if n_obj else np.zeros((n, 1, 3))
+            groups = D.object_groups(self.object_names)
+            R_obj = R[:, 2 * KEYPOINTS_PER_HAND:]
+            # (n, bodies + 1, 3): each body's mean noise, then zero for goal -1 (no object)
+            shift = np.stack([R_obj[:, groups == g].mean(1) for g in range(groups.max() + 1 if len(groups) else 0)]
+                             + [np.zeros((n, 3))], axis=1)
             for h in range(2):
                 pts = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
                 b["target_vel"][:, pts] += shift[np.arange(n), b["goal"][:, h]][:, None] * gain
@@ -160,8 +162,8 @@ class Ours:
         point hidden in the hand (never seen moving, so never trained) moves like its seen ones."""
         if not self.cfg.body_dynamics:
             return J
-        if getattr(self, "_pool_names", None) != self.object_names:  # built once per object list
-            groups = object_groups(self.object_names)
+        if self._pool_names != self.object_names:  # built once per object list
+            groups = D.object_groups(self.object_names)
             A = (groups[:, None] == groups[None]).astype(np.float64)
             self._pool, self._pool_names = A / A.sum(1, keepdims=True), list(self.object_names)
         A = self._pool
@@ -391,7 +393,7 @@ class Ours:
             v = follow_bodies(v, state["pos"], trusted | hand, self.body)
         if cfg.rigid_objects:
             n = 2 * KEYPOINTS_PER_HAND
-            v[n:] = rigid_velocities(v[n:], state["pos"][n:], object_groups(self.object_names))
+            v[n:] = rigid_velocities(v[n:], state["pos"][n:], self.body[n:] - 2)
         pairs, pmask = None, None
         if cfg.pair_outputs and "pairs" in out and solver.w_pair > 0:
             lay = self.net.layout
