@@ -272,6 +272,7 @@ SWITCHES = {
     "no_rotate_no_mirror": {"rotate": False, "mirror": False},
     "canonical_goal_speed": {"canonical_frame": True, "goal_relative": True, "correction_speed": 0.05},
     "body_dynamics": {"body_dynamics": True},
+    "rigid_objects": {"rigid_objects": True},
 }
 
 
