@@ -85,6 +85,8 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=".bench/policy.json")
     parser.add_argument("--checkpoint", help="P4 only, on this trained policy.pt (no training, P5 not measured)")
+    parser.add_argument("--keep", metavar="DIR",
+                        help="also write the P5 training's checkpoint, config and loss plot here")
     args = parser.parse_args()
 
     demos = assembly_protocol(args.seed)
@@ -98,7 +100,7 @@ def main() -> int:
         if args.quick:
             cfg = cfg.replace(steps=200, eval_every=100)
         t0 = time.perf_counter()
-        res = train(cfg, tr, va, None, progress=False)
+        res = train(cfg, tr, va, args.keep, progress=False)
         total = time.perf_counter() - t0
         model = res.method
         report |= {"P5_train_seconds_to_best": res.seconds_to_best, "P5_train_seconds_total": total,

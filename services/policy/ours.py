@@ -336,10 +336,17 @@ class Ours:
             self._folded, self._folded_net, self._folded_stamp = FoldedNet(self.net, tuple(keys)), self.net, stamp
         return self._folded
 
+    def weights_updated(self) -> None:
+        """The weights changed in a way their version counters do not show (a fused optimizer step):
+        the folded copy is rebuilt on next use."""
+        self._folded = None
+
     def network_outputs(self, state: dict, fold: bool | None = None) -> dict[str, np.ndarray]:
         """The forward pass of one state (no consistency solve): folded where the config allows
         (``fold_inference``); ``fold=False`` runs the plain PolicyNet (the reference the folded
         pass is tested and benchmarked against)."""
+        if self.cfg.turns > 1 and fold is None:
+            return self._turned_outputs(state)
         s = state
         vm = s["mask"] if self.cfg.masks else np.ones(len(s["mask"]), bool)
         fast = self.folded() if (self.fold_inference if fold is None else fold) else None
@@ -357,6 +364,19 @@ class Ours:
         if rec is not None:
             res["rec"] = rec[0].numpy().astype(np.float64)
         return res
+
+    def _turned_outputs(self, state: dict) -> dict[str, np.ndarray]:
+        """7.2.4 at inference: the net trained on scenes turned about gravity sees the state turned
+        ``turns`` ways; its vector outputs are turned back and all outputs averaged."""
+        outs = []
+        for yaw in np.arange(self.cfg.turns) * (2 * np.pi / self.cfg.turns):
+            out = self.network_outputs(dict(state, pos=D.rotate_z(state["pos"], yaw),
+                                            vel=D.rotate_z(state["vel"], yaw)), fold=self.fold_inference)
+            for key in ("vel", "pairs"):
+                if key in out:
+                    out[key] = D.rotate_z(out[key].reshape(-1, 3), -yaw).reshape(-1)
+            outs.append(out)
+        return {k: np.mean([o[k] for o in outs], axis=0) for k in outs[0]}
 
     def step(self, state: dict, solver: ConsistencySolver | None = None,
              observed_objects: np.ndarray | None = None) -> dict:

@@ -1,9 +1,10 @@
 """Training of the chapter-7 policy, and `xm train`.
 
-``train(config, train_demos, val_demos, out_dir)``: Adam with a cosine schedule, a tqdm bar, every
-``eval_every`` steps a neural-simulation rollout from each validation start state scored with the
-Table 7.1 distance; the best checkpoint (state_dict + JSON config, loads with
-``torch.load(weights_only=True)``) is kept, with a loss-curve PNG and train.json.
+``train(config, train_demos, val_demos, out_dir)``: Adam with a cosine schedule, a tqdm bar, and
+in the schedule's second part (from ``eval_from``) every ``eval_every`` steps a neural-simulation
+rollout from each validation start state scored with the Table 7.1 distance; the best checkpoint
+(state_dict + JSON config, loads with ``torch.load(weights_only=True)``) is kept, with a
+loss-curve PNG and train.json.
 """
 
 from __future__ import annotations
@@ -45,6 +46,22 @@ def selection_score(method, demos: list[Demo]) -> dict[str, float]:
     return res
 
 
+def make_optimizer(net: torch.nn.Module, lr: float) -> torch.optim.Optimizer:
+    """Adam, fused: one kernel over all parameters (18 -> 3 ms per step for the 4 M parameters of
+    the preset, about 2 of its 10 minutes)."""
+    return torch.optim.Adam(net.parameters(), lr=lr, fused=True)
+
+
+def optimizer_step(method, opt: torch.optim.Optimizer, loss: torch.Tensor) -> None:
+    """Backward, clipped step, and the folded inference copy dropped: the fused step updates the
+    weights without bumping their version counters, which is how the copy notices other updates."""
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(method.net.parameters(), 10.0)
+    opt.step()
+    method.weights_updated()
+
+
 def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, progress: bool = True,
               out_dir: Path | None = None) -> TrainResult:
     """Trains ``method`` (an ours.Ours) in place; leaves it holding the best weights."""
@@ -57,7 +74,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
     data = method.setup(train_demos)
     net = method.net
     rng = np.random.default_rng(cfg.seed)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    opt = make_optimizer(net, cfg.lr)
     warm = max(1, cfg.steps // 20)
 
     def schedule(s: int) -> float:  # linear warm-up, cosine decay to 2 %
@@ -74,17 +91,15 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
             loss, _ = method.sequence_loss(data, rng)
         else:
             loss, _ = method.loss(method.make_batch(data, rng, cfg.batch))
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-        opt.step()
+        optimizer_step(method, opt, loss)
         sched.step()
         method.losses.append(loss.item())
         if not np.isfinite(method.losses[-1]):
             raise PolicyError(f"training loss became {method.losses[-1]} at step {step}")
         if step % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
-        if step % cfg.eval_every == 0 or step == cfg.steps:
+        # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
+        if step == cfg.steps or (step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
             net.eval()
             try:
                 sc = selection_score(method, select)

@@ -413,6 +413,43 @@ def test_folded_copy_follows_weight_updates(trained, demos):
             first.weight.copy_(saved)
 
 
+def test_folded_copy_follows_a_fused_optimizer_step(demos):
+    # the fused step does not bump version counters: the training step must drop the folded copy,
+    # or every selection rollout after the first scores stale weights
+    from services.policy.train import make_optimizer, optimizer_step
+
+    method = Ours(tiny(preset("no_tactile"), lr=1e-2))
+    data = method.setup(demos[:2])
+    state = method.initial_state(demos[2])
+    method.net.eval()
+    before = method.network_outputs(state)["vel"]
+    opt = make_optimizer(method.net, method.cfg.lr)
+    method.net.train()
+    loss, _ = method.loss(method.make_batch(data, np.random.default_rng(0), 16))
+    optimizer_step(method, opt, loss)
+    method.net.eval()
+    after = method.network_outputs(state)["vel"]
+    assert not np.allclose(after, before)
+    np.testing.assert_allclose(after, method.network_outputs(state, fold=False)["vel"], rtol=1e-4, atol=1e-5)
+
+
+def test_turn_averaging_makes_the_step_equivariant_to_quarter_turns(trained, demos):
+    # four turns: the set of turned inputs is closed under a quarter turn, so the averaged output
+    # turns with the scene exactly; one net alone is not equivariant
+    state = trained.initial_state(demos[2])
+    quarter = dict(state, pos=D.rotate_z(state["pos"], np.pi / 2), vel=D.rotate_z(state["vel"], np.pi / 2))
+    saved = trained.cfg
+    try:
+        for turns, equal in ((1, False), (4, True)):
+            trained.cfg = saved.replace(turns=turns)
+            a, b = trained.network_outputs(state), trained.network_outputs(quarter)
+            turned = D.rotate_z(a["vel"].reshape(-1, 3), np.pi / 2).reshape(-1)
+            assert np.allclose(b["vel"], turned, rtol=1e-4, atol=1e-5) == equal
+            assert np.allclose(b["mask"], a["mask"], rtol=1e-4, atol=1e-5) == equal
+    finally:
+        trained.cfg = saved
+
+
 def test_rigid_fit_recovers_a_rigid_motion_and_stays_finite_on_a_line():
     from services.policy.consistency import rigid_fit
 
