@@ -94,7 +94,7 @@ class FoldedNet:
         self.point_rows = [torch.cat([rows[torch.from_numpy(f)], mask_rows[p:p + 1]]).contiguous()
                            for p, f in enumerate(self.point_features)]
         self.point_terms = [(plus[f], minus[f], scale[f], mean[:n_lin].numpy()[f]) for f in self.point_features]
-        self._d = [np.ones(len(f) + 1, np.float32) for f in self.point_features]  # the last 1: the mask input
+        self._d = [np.ones((1, len(f) + 1), np.float32) for f in self.point_features]  # the last 1: the mask input
         self.G_lin_rows = rows.contiguous()
         self.m_vel = net.m_vel.numpy()
         linears = [m for m in net.trunk if isinstance(m, torch.nn.Linear)]
@@ -109,61 +109,71 @@ class FoldedNet:
         self.head_w = net.head.weight.detach()[idx].clone().contiguous()
         self.head_b = net.head.bias.detach()[idx].clone()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
-        self._x = np.zeros(self.W1.shape[1], np.float32)
+        self._x = np.zeros((1, self.W1.shape[1]), np.float32)
         self._xt = torch.from_numpy(self._x)
-        self._z = np.zeros(3 * P + 1)  # positions and a zero (the "minus" of a height feature)
+        self._z = np.zeros((1, 3 * P + 1))  # positions and a zero (the "minus" of a height feature)
 
     def __call__(self, pos: np.ndarray, vel: np.ndarray, mask: np.ndarray, vmask: np.ndarray,
                  tactile: np.ndarray | None = None, tmask: np.ndarray | None = None,
                  H: np.ndarray | None = None, t: float = 0.0) -> dict[str, np.ndarray]:
-        """pos, vel (P,3) metres and m/s; mask, vmask (P,) bool. Returns float64 outputs."""
-        flat = pos.reshape(-1)
-        x, n = self._x, len(flat)  # one float32 input buffer, shared with torch (no copies per call)
-        x[:n] = flat
+        """pos, vel (P,3) metres and m/s, or (B,P,3): B position sets (turned copies of one scene)
+        sharing the masks, touch, memory and time; mask, vmask (P,) bool. Returns float64 outputs,
+        (B, n) where a batch was given."""
+        batched = pos.ndim == 3
+        flat = pos.reshape(len(pos) if batched else 1, -1)
+        B, n = flat.shape
+        if len(self._x) != B:  # float32 input rows, shared with torch (no copies per call)
+            self._x = np.zeros((B, self.W1.shape[1]), np.float32)
+            self._xt = torch.from_numpy(self._x)
+            self._z = np.zeros((B, 3 * self.P + 1))  # positions and a zero (the "minus" of a height feature)
+        x = self._x
+        x[:, :n] = flat
         i = n
         if self.vel_input:  # VEL_SCALE is folded into its columns
-            x[i:i + n] = vel.reshape(-1)
+            x[:, i:i + n] = vel.reshape(B, -1)
             i += n
         # the inputs used as they are, minus their mean (their std is folded into W1)
         start = i
         if self.tactile:
             tm = tmask.reshape(-1)
             tactile_at = i
-            x[i:i + tm.size] = tactile.reshape(-1) * TACTILE_SCALE
-            x[i + tm.size:i + 2 * tm.size] = tm
+            x[:, i:i + tm.size] = tactile.reshape(-1) * TACTILE_SCALE
+            x[:, i + tm.size:i + 2 * tm.size] = tm
             i += 2 * tm.size
         if self.memory:
-            x[i:i + len(H)] = H
+            x[:, i:i + len(H)] = H
             i += len(H)
         if self.phase:
-            x[i] = t
-        x[start:] -= self.mean_small
+            x[:, i] = t
+        x[:, start:] -= self.mean_small
         if self.tactile:  # a masked tactile reading is zero after normalization
-            x[tactile_at:tactile_at + tm.size] *= tm
+            x[:, tactile_at:tactile_at + tm.size] *= tm
         with torch.inference_mode():
-            h = torch.addmv(self.b1, self.W1, self._xt)
+            h = torch.addmv(self.b1, self.W1, self._xt[0]) if B == 1 else torch.addmm(self.b1, self._xt, self.W1.T)
             hidden = np.flatnonzero(~mask)
             if len(hidden):  # masked features: their normalized value is zero, not (x - mean) / std
                 z = self._z
-                z[:-1] = flat
+                z[:, :-1] = flat
                 for p in hidden:
                     plus, minus, scale, mean = self.point_terms[p]
-                    d = self._d[p]
-                    d[:-1] = scale * (z[plus] - z[minus]) - mean
-                    h -= torch.from_numpy(d) @ self.point_rows[p]
+                    d = self._d[p] if B == 1 else np.ones((B, len(plus) + 1), np.float32)  # last 1: mask input
+                    d[..., :-1] = scale * (z[:, plus] - z[:, minus]) - mean
+                    h -= (torch.from_numpy(d) @ self.point_rows[p]).reshape(h.shape)
                 if len(hidden) > 1:  # a feature of two masked points was taken out twice
                     twice = np.flatnonzero(~mask[self.m_a] & ~mask[self.m_b] & (self.m_a != self.m_b))
                     if len(twice):
-                        d = (self.scale[twice] * (z[self.plus[twice]] - z[self.minus[twice]])
+                        d = (self.scale[twice] * (z[:, self.plus[twice]] - z[:, self.minus[twice]])
                              - self.mean_lin[twice]).astype(np.float32)
-                        h += torch.from_numpy(d) @ self.G_lin_rows[torch.from_numpy(twice)]
+                        h += (torch.from_numpy(d) @ self.G_lin_rows[torch.from_numpy(twice)]).reshape(h.shape)
             if self.vel_input:
                 voff = np.flatnonzero(~vmask[self.m_vel])
                 if len(voff):
-                    d = vel.reshape(-1)[voff] * VEL_SCALE - self.mean_vel[voff]
-                    h -= torch.from_numpy(d.astype(np.float32)) @ self.G_vel_rows[torch.from_numpy(voff)]
+                    d = vel.reshape(B, -1)[:, voff] * VEL_SCALE - self.mean_vel[voff]
+                    d = torch.from_numpy(d.astype(np.float32))
+                    h -= (d @ self.G_vel_rows[torch.from_numpy(voff)]).reshape(h.shape)
             h.relu_()
             for W, b in self.layers:
-                h = torch.addmv(b, W, h).relu_()
-            out = torch.addmv(self.head_b, self.head_w, h).numpy().astype(np.float64)
-        return {k: out[s] for k, s in self.slices.items()}
+                h = (torch.addmv(b, W, h) if B == 1 else torch.addmm(b, h, W.T)).relu_()
+            out = torch.addmv(self.head_b, self.head_w, h) if B == 1 else torch.addmm(self.head_b, h, self.head_w.T)
+            out = out.numpy().astype(np.float64)
+        return {k: out[..., s] if batched else out[s] for k, s in self.slices.items()}

@@ -83,11 +83,13 @@ class PolicyConfig:
     w_plausible: float = 1e-3
     pair_eps: float = 0.0025  # m^2 (5 cm): the bias of the 7.8 normalization
     pair_input_eps: float = 0.0  # m^2; > 0 feeds pairs as P / (|P|^2 + eps) (7.8's form) instead of raw P
-    turns: int = 1  # inference: outputs averaged over this many turns of the scene about gravity
+    turns: int = 1  # inference: outputs averaged over this many turns of the scene about gravity ...
+    turn_spread: float = 0.5  # ... spread evenly over +-this (rad); the whole circle measured worse (docs/policy.md)
     max_speed: float = 1.5  # m/s, bound applied before the consistency solve
     steps: int = 8000  # the validation rollout still improved at 4000 (docs/policy.md)
     batch: int = 256
     lr: float = 1e-3
+    ema: float = 0.0  # > 0: decay of an exponential moving average of the weights, which is what is scored and kept
     eval_every: int = 500
     eval_from: float = 0.5  # first selection rollout at this fraction of the steps (best came at 7500 of 8000)
     seed: int = 0

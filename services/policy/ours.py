@@ -365,18 +365,29 @@ class Ours:
             res["rec"] = rec[0].numpy().astype(np.float64)
         return res
 
+    def turn_angles(self) -> np.ndarray:
+        """The scene turns (rad about gravity) whose outputs are averaged at inference."""
+        c = self.cfg
+        return np.linspace(-c.turn_spread, c.turn_spread, c.turns) if c.turns > 1 else np.zeros(1)
+
     def _turned_outputs(self, state: dict) -> dict[str, np.ndarray]:
-        """7.2.4 at inference: the net trained on scenes turned about gravity sees the state turned
-        ``turns`` ways; its vector outputs are turned back and all outputs averaged."""
-        outs = []
-        for yaw in np.arange(self.cfg.turns) * (2 * np.pi / self.cfg.turns):
-            out = self.network_outputs(dict(state, pos=D.rotate_z(state["pos"], yaw),
-                                            vel=D.rotate_z(state["vel"], yaw)), fold=self.fold_inference)
-            for key in ("vel", "pairs"):
-                if key in out:
-                    out[key] = D.rotate_z(out[key].reshape(-1, 3), -yaw).reshape(-1)
-            outs.append(out)
-        return {k: np.mean([o[k] for o in outs], axis=0) for k in outs[0]}
+        """Test-time use of 7.2.4's augmentation: the net sees the state turned a few ways about
+        gravity, its vector outputs are turned back and all outputs averaged. Folded, the turned
+        copies go through as one batch, so the weights are read once for all of them."""
+        angles = self.turn_angles()
+        pos = D.rotate_z(np.broadcast_to(state["pos"], (len(angles), *state["pos"].shape)), angles[:, None])
+        vel = D.rotate_z(np.broadcast_to(state["vel"], pos.shape), angles[:, None])
+        fast = self.folded() if self.fold_inference else None
+        if fast is not None:
+            vm = state["mask"] if self.cfg.masks else np.ones(len(state["mask"]), bool)
+            out = fast(pos, vel, vm, vm, state["tactile"], state["tmask"], state.get("H"), state.get("t", 0.0))
+        else:
+            each = [self.network_outputs(dict(state, pos=p, vel=v), fold=False) for p, v in zip(pos, vel, strict=True)]
+            out = {k: np.stack([o[k] for o in each]) for k in each[0]}
+        for key in ("vel", "pairs"):
+            if key in out:
+                out[key] = D.rotate_z(out[key].reshape(len(angles), -1, 3), -angles[:, None]).reshape(len(angles), -1)
+        return {k: v.mean(axis=0) for k, v in out.items()}
 
     def step(self, state: dict, solver: ConsistencySolver | None = None,
              observed_objects: np.ndarray | None = None) -> dict:

@@ -81,6 +81,8 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         return min(1.0, (s + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(s, cfg.steps) / cfg.steps)))
 
     sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
+    params = list(net.parameters())
+    ema = [p.detach().clone() for p in params] if cfg.ema else None  # weights averaged over the steps
     select = val_demos if val_demos else train_demos
     best = {"score": np.inf, "step": 0, "state": None, "t": 0.0}
     evals: list[dict] = []
@@ -93,6 +95,11 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
             loss, _ = method.loss(method.make_batch(data, rng, cfg.batch))
         optimizer_step(method, opt, loss)
         sched.step()
+        if ema is not None:
+            with torch.no_grad():  # the usual warm-up: early weights do not linger
+                w = 1.0 - min(cfg.ema, (1 + step) / (10 + step))
+                for e, p in zip(ema, params, strict=True):
+                    e.lerp_(p, w)
         method.losses.append(loss.item())
         if not np.isfinite(method.losses[-1]):
             raise PolicyError(f"training loss became {method.losses[-1]} at step {step}")
@@ -101,6 +108,11 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
         if step == cfg.steps or (step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
             net.eval()
+            if ema is not None:  # the averaged weights are scored (and kept); training goes on from its own
+                current = [p.detach().clone() for p in params]
+                with torch.no_grad():
+                    for p, e in zip(params, ema, strict=True):
+                        p.copy_(e)
             try:
                 sc = selection_score(method, select)
             except PolicyError:
@@ -110,6 +122,10 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
             if sc["score"] < best["score"]:
                 best = {"score": sc["score"], "step": step, "t": sc["seconds"],
                         "state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
+            if ema is not None:
+                with torch.no_grad():
+                    for p, c in zip(params, current, strict=True):
+                        p.copy_(c)
             if progress:
                 bar.write(f"step {step}: rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
     if best["state"] is not None:

@@ -433,21 +433,65 @@ def test_folded_copy_follows_a_fused_optimizer_step(demos):
     np.testing.assert_allclose(after, method.network_outputs(state, fold=False)["vel"], rtol=1e-4, atol=1e-5)
 
 
+def test_ema_weights_are_what_is_scored_and_kept(demos, monkeypatch):
+    from services.policy import train as T
+
+    seen = []  # the weights before the first step, then after each
+    step = T.optimizer_step
+
+    def recording(method, opt, loss):
+        if not seen:
+            seen.append([p.detach().clone() for p in method.net.parameters()])
+        step(method, opt, loss)
+        seen.append([p.detach().clone() for p in method.net.parameters()])
+
+    monkeypatch.setattr(T, "optimizer_step", recording)
+    method = Ours(tiny(preset("no_tactile"), ema=0.5, lr=1e-2).replace(steps=4))
+    T.fit_model(method, demos[:2], [demos[2]], progress=False)
+    ema = seen[0]
+    for s, weights in enumerate(seen[1:], start=1):
+        w = 1.0 - min(0.5, (1 + s) / (10 + s))
+        ema = [e + w * (p - e) for e, p in zip(ema, weights, strict=True)]
+    kept = [p.detach() for p in method.net.parameters()]
+    for k, e in zip(kept, ema, strict=True):
+        torch.testing.assert_close(k, e)
+    assert not all(torch.allclose(k, last) for k, last in zip(kept, seen[-1], strict=True))
+
+
 def test_turn_averaging_makes_the_step_equivariant_to_quarter_turns(trained, demos):
-    # four turns: the set of turned inputs is closed under a quarter turn, so the averaged output
-    # turns with the scene exactly; one net alone is not equivariant
+    # four turns over the whole circle: the set of turned inputs is closed under a quarter turn,
+    # so the averaged output turns with the scene exactly; one net alone is not equivariant
     state = trained.initial_state(demos[2])
+    state["mask"][[3, 30, 45]] = False  # masked points take the folded pass's correction path
     quarter = dict(state, pos=D.rotate_z(state["pos"], np.pi / 2), vel=D.rotate_z(state["vel"], np.pi / 2))
     saved = trained.cfg
     try:
         for turns, equal in ((1, False), (4, True)):
-            trained.cfg = saved.replace(turns=turns)
-            a, b = trained.network_outputs(state), trained.network_outputs(quarter)
-            turned = D.rotate_z(a["vel"].reshape(-1, 3), np.pi / 2).reshape(-1)
-            assert np.allclose(b["vel"], turned, rtol=1e-4, atol=1e-5) == equal
-            assert np.allclose(b["mask"], a["mask"], rtol=1e-4, atol=1e-5) == equal
+            trained.cfg = saved.replace(turns=turns, turn_spread=np.pi * 3 / 4)  # -135, -45, 45, 135 deg
+            for fold in (True, False):
+                trained.fold_inference = fold
+                a, b = trained.network_outputs(state), trained.network_outputs(quarter)
+                turned = D.rotate_z(a["vel"].reshape(-1, 3), np.pi / 2).reshape(-1)
+                assert np.allclose(b["vel"], turned, rtol=1e-4, atol=1e-5) == equal
+                assert np.allclose(b["mask"], a["mask"], rtol=1e-4, atol=1e-5) == equal
     finally:
-        trained.cfg = saved
+        trained.cfg, trained.fold_inference = saved, True
+
+
+def test_turned_copies_go_through_the_folded_pass_as_one_batch(trained, demos):
+    state = trained.initial_state(demos[2])
+    state["mask"][[3, 30, 45]] = False
+    saved = trained.cfg
+    try:
+        trained.cfg = saved.replace(turns=3, turn_spread=0.5)
+        trained.fold_inference = True
+        batched = trained.network_outputs(state)
+        trained.fold_inference = False
+        looped = trained.network_outputs(state)
+        for key in batched:
+            np.testing.assert_allclose(batched[key], looped[key], rtol=1e-4, atol=1e-5)
+    finally:
+        trained.cfg, trained.fold_inference = saved, True
 
 
 def test_rigid_fit_recovers_a_rigid_motion_and_stays_finite_on_a_line():
