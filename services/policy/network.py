@@ -89,7 +89,7 @@ class PolicyConfig:
     steps: int = 8000  # the validation rollout still improved at 4000 (docs/policy.md)
     batch: int = 256
     lr: float = 1e-3
-    ema: float = 0.0  # > 0: decay of an exponential moving average of the weights, which is what is scored and kept
+    ema: float = 0.0  # > 0: decay of a moving average of the weights, which is scored and kept (presets: 0.999)
     eval_every: int = 500
     eval_from: float = 0.5  # first selection rollout at this fraction of the steps (best came at 7500 of 8000)
     seed: int = 0
@@ -112,9 +112,9 @@ class PolicyConfig:
 
 
 PRESETS: dict[str, PolicyConfig] = {
-    "multimodal": PolicyConfig(body_dynamics=True),
-    "no_tactile": PolicyConfig(name="no_tactile", tactile=False, body_dynamics=True),
-    "single_state": PolicyConfig(name="single_state", tactile=False, memory=False, body_dynamics=True),
+    "multimodal": PolicyConfig(body_dynamics=True, ema=0.999),
+    "no_tactile": PolicyConfig(name="no_tactile", tactile=False, body_dynamics=True, ema=0.999),
+    "single_state": PolicyConfig(name="single_state", tactile=False, memory=False, body_dynamics=True, ema=0.999),
 }
 
 
