@@ -166,6 +166,19 @@ def test_diffusion_training_reduces_the_loss(demos):
     assert np.mean(policy.losses[-10:]) < np.mean(policy.losses[:10])
 
 
+def test_unet_passes_every_action_value_through():
+    # 8 x 6 action values against a 4 x 8 bottleneck (horizon/2 x first width): with the
+    # full-resolution skip (8 x 8) the noise prediction can depend on every input value
+    from services.policy.baselines.diffusion_nets import ConditionalUnet1D
+
+    torch.manual_seed(0)
+    net = ConditionalUnet1D(action_dim=6, cond_dim=6, down_dims=(8, 16), kernel=3, groups=4, step_embed=8)
+    t, obs, x = torch.tensor([5]), torch.randn(1, 2, 3), torch.randn(1, 8, 6)
+    jac = torch.autograd.functional.jacobian(lambda a: net(a.reshape(1, 8, 6), t, obs).reshape(-1), x.reshape(-1))
+    sv = torch.linalg.svdvals(jac)
+    assert (sv > 1e-5 * sv[0]).sum() > 4 * 8  # more directions than the half-resolution level can carry
+
+
 def test_unknown_baseline():
     with pytest.raises(KeyError):
         make("nope")

@@ -67,6 +67,13 @@ class ConditionalUnet1D(nn.Module):
             self.up.append(nn.ModuleList([
                 FiLMResBlock(2 * cout, cin, c, kernel, groups), FiLMResBlock(cin, cin, c, kernel, groups),
                 nn.ConvTranspose1d(cin, cin, 4, stride=2, padding=1)]))
+        # a full-resolution level for the first skip, which Chi et al.'s net leaves unused: without it
+        # every input value passes a down_dims[0] x horizon/2 bottleneck (160 x 8 = 1280 here), fewer
+        # values than a chunk of our 150-D actions has (16 x 150 = 2400), and the net cannot even
+        # predict the noise it is given (training loss stayed at 1.0; docs/policy.md, Session 9)
+        d0 = down_dims[0]
+        self.up.append(nn.ModuleList([FiLMResBlock(2 * d0, d0, c, kernel, groups),
+                                      FiLMResBlock(d0, d0, c, kernel, groups), nn.Identity()]))
         self.head = nn.Sequential(ConvBlock(down_dims[0], down_dims[0], kernel, groups),
                                   nn.Conv1d(down_dims[0], action_dim, 1))
 
