@@ -1,4 +1,5 @@
 """The trained network folded for batch-one inference (P4): the same function, fewer weights.
+A batch of position sets sharing everything else (turned copies of one scene) also goes through.
 
 Every geometric input of ``PolicyNet`` (hand points relative to the wrist, anchor pair
 translations, anchor heights, velocities) is a difference of two coordinates times a scale, so

@@ -373,7 +373,8 @@ class Ours:
     def _turned_outputs(self, state: dict) -> dict[str, np.ndarray]:
         """Test-time use of 7.2.4's augmentation: the net sees the state turned a few ways about
         gravity, its vector outputs are turned back and all outputs averaged. Folded, the turned
-        copies go through as one batch, so the weights are read once for all of them."""
+        copies go through as one batch (one matrix product per layer; on this CPU it costs about
+        as much as one product per copy, docs/policy.md Session 9)."""
         angles = self.turn_angles()
         pos = D.rotate_z(np.broadcast_to(state["pos"], (len(angles), *state["pos"].shape)), angles[:, None])
         vel = D.rotate_z(np.broadcast_to(state["vel"], pos.shape), angles[:, None])
