@@ -110,9 +110,14 @@ class FoldedNet:
         self.head_w = net.head.weight.detach()[idx].clone().contiguous()
         self.head_b = net.head.bias.detach()[idx].clone()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
-        self._x = np.zeros((1, self.W1.shape[1]), np.float32)
+        self._rows(1)
+
+    def _rows(self, B: int) -> None:
+        """Input buffers for B rows: float32 inputs shared with torch (no copies per call), and the
+        positions with a zero appended (the "minus" of a height feature)."""
+        self._x = np.zeros((B, self.W1.shape[1]), np.float32)
         self._xt = torch.from_numpy(self._x)
-        self._z = np.zeros((1, 3 * P + 1))  # positions and a zero (the "minus" of a height feature)
+        self._z = np.zeros((B, 3 * self.P + 1))
 
     def __call__(self, pos: np.ndarray, vel: np.ndarray, mask: np.ndarray, vmask: np.ndarray,
                  tactile: np.ndarray | None = None, tmask: np.ndarray | None = None,
@@ -123,10 +128,8 @@ class FoldedNet:
         batched = pos.ndim == 3
         flat = pos.reshape(len(pos) if batched else 1, -1)
         B, n = flat.shape
-        if len(self._x) != B:  # float32 input rows, shared with torch (no copies per call)
-            self._x = np.zeros((B, self.W1.shape[1]), np.float32)
-            self._xt = torch.from_numpy(self._x)
-            self._z = np.zeros((B, 3 * self.P + 1))  # positions and a zero (the "minus" of a height feature)
+        if len(self._x) != B:
+            self._rows(B)
         x = self._x
         x[:, :n] = flat
         i = n
