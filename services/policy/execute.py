@@ -19,10 +19,12 @@ teacher's own hands: what the cell achieves with a perfect policy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.policy.anchors import ContactAnchors, heading, pinch, pull_onto, pull_weights
 from services.policy.simulate import PolicyRunner, SceneObs
 from services.robot.board_sim import BoardSim, axis_params
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
@@ -33,6 +35,7 @@ from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGI
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
 
+_DEBUG = bool(os.environ.get("XM_DEBUG"))
 GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
 PRESS_JOINT = "right_z"  # positive effort pushes the finger down
 GRIPPER_Z = "left_z"
@@ -44,6 +47,14 @@ EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
 LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
 FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
+HOLD_M = 0.008  # the gripper holds the module: shut, with the grasp point this close to its pads
+GRASP_PULL = (0.03, 0.06)  # contact anchors: pulled fully within 3 cm, not at all beyond 6 cm
+MATE_PULL = (0.10, 0.20)
+TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
+TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
+MATE_DOCK = (0.005, 0.02)  # ... and docked onto the observed target when over it (fully within 5 mm)
+MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
+MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
 
 
 def hand_point_names(grasp_hand: str, flipped: bool = False) -> list[str]:
@@ -138,9 +149,96 @@ class ExecutionResult:
         return dict(self.__dict__)
 
 
+@dataclass
+class AnchorState:
+    """Where the contact anchors stand in one run: reaching, holding the module, mated."""
+
+    grasp_k: int  # object point indices: grasp point, held mate point, its target, the target's object
+    mate_k: int
+    target_k: int
+    target_object: list[int]
+    held: bool = False  # the gripper is shut with the grasp point between its pads
+    grasp_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the grasping hand's shift at the hold
+    pressed_s: float = 0.0  # how long the mate has been pressed while aligned
+    mated: bool = False  # pressed home: the policy's own height passes again (its lift)
+
+
+def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """(S, N, 3) points turned about gravity through (S, 3) centres by (S,) angles."""
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    d = points - centre[:, None]
+    out = points.copy()
+    out[..., 0] = centre[:, None, 0] + c * d[..., 0] - s * d[..., 1]
+    out[..., 1] = centre[:, None, 1] + s * d[..., 0] + c * d[..., 1]
+    return out
+
+
+def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objects: np.ndarray,
+                     state: AnchorState, pads: np.ndarray, gripper_heading: float, flipped: bool) -> np.ndarray:
+    """The policy's horizon (S, P, 3) with its grasping hand ``g`` moved rigidly.
+
+    Reaching: sample by sample, its pinch pulled onto the observed grasp point. Holding: by the
+    shift the grasp left; turned about its pinch so the held object takes the demonstrated heading
+    to the target; shifted as a whole so the policy's intended placement (where the held mate
+    point, carried along, comes closest to its observed target) lies over that target; and where
+    it would be over the target, docked: the pads servo the observed mate point onto it and lower
+    it to the target's height. Mated (pressed home while aligned): the sideways docking stays, the
+    policy's own height passes (its lift). ``gripper_heading``: the gripper's thumb -> index
+    heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb pad."""
+    hand = slice(g * KEYPOINTS_PER_HAND, (g + 1) * KEYPOINTS_PER_HAND)
+    pts = horizon[:, hand]
+    pinches = pinch(pts)
+    if not state.held:
+        out = horizon.copy()
+        shift = pull_onto(pinches, objects[state.grasp_k] + anchors.grasp_offset, *GRASP_PULL)
+        state.grasp_shift = shift[0]
+        out[:, hand] += shift[:, None]
+        return out
+    grasp_k, mate_k, target_k = state.grasp_k, state.mate_k, state.target_k
+    # heading: the held object keeps its offset to the gripper's; the gripper's at each sample is
+    # the policy's thumb -> index heading, turned so the object's comes out as demonstrated
+    held_heading = heading(objects[grasp_k] - objects[mate_k])
+    wanted = heading(objects[state.target_object].mean(axis=0) - objects[target_k]) + anchors.mate_yaw
+    a, b = (INDEX_TIP, THUMB_TIP) if flipped else (THUMB_TIP, INDEX_TIP)
+    policy_heading = np.arctan2(pts[:, b, 1] - pts[:, a, 1], pts[:, b, 0] - pts[:, a, 0])
+    turn = np.angle(np.exp(1j * (wanted - (held_heading - gripper_heading) - policy_heading)))
+    goals = pinches + state.grasp_shift
+    arm = _turn_about((objects[mate_k] - pads)[None, None], np.zeros((1, 3)), np.array([wanted - held_heading]))[0, 0]
+    mate = goals + arm  # the held mate point at each sample, turned as wanted, if the pads follow the goals
+    target = objects[target_k] + anchors.mate_offset
+    nearest = mate[np.argmin(np.linalg.norm(mate[:, :2] - target[:2], axis=-1))]
+    shift = np.repeat((state.grasp_shift + _flat(pull_onto(nearest[None], target, *MATE_PULL)[0]))[None],
+                      len(horizon), 0)
+    # docked where the mate point would be over its target: the pads servo the observed mate point
+    # onto it (the policy's sideways motion there is noise at this scale) and lower it
+    docked = pull_weights(np.linalg.norm((mate + shift - state.grasp_shift)[:, :2] - target[:2], axis=-1),
+                          *MATE_DOCK)[:, None]
+    servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
+    if not state.mated:
+        servo[:, 2] = target[2] - objects[mate_k][2] + pads[2] - pinches[:, 2]
+    else:
+        servo[:, 2] = state.grasp_shift[2]
+    shift = (1 - docked) * shift + docked * servo
+    out = horizon.copy()
+    out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
+    return out
+
+
+def _flat(v: np.ndarray) -> np.ndarray:
+    """The horizontal part of (..., 3) vectors."""
+    return np.asarray(v, float) * [1.0, 1.0, 0.0]
+
+
+def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
+    """Contact from predicted pressure, with hysteresis: on above TOUCH_ON of the demonstrated
+    pressure, off again only below TOUCH_OFF of it (a prediction that wavers near one threshold
+    would open the gripper mid-carry)."""
+    return kpa > (TOUCH_OFF if on else TOUCH_ON) * demonstrated_kpa
+
+
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
-                   feedback: bool = False) -> ExecutionResult:
+                   feedback: bool = False, anchors: ContactAnchors | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
@@ -149,7 +247,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     ``feedback``: the robot's own points are observed as the policy's hands (7.6.8: the robot's
     end-effector keypoints are detected like the objects'): each step the grasping hand is moved
     rigidly so its pinch lies between the gripper's pads, instead of the policy running on its own
-    predicted hands."""
+    predicted hands.
+    ``anchors``: contact anchors mined from the training demonstrations (services/policy/anchors.py):
+    the grasping hand's goals are pulled onto the observed grasp point while reaching, and once the
+    module is held, onto the placement that brings its mate point to the observed target."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
@@ -191,6 +292,12 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     lens = names.index("camera/lens")
     closest, opening, max_kpa, min_gap, policy_closest = np.inf, np.nan, 0.0, np.inf, np.inf
     frame, press_beside = 0, False
+    squeeze, pressing, squeeze_since, grip = False, False, 0.0, 1.0
+    if anchors is not None:
+        grasp_k, mate_k, target_k = (names.index(n) for n in (anchors.grasp_point, anchors.mate_point,
+                                                                 anchors.mate_target))
+        target_object = [i for i, n in enumerate(names) if n.split("/")[0] == anchors.mate_target.split("/")[0]]
+        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object)
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
@@ -205,6 +312,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP]) - objects[lens])))
         if k % plan_every == 0:
             horizon = runner.horizon(None, int(round(horizon_s / dt)) + 1)
+            if anchors is not None:
+                robot_tips = opt.points(sim.joint_state()[0])[tips]
+                horizon = anchored_horizon(horizon, g, anchors, objects, anchor_state, robot_tips.mean(axis=0),
+                                           heading(robot_tips[1] - robot_tips[0]), flipped)
             plan = PlanArrays(t, dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
             # the finger yields where it would work beside the gripper: on one rail the carriages
@@ -230,14 +341,35 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         effort = np.zeros(n)
         kpa = float(runner.efforts[g, THUMB] + runner.efforts[g, INDEX])
         max_kpa = max(max_kpa, kpa)
-        squeeze = grasp_kpa is not None and kpa > grasp_kpa  # 7.2.10: predicted touch becomes squeeze
-        if squeeze:
-            effort[fingers] = -EFFORT_N_PER_KPA * kpa
+        if anchors is None:
+            squeeze = grasp_kpa is not None and kpa > grasp_kpa  # 7.2.10: predicted touch becomes squeeze
+            if squeeze:
+                effort[fingers] = -EFFORT_N_PER_KPA * kpa
+        else:  # predicted touch says when, the demonstrations how hard (on/off with hysteresis)
+            was = squeeze
+            squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa)
+            squeeze_since = t if squeeze and not was else squeeze_since
+            if squeeze:  # ramped in as the demonstrations' grasp force is: shut at once, the fingers flick the lens away
+                grip = min(1.0, (t - squeeze_since) / TOUCH_RAMP_S)
+                effort[fingers] = -EFFORT_N_PER_KPA * anchors.grasp_kpa * grip
+        if anchors is not None and not anchor_state.held and squeeze:
+            pads = opt.points(sim.joint_state()[0])[tips].mean(axis=0)
+            anchor_state.held = bool(np.linalg.norm(objects[grasp_k] - pads) < HOLD_M)
         # ... and push: with the finger, or where the finger would press beside the gripper (the
         # two carriages cannot come that close on their rail) with the gripper on what it holds
         # (impedance mode on that axis while pushing: the position loop's integral would undo the push)
         push = EFFORT_N_PER_KPA * max(0.0, float(runner.efforts[p, INDEX]))
         pusher = gripper_z if press_beside else press
+        if anchors is not None:
+            # the mate anchor presses where the demonstrations pressed: on the aligned mate, with the
+            # gripper (the finger cannot come beside it on the rail); elsewhere predicted touch decides
+            gap = objects[mate_k] - objects[target_k] - anchors.mate_offset
+            aligned = anchor_state.held and np.linalg.norm(gap[:2]) < MATED_M and abs(gap[2]) < MATED_DZ_M
+            pressing = aligned or touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
+            push = EFFORT_N_PER_KPA * anchors.press_kpa if pressing else 0.0
+            pusher = gripper_z if aligned else pusher
+            anchor_state.pressed_s = anchor_state.pressed_s + dt if aligned else 0.0
+            anchor_state.mated = anchor_state.mated or anchor_state.pressed_s >= MATED_PRESS_S
         effort[pusher] = push
         modes = np.full(n, Mode.POSITION, np.uint8)
         stiffness, damping = np.zeros(n), np.zeros(n)
@@ -248,7 +380,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             if sub % FRAME_EVERY == 0:  # a frame every 4 ms, well inside the board's 10 ms watchdog
                 q_cmd, v_cmd = sample_trajectory(current, (sim.time - t_current) / opt_dt, opt_dt)
                 if squeeze:
-                    q_cmd[fingers] = 0.0
+                    q_cmd[fingers] *= 1.0 - grip
                 board.receive(CommandFrame(frame, modes, q_cmd, v_cmd, effort, stiffness, damping), sim.time)
                 frame += 1
             q, qd = sim.joint_state()
@@ -256,6 +388,12 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             sim.set_efforts(efforts)
             sim.step(1)
         success = success or sim.assembly_success()
+        if k % plan_every == 0 and _DEBUG:
+            q_now, _ = sim.joint_state()
+            pads = opt.points(q_now)[tips].mean(axis=0)
+            print(f"t={sim.time:.1f} sq={squeeze:d} held={anchor_state.held:d} kpa={kpa:.0f} open={q_now[fingers].sum()*1e3:.0f} "
+                  f"pads-lens={np.round((pads - objects[lens])*1e3)} lens={np.round(objects[lens]*1e3)} press={push:.1f} pusher={pusher} "
+                  f"gap={np.round(sim.connector_gap()*1e3,1)} force={sim._seat_force():.1f} mated={anchor_state.mated:d}")
         if k % plan_every == 0:
             q_now, _ = sim.joint_state()
             _, objects = sim.object_keypoints()
