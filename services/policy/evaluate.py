@@ -242,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hand-feedback", action="store_true",
                         help="--execute: the policy observes its grasping hand where the robot's gripper is "
                              "(moved rigidly onto the pads) instead of its own prediction")
+    parser.add_argument("--no-anchors", action="store_true",
+                        help="--execute: the policy's goals as they are, without the contact anchors mined from "
+                        "the training demonstrations (grasp point, connector mate, pressures; docs/policy.md)")
     parser.add_argument("--layouts", type=int, default=12, help="--execute: how many validation layouts (default 12)")
     parser.add_argument("--teacher", action="store_true",
                         help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
@@ -264,8 +267,10 @@ def execute_main(args: argparse.Namespace) -> int:
     """`xm eval --execute`: success rate of the robot driven by the learned policy."""
     from tqdm import tqdm
 
+    from services.policy.anchors import AnchorError, mine_anchors
     from services.policy.execute import execute_layout
     from services.policy.ours import Ours, PolicyError
+    from services.world.teacher import assembly_protocol
 
     path = Path(args.checkpoint)
     if args.teacher:
@@ -283,9 +288,17 @@ def execute_main(args: argparse.Namespace) -> int:
     import torch
 
     torch.set_num_threads(1)
+    anchors = None
+    if not args.no_anchors:
+        try:
+            anchors = mine_anchors(assembly_protocol(args.seed)[:3])
+        except AnchorError as exc:
+            print(f"error: no contact anchors in the training demonstrations ({exc}); run with --no-anchors",
+                  file=sys.stderr)
+            return 2
     results = []
     for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback)
+        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors)
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
@@ -299,8 +312,11 @@ def execute_main(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
                                                   "hand_feedback": args.hand_feedback,
+                                                  "anchors": anchors.to_dict() if anchors else None,
                                                   "layouts": results}, indent=2))
-    print(f"success {rate * 100:.0f} % of {len(results)} layouts (target 90 %); details in {out / 'execute.json'}")
+    how = "with contact anchors" if anchors else "without contact anchors"
+    print(f"success {rate * 100:.0f} % of {len(results)} layouts {how} (target 90 %); details in "
+          f"{out / 'execute.json'}")
     return 0
 
 

@@ -19,7 +19,6 @@ teacher's own hands: what the cell achieves with a perfect policy.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,7 +34,6 @@ from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGI
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
 
-_DEBUG = bool(os.environ.get("XM_DEBUG"))
 GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
 PRESS_JOINT = "right_z"  # positive effort pushes the finger down
 GRIPPER_Z = "left_z"
@@ -48,7 +46,8 @@ LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gr
 FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
 HOLD_M = 0.008  # the gripper holds the module: shut, with the grasp point this close to its pads
-GRASP_PULL = (0.03, 0.06)  # contact anchors: pulled fully within 3 cm, not at all beyond 6 cm
+LOST_M = 0.02  # ... and has lost it when the point is this far from them
+GRASP_PULL = (0.03, 0.10)  # contact anchors: pulled fully within 3 cm, not at all beyond 10 cm
 MATE_PULL = (0.10, 0.20)
 TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
@@ -157,8 +156,11 @@ class AnchorState:
     mate_k: int
     target_k: int
     target_object: list[int]
+    observed_hand: bool = False  # the policy observes its grasping hand at the gripper (hand feedback)
     held: bool = False  # the gripper is shut with the grasp point between its pads
     grasp_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the grasping hand's shift at the hold
+    closing: bool = False  # the gripper is closing on the grasp point
+    across: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the placement shift in force (first sample)
     pressed_s: float = 0.0  # how long the mate has been pressed while aligned
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
 
@@ -174,7 +176,8 @@ def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np
 
 
 def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objects: np.ndarray,
-                     state: AnchorState, pads: np.ndarray, gripper_heading: float, flipped: bool) -> np.ndarray:
+                     state: AnchorState, pads: np.ndarray, gripper_heading: float, flipped: bool,
+                     plan_samples: int = 5) -> np.ndarray:
     """The policy's horizon (S, P, 3) with its grasping hand ``g`` moved rigidly.
 
     Reaching: sample by sample, its pinch pulled onto the observed grasp point. Holding: by the
@@ -184,17 +187,22 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     it would be over the target, docked: the pads servo the observed mate point onto it and lower
     it to the target's height. Mated (pressed home while aligned): the sideways docking stays, the
     policy's own height passes (its lift). ``gripper_heading``: the gripper's thumb -> index
-    heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb pad."""
+    heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb pad;
+    ``plan_samples``: horizon samples until the next plan (the placement shift eases in over the
+    horizon, and what has been eased in by then stays in force)."""
     hand = slice(g * KEYPOINTS_PER_HAND, (g + 1) * KEYPOINTS_PER_HAND)
     pts = horizon[:, hand]
     pinches = pinch(pts)
     if not state.held:
         out = horizon.copy()
-        shift = pull_onto(pinches, objects[state.grasp_k] + anchors.grasp_offset, *GRASP_PULL)
+        grasp = objects[state.grasp_k] + anchors.grasp_offset
+        shift = grasp - pinches if state.closing else pull_onto(pinches, grasp, *GRASP_PULL)
         state.grasp_shift = shift[0]
         out[:, hand] += shift[:, None]
         return out
     grasp_k, mate_k, target_k = state.grasp_k, state.mate_k, state.target_k
+    if state.observed_hand:  # the policy's hand already starts where the gripper is
+        state.grasp_shift = np.zeros(3)
     # heading: the held object keeps its offset to the gripper's; the gripper's at each sample is
     # the policy's thumb -> index heading, turned so the object's comes out as demonstrated
     held_heading = heading(objects[grasp_k] - objects[mate_k])
@@ -207,11 +215,14 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     mate = goals + arm  # the held mate point at each sample, turned as wanted, if the pads follow the goals
     target = objects[target_k] + anchors.mate_offset
     nearest = mate[np.argmin(np.linalg.norm(mate[:, :2] - target[:2], axis=-1))]
-    shift = np.repeat((state.grasp_shift + _flat(pull_onto(nearest[None], target, *MATE_PULL)[0]))[None],
-                      len(horizon), 0)
+    across = _flat(pull_onto(nearest[None], target, *MATE_PULL)[0])
+    # eased in over the horizon from the one in force: a jump would fling the module out of the grip
+    ease = np.minimum(1.0, np.arange(1, len(horizon) + 1) / len(horizon))[:, None]
+    shift = state.grasp_shift + state.across + ease * (across - state.across)
+    state.across = shift[min(plan_samples, len(shift)) - 1] - state.grasp_shift
     # docked where the mate point would be over its target: the pads servo the observed mate point
     # onto it (the policy's sideways motion there is noise at this scale) and lower it
-    docked = pull_weights(np.linalg.norm((mate + shift - state.grasp_shift)[:, :2] - target[:2], axis=-1),
+    docked = pull_weights(np.linalg.norm((mate + across)[:, :2] - target[:2], axis=-1),
                           *MATE_DOCK)[:, None]
     servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
     if not state.mated:
@@ -297,7 +308,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         grasp_k, mate_k, target_k = (names.index(n) for n in (anchors.grasp_point, anchors.mate_point,
                                                                  anchors.mate_target))
         target_object = [i for i, n in enumerate(names) if n.split("/")[0] == anchors.mate_target.split("/")[0]]
-        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object)
+        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, feedback)
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
@@ -315,7 +326,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             if anchors is not None:
                 robot_tips = opt.points(sim.joint_state()[0])[tips]
                 horizon = anchored_horizon(horizon, g, anchors, objects, anchor_state, robot_tips.mean(axis=0),
-                                           heading(robot_tips[1] - robot_tips[0]), flipped)
+                                           heading(robot_tips[1] - robot_tips[0]), flipped, plan_every)
             plan = PlanArrays(t, dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
             # the finger yields where it would work beside the gripper: on one rail the carriages
@@ -345,16 +356,21 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             squeeze = grasp_kpa is not None and kpa > grasp_kpa  # 7.2.10: predicted touch becomes squeeze
             if squeeze:
                 effort[fingers] = -EFFORT_N_PER_KPA * kpa
-        else:  # predicted touch says when, the demonstrations how hard (on/off with hysteresis)
-            was = squeeze
-            squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa)
-            squeeze_since = t if squeeze and not was else squeeze_since
-            if squeeze:  # ramped in as the demonstrations' grasp force is: shut at once, the fingers flick the lens away
-                grip = min(1.0, (t - squeeze_since) / TOUCH_RAMP_S)
-                effort[fingers] = -EFFORT_N_PER_KPA * anchors.grasp_kpa * grip
-        if anchors is not None and not anchor_state.held and squeeze:
+        else:  # predicted touch says when, the demonstrations how hard (on/off with hysteresis); the
+            # gripper closes only on the grasp point, dwells there while it closes, and a grip that
+            # loses the point is let go (back to reaching)
             pads = opt.points(sim.joint_state()[0])[tips].mean(axis=0)
-            anchor_state.held = bool(np.linalg.norm(objects[grasp_k] - pads) < HOLD_M)
+            near = np.linalg.norm(objects[grasp_k] - pads)
+            if anchor_state.held and near > LOST_M:
+                anchor_state.held = anchor_state.mated = False
+            was = squeeze
+            squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa) and (anchor_state.held or near < HOLD_M)
+            squeeze_since = t if squeeze and not was else squeeze_since
+            grip = min(1.0, (t - squeeze_since) / TOUCH_RAMP_S)
+            if squeeze:  # ramped in like the demonstrations' grasp force: shut at once, it flicks the lens away
+                effort[fingers] = -EFFORT_N_PER_KPA * anchors.grasp_kpa * grip
+            anchor_state.closing = squeeze and not anchor_state.held
+            anchor_state.held = anchor_state.held or (squeeze and grip >= 1.0 and near < HOLD_M)
         # ... and push: with the finger, or where the finger would press beside the gripper (the
         # two carriages cannot come that close on their rail) with the gripper on what it holds
         # (impedance mode on that axis while pushing: the position loop's integral would undo the push)
@@ -388,12 +404,6 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             sim.set_efforts(efforts)
             sim.step(1)
         success = success or sim.assembly_success()
-        if k % plan_every == 0 and _DEBUG:
-            q_now, _ = sim.joint_state()
-            pads = opt.points(q_now)[tips].mean(axis=0)
-            print(f"t={sim.time:.1f} sq={squeeze:d} held={anchor_state.held:d} kpa={kpa:.0f} open={q_now[fingers].sum()*1e3:.0f} "
-                  f"pads-lens={np.round((pads - objects[lens])*1e3)} lens={np.round(objects[lens]*1e3)} press={push:.1f} pusher={pusher} "
-                  f"gap={np.round(sim.connector_gap()*1e3,1)} force={sim._seat_force():.1f} mated={anchor_state.mated:d}")
         if k % plan_every == 0:
             q_now, _ = sim.joint_state()
             _, objects = sim.object_keypoints()
