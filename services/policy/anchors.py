@@ -6,7 +6,8 @@ hands settle about 1-2 cm from where the contact happens (docs/policy.md), while
 needs about 2 mm. The demonstrations themselves say where the contacts are:
 
 - the grasp anchor: the point of the first object that moves which the grasping hand's pinch
-  (thumb-index midpoint) holds, and the pinch's offset from it when the object starts to move;
+  (thumb-index midpoint) holds, the pinch's offset from it when the object starts to move, and
+  the pinch line's heading against the object's (a parallel gripper closes square on it);
 - the mate anchor: the pair of points, one on the held object and one on another object, that
   comes closest in every demonstration (the module's connector on the board's), with its offset;
 - how hard: the grasping and pressing pressures the gloved demonstrations measured.
@@ -37,6 +38,7 @@ class AnchorError(ValueError):
 class ContactAnchors:
     grasp_point: str  # object point the pinch holds, e.g. "camera/lens"
     grasp_offset: np.ndarray  # (3,) pinch - grasp point, median over demonstrations
+    grasp_yaw: float  # the pinch line's (thumb -> index) heading less the held object's (grasp -> mate point), mod pi
     mate_point: str  # point of the held object, e.g. "camera/connector"
     mate_target: str  # point of another object it is brought to, e.g. "board/connector"
     mate_offset: np.ndarray  # (3,) mate point - target at closest approach, median over demonstrations
@@ -107,7 +109,13 @@ def mine_anchors(demos: list[Demo]) -> ContactAnchors:
     turns = [relative_heading(d.objects[t[i, j]], grasp_k, mate_k, target_k, target_object)
              for d, (_, _, t) in zip(demos, closest, strict=True)]
     mate_yaw = float(np.angle(np.mean(np.exp(1j * np.array(turns)))))
-    return ContactAnchors(grasp_point, np.median([o for *_, o in grasps], axis=0), names[own[i]], names[other[j]],
+    # a parallel pinch is the same turned by pi: average the doubled angles
+    pinch_turns = [heading(d.hands[t0, h, INDEX_TIP] - d.hands[t0, h, THUMB_TIP])
+                   - heading(d.objects[t0, mate_k] - d.objects[t0, grasp_k]) for d, (h, _, t0, _) in zip(demos, grasps,
+                                                                                                       strict=True)]
+    grasp_yaw = float(np.angle(np.mean(np.exp(2j * np.array(pinch_turns))))) / 2
+    return ContactAnchors(grasp_point, np.median([o for *_, o in grasps], axis=0), grasp_yaw, names[own[i]],
+                          names[other[j]],
                           mate_offset, float(np.linalg.norm(offsets - mate_offset, axis=-1).max()), mate_yaw,
                           _peak(demos, [h for h, *_ in grasps], (THUMB, INDEX), "grasping"),
                           _peak(demos, [1 - h for h, *_ in grasps], (INDEX,), "pressing"))

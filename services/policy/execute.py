@@ -19,6 +19,7 @@ teacher's own hands: what the cell achieves with a perfect policy.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +52,7 @@ GRASP_PULL = (0.03, 0.10)  # contact anchors: pulled fully within 3 cm, not at a
 MATE_PULL = (0.10, 0.20)
 TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
+GRIP_SETTLE_S = float(os.environ.get("GS", 0.6))
 MATE_DOCK = (0.005, 0.02)  # ... and docked onto the observed target when over it (fully within 5 mm)
 MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
@@ -180,7 +182,8 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
                      plan_samples: int = 5) -> np.ndarray:
     """The policy's horizon (S, P, 3) with its grasping hand ``g`` moved rigidly.
 
-    Reaching: sample by sample, its pinch pulled onto the observed grasp point. Holding: by the
+    Reaching: sample by sample, its pinch pulled onto the observed grasp point and its pinch line
+    turned square to the object as demonstrated (all the way while the gripper closes). Holding: by the
     shift the grasp left; turned about its pinch so the held object takes the demonstrated heading
     to the target; shifted as a whole so the policy's intended placement (where the held mate
     point, carried along, comes closest to its observed target) lies over that target; and where
@@ -196,9 +199,15 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     if not state.held:
         out = horizon.copy()
         grasp = objects[state.grasp_k] + anchors.grasp_offset
-        shift = grasp - pinches if state.closing else pull_onto(pinches, grasp, *GRASP_PULL)
+        pull = np.ones(len(pinches)) if state.closing else pull_weights(np.linalg.norm(grasp - pinches, axis=-1),
+                                                                        *GRASP_PULL)
+        shift = pull[:, None] * (grasp - pinches)
         state.grasp_shift = shift[0]
-        out[:, hand] += shift[:, None]
+        # the pinch line turned square to the object as demonstrated (either way round: a parallel pinch)
+        square = heading(objects[state.mate_k] - objects[state.grasp_k]) + anchors.grasp_yaw
+        line = np.arctan2(pts[:, INDEX_TIP, 1] - pts[:, THUMB_TIP, 1], pts[:, INDEX_TIP, 0] - pts[:, THUMB_TIP, 0])
+        turn = pull * np.angle(np.exp(2j * (square - line))) / 2
+        out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
         return out
     grasp_k, mate_k, target_k = state.grasp_k, state.mate_k, state.target_k
     if state.observed_hand:  # the policy's hand already starts where the gripper is
@@ -370,7 +379,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             if squeeze:  # ramped in like the demonstrations' grasp force: shut at once, it flicks the lens away
                 effort[fingers] = -EFFORT_N_PER_KPA * anchors.grasp_kpa * grip
             anchor_state.closing = squeeze and not anchor_state.held
-            anchor_state.held = anchor_state.held or (squeeze and grip >= 1.0 and near < HOLD_M)
+            anchor_state.held = anchor_state.held or (squeeze and t - squeeze_since >= GRIP_SETTLE_S
+                                                      and near < HOLD_M)
         # ... and push: with the finger, or where the finger would press beside the gripper (the
         # two carriages cannot come that close on their rail) with the gripper on what it holds
         # (impedance mode on that axis while pushing: the position loop's integral would undo the push)
