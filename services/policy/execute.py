@@ -19,7 +19,6 @@ teacher's own hands: what the cell achieves with a perfect policy.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,7 +51,7 @@ GRASP_PULL = (0.03, 0.10)  # contact anchors: pulled fully within 3 cm, not at a
 MATE_PULL = (0.10, 0.20)
 TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
-GRIP_SETTLE_S = float(os.environ.get("GS", 0.6))
+GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
 MATE_DOCK = (0.005, 0.02)  # ... and docked onto the observed target when over it (fully within 5 mm)
 MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
@@ -162,6 +161,7 @@ class AnchorState:
     held: bool = False  # the gripper is shut with the grasp point between its pads
     grasp_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the grasping hand's shift at the hold
     closing: bool = False  # the gripper is closing on the grasp point
+    grasp_at: np.ndarray | None = None  # the grasp point the pinch is pulled onto
     across: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the placement shift in force (first sample)
     pressed_s: float = 0.0  # how long the mate has been pressed while aligned
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
@@ -198,7 +198,9 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     pinches = pinch(pts)
     if not state.held:
         out = horizon.copy()
-        grasp = objects[state.grasp_k] + anchors.grasp_offset
+        if not state.closing or state.grasp_at is None:  # while closing: where it was (the fingers nudge it)
+            state.grasp_at = objects[state.grasp_k] + anchors.grasp_offset
+        grasp = state.grasp_at
         pull = np.ones(len(pinches)) if state.closing else pull_weights(np.linalg.norm(grasp - pinches, axis=-1),
                                                                         *GRASP_PULL)
         shift = pull[:, None] * (grasp - pinches)
@@ -342,6 +344,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             # cannot come that close, and the gripper then presses instead (below)
             beside = np.linalg.norm(goals[:, finger, :2] - goals[:, tips, :2].mean(axis=1), axis=-1) < PRESS_BESIDE_M
             mask[:, finger] &= ~beside
+            if anchors is not None and anchor_state.held and not anchor_state.mated:
+                mask[:, finger] = False  # the gripper places and presses itself: the finger makes room
             press_beside = bool(beside[0])
             # as close as the gantry gets: the optimizer rejects goals outside its reach
             goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
