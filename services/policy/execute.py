@@ -52,6 +52,7 @@ MATE_PULL = (0.10, 0.20)
 TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
+DOCK_CLEARANCE_M = 0.004
 MATE_DOCK = (0.005, 0.02)  # ... and docked onto the observed target when over it (fully within 5 mm)
 MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
@@ -163,6 +164,7 @@ class AnchorState:
     closing: bool = False  # the gripper is closing on the grasp point
     grasp_at: np.ndarray | None = None  # the grasp point the pinch is pulled onto
     across: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the placement shift in force (first sample)
+    docking: bool = False  # the mate point reached its target: docked until mated
     pressed_s: float = 0.0  # how long the mate has been pressed while aligned
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
 
@@ -235,9 +237,17 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     # onto it (the policy's sideways motion there is noise at this scale) and lower it
     docked = pull_weights(np.linalg.norm((mate + across)[:, :2] - target[:2], axis=-1),
                           *MATE_DOCK)[:, None]
+    # once the observed mate point is over its target it stays docked until pressed home: the
+    # policy's next move (lifting, retreating) would otherwise pull it off before the press
+    state.docking = state.docking or (not state.mated and float(np.linalg.norm(
+        (objects[mate_k] - target)[:2])) < MATE_DOCK[1])
+    if state.docking and not state.mated:
+        docked = np.ones_like(docked)
     servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
     if not state.mated:
-        servo[:, 2] = target[2] - objects[mate_k][2] + pads[2] - pinches[:, 2]
+        # hovering just above until it is over the target (slid along the board it sticks short)
+        above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
+        servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
     else:
         servo[:, 2] = state.grasp_shift[2]
     shift = (1 - docked) * shift + docked * servo
@@ -306,6 +316,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     gripper_z = sim.joint_names.index(GRIPPER_Z)
     q, _ = sim.joint_state()
     current, t_current = np.repeat(q[None], knots, axis=0), 0.0
+    finger_home = opt.points(q)[opt.point_names.index("right/8")]
     n = len(sim.joint_names)
     success, rejected, tracking = False, 0, []
     fingers = [sim.joint_names.index(j) for j in GRIPPER_JOINTS]
@@ -345,7 +356,9 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             beside = np.linalg.norm(goals[:, finger, :2] - goals[:, tips, :2].mean(axis=1), axis=-1) < PRESS_BESIDE_M
             mask[:, finger] &= ~beside
             if anchors is not None and anchor_state.held and not anchor_state.mated:
-                mask[:, finger] = False  # the gripper places and presses itself: the finger makes room
+                # the gripper places and presses itself: the finger goes home, out of its way (a
+                # finger merely left without a goal stays put, and its carriage blocks the gripper)
+                goals[:, finger], mask[:, finger] = finger_home, True
             press_beside = bool(beside[0])
             # as close as the gantry gets: the optimizer rejects goals outside its reach
             goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
