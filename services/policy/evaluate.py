@@ -239,12 +239,14 @@ def main(argv: list[str] | None = None) -> int:
                         "through trajopt and the control board on the 12 validation layouts; writes execute.json")
     parser.add_argument("--checkpoint", default="runs/policy/policy.pt",
                         help="--execute: policy checkpoint (default %(default)s; `make policy` trains it)")
-    parser.add_argument("--hand-feedback", action="store_true",
-                        help="--execute: the policy observes its grasping hand where the robot's gripper is "
-                             "(moved rigidly onto the pads) instead of its own prediction")
-    parser.add_argument("--no-anchors", action="store_true",
-                        help="--execute: the policy's goals as they are, without the contact anchors mined from "
-                        "the training demonstrations (grasp point, connector mate, pressures; docs/policy.md)")
+    parser.add_argument("--hand-feedback", action=argparse.BooleanOptionalAction, default=True,
+                        help="--execute: the policy observes its grasping hand where the robot's gripper is (moved "
+                             "rigidly onto the pads), as the thesis's robot saw its end-effector keypoints; "
+                             "--no-hand-feedback: its own prediction (default: on)")
+    parser.add_argument("--anchors", action=argparse.BooleanOptionalAction, default=True,
+                        help="--execute: contact anchors mined from the training demonstrations (grasp point and "
+                        "heading, connector mate, pressures; docs/policy.md) close the last centimetres; "
+                        "--no-anchors: the policy's goals as they are (default: on)")
     parser.add_argument("--layouts", type=int, default=12, help="--execute: how many validation layouts (default 12)")
     parser.add_argument("--teacher", action="store_true",
                         help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
@@ -289,7 +291,7 @@ def execute_main(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(1)
     anchors = None
-    if not args.no_anchors:
+    if args.anchors:
         try:
             anchors = mine_anchors(assembly_protocol(args.seed)[:3])
         except AnchorError as exc:
