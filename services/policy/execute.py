@@ -15,6 +15,15 @@ neural simulation of the first seconds (the hand whose pinch comes closest to th
 Predicted touch becomes effort (7.2.10): grasping thumb + index pressure shuts the gripper,
 pressing index pressure pushes the finger down. ``TeacherReplay`` runs the same loop on the
 teacher's own hands: what the cell achieves with a perfect policy.
+
+Contact anchors (``anchors``, services/policy/anchors.py; ``anchored_horizon``): the contacts every
+training demonstration makes close the last centimetres the policy leaves. Reaching, its pinch is
+pulled onto the observed grasp point and turned square to it; predicted touch then closes the
+gripper there (on/off with hysteresis, at the demonstrated force) and it dwells until the grip
+settles; holding, the module is turned to the demonstrated heading against the board, its
+intended placement shifted over the board's connector (eased in), docked there by servoing the
+observed connectors together, pressed home by the gripper, and only then the policy's own lift
+passes again. The policy still chooses the hand, the path, the timing of grasp and lift.
 """
 
 from __future__ import annotations
@@ -167,6 +176,8 @@ class AnchorState:
     docking: bool = False  # the mate point reached its target: docked until mated
     pressed_s: float = 0.0  # how long the mate has been pressed while aligned
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
+    mated_at: np.ndarray | None = None  # the pads when mated, and the policy's lowest pinch since
+    mated_pinch_z: float = 0.0
 
 
 def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -241,15 +252,22 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     # policy's next move (lifting, retreating) would otherwise pull it off before the press
     state.docking = state.docking or (not state.mated and float(np.linalg.norm(
         (objects[mate_k] - target)[:2])) < MATE_DOCK[1])
-    if state.docking and not state.mated:
+    if state.docking:
         docked = np.ones_like(docked)
     servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
     if not state.mated:
         # hovering just above until it is over the target (slid along the board it sticks short)
         above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
         servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
-    else:
-        servo[:, 2] = state.grasp_shift[2]
+    else:  # pressed home: the pads stay where they pressed (servoing on would drag the mated pair apart)
+        # and the policy's lift passes: as it is where the policy observes its hand at the pads, else
+        # counted from the pads and from the policy's lowest pinch since (the hold's shift is stale by
+        # now: the policy moved on while the gripper dwelled and docked)
+        if state.mated_at is None:
+            state.mated_at, state.mated_pinch_z = pads.copy(), float(pinches[0, 2])
+        state.mated_pinch_z = min(state.mated_pinch_z, float(pinches[0, 2]))
+        servo = state.mated_at[None] - pinches
+        servo[:, 2] = 0.0 if state.observed_hand else state.mated_at[2] - state.mated_pinch_z
     shift = (1 - docked) * shift + docked * servo
     out = horizon.copy()
     out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
@@ -389,6 +407,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             near = np.linalg.norm(objects[grasp_k] - pads)
             if anchor_state.held and near > LOST_M:
                 anchor_state.held = anchor_state.mated = False
+                anchor_state.mated_at = None
             was = squeeze
             squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa) and (anchor_state.held or near < HOLD_M)
             squeeze_since = t if squeeze and not was else squeeze_since
@@ -407,7 +426,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             # the mate anchor presses where the demonstrations pressed: on the aligned mate, with the
             # gripper (the finger cannot come beside it on the rail); elsewhere predicted touch decides
             gap = objects[mate_k] - objects[target_k] - anchors.mate_offset
-            aligned = anchor_state.held and np.linalg.norm(gap[:2]) < MATED_M and abs(gap[2]) < MATED_DZ_M
+            aligned = (anchor_state.held and not anchor_state.mated and np.linalg.norm(gap[:2]) < MATED_M
+                       and abs(gap[2]) < MATED_DZ_M)  # pressed home: the push ends, or it fights the lift
             pressing = aligned or touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
             push = EFFORT_N_PER_KPA * anchors.press_kpa if pressing else 0.0
             pusher = gripper_z if aligned else pusher

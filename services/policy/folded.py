@@ -110,6 +110,12 @@ class FoldedNet:
         self.head_w = net.head.weight.detach()[idx].clone().contiguous()
         self.head_b = net.head.bias.detach()[idx].clone()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
+        # batch one runs on numpy's BLAS: its float32 matrix-vector product takes about half the time
+        # of torch.addmv on the hosts measured (docs/policy.md, P4)
+        self._np_w1, self._np_b1 = self.W1.numpy(), self.b1.numpy()
+        self._np_layers = [(W.numpy(), b.numpy()) for W, b in self.layers]
+        self._np_head = (self.head_w.numpy(), self.head_b.numpy())
+        self._np_point_rows = [r.numpy() for r in self.point_rows]
         self._rows(1)
 
     def _rows(self, B: int) -> None:
@@ -152,6 +158,9 @@ class FoldedNet:
         x[:, start:] -= self.mean_small
         if self.tactile:  # a masked tactile reading is zero after normalization
             x[:, tactile_at:tactile_at + tm.size] *= tm
+        if B == 1:
+            out = self._forward_one(x[0], flat, vel, mask, vmask)
+            return {k: out[s] for k, s in self.slices.items()}
         with torch.inference_mode():
             h = torch.addmv(self.b1, self.W1, self._xt[0]) if B == 1 else torch.addmm(self.b1, self._xt, self.W1.T)
             hidden = np.flatnonzero(~mask)
@@ -181,3 +190,36 @@ class FoldedNet:
             out = torch.addmv(self.head_b, self.head_w, h) if B == 1 else torch.addmm(self.head_b, h, self.head_w.T)
             out = out.numpy().astype(np.float64)
         return {k: out[..., s] if batched else out[s] for k, s in self.slices.items()}
+
+    def _forward_one(self, x: np.ndarray, flat: np.ndarray, vel: np.ndarray, mask: np.ndarray,
+                     vmask: np.ndarray) -> np.ndarray:
+        """The batched path of ``__call__`` for one state, on numpy's BLAS (float32)."""
+        h = self._np_w1 @ x
+        h += self._np_b1
+        hidden = np.flatnonzero(~mask)
+        if len(hidden):  # masked features: their normalized value is zero, not (x - mean) / std
+            z = self._z
+            z[:, :-1] = flat
+            for p in hidden:
+                plus, minus, scale, mean = self.point_terms[p]
+                d = self._d[p]
+                d[..., :-1] = scale * (z[:, plus] - z[:, minus]) - mean
+                h -= (d @ self._np_point_rows[p])[0]
+            if len(hidden) > 1:  # a feature of two masked points was taken out twice
+                twice = np.flatnonzero(~mask[self.m_a] & ~mask[self.m_b] & (self.m_a != self.m_b))
+                if len(twice):
+                    d = (self.scale[twice] * (z[0, self.plus[twice]] - z[0, self.minus[twice]])
+                         - self.mean_lin[twice]).astype(np.float32)
+                    h += d @ self.G_lin_rows.numpy()[twice]
+        if self.vel_input:
+            voff = np.flatnonzero(~vmask[self.m_vel])
+            if len(voff):
+                d = (vel.reshape(-1)[voff] * VEL_SCALE - self.mean_vel[voff]).astype(np.float32)
+                h -= d @ self.G_vel_rows.numpy()[voff]
+        np.maximum(h, 0.0, out=h)
+        for W, b in self._np_layers:
+            h = W @ h
+            h += b
+            np.maximum(h, 0.0, out=h)
+        W, b = self._np_head
+        return (W @ h + b).astype(np.float64)

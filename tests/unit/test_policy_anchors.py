@@ -73,7 +73,12 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
     np.testing.assert_allclose(got[0], pinches[0])  # the policy is still far away: its goal stands
     np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)  # close by: on the lens exactly
     np.testing.assert_allclose(out[:, 21:], _horizon(pinches)[:, 21:])  # the other hand and objects untouched
-    np.testing.assert_allclose(out[1, 8] - out[1, 4], [0.006, 0, 0])  # moved rigidly: same aperture
+    line = out[1, 8] - out[1, 4]
+    assert np.linalg.norm(line) == pytest.approx(0.006) and line[2] == pytest.approx(0.0)  # same aperture
+    # ... and turned square to the module as demonstrated (either way round)
+    axis = objects[names.index("camera/connector")] - lens
+    turned = np.arctan2(line[1], line[0]) - np.arctan2(axis[1], axis[0]) - a.grasp_yaw
+    assert np.sin(turned) == pytest.approx(0.0, abs=1e-9)
     state.closing = True  # closing the gripper: every sample dwells on the lens
     out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, np.zeros(3), 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(lens[None], 3, 0), atol=1e-12)
@@ -107,10 +112,17 @@ def test_holding_turns_and_docks_the_module_onto_its_target(demos):
     hover = ex.DOCK_CLEARANCE_M  # still 4 cm off sideways: it comes in just above the target's height
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2],
                                pads[2] + target[2] + hover - objects[idx["camera/connector"]][2])
-    state.mated = True  # pressed home: the policy's own height passes again
-    lift = pinches + [0.0, 0.0, 0.05]
+    state.mated = True  # pressed home: the pads stay where they pressed, the policy's lift passes from there
+    pressed = pads - [0.0, 0.0, 0.03]
+    still_lowering = pinches - [0.0, 0.0, 0.01]  # the policy is still on its way down: no lift yet
+    out = ex.anchored_horizon(_horizon(still_lowering), 0, a, objects, state, pressed, 0.0, False)
+    np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(pressed[None], 4, 0), atol=1e-12)
+    lift = pinches + np.linspace(0.0, 0.05, 4)[:, None] * [0.0, 0.0, 1.0]  # up 5 cm from its lowest
     out = ex.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
-    np.testing.assert_allclose(pinch(out[:, :21])[:, 2], lift[:, 2])
+    np.testing.assert_allclose(pinch(out[:, :21]), pressed + (lift - still_lowering[0]) * [0, 0, 1], atol=1e-12)
+    state.observed_hand = True  # the policy sees its hand at the pads (hand feedback): its own height passes
+    out = ex.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
+    np.testing.assert_allclose(pinch(out[:, :21])[:, 2], lift[:, 2], atol=1e-12)
 
 
 def test_anchors_recover_a_teacher_whose_hand_is_off_by_two_centimetres(monkeypatch, demos):
