@@ -63,7 +63,7 @@ class DiffusionConfig:
             cfg = cls(model="transformer", n_layer=4, n_emb=160, weight_decay=1e-3, betas=(0.9, 0.95))
         else:
             raise ValueError(f"unknown diffusion model {model!r} (unet or transformer)")
-        cfg.iterations, cfg.batch, cfg.inference_steps, cfg.seed = 3000, 64, 10, seed
+        cfg.iterations, cfg.batch, cfg.inference_steps, cfg.seed = 600, 64, 10, seed
         if quick:
             cfg.down_dims, cfg.step_embed, cfg.n_layer, cfg.n_emb = (16, 32), 16, 1, 32
             cfg.iterations, cfg.batch, cfg.train_timesteps, cfg.inference_steps = 5, 16, 10, 5
