@@ -214,8 +214,11 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
         if not state.closing or state.grasp_at is None:  # while closing: where it was (the fingers nudge it)
             state.grasp_at = objects[state.grasp_k] + anchors.grasp_offset
         grasp = state.grasp_at
-        pull = np.ones(len(pinches)) if state.closing else pull_weights(np.linalg.norm(grasp - pinches, axis=-1),
-                                                                        *GRASP_PULL)
+        # once the horizon comes within reach of the grasp point its later samples stay there: before
+        # a grasp the demonstrations never pass the grasp point by (the gripper lags the plan, and a
+        # policy that turns away after its first sample arrived left the gripper short of it)
+        pull = np.ones(len(pinches)) if state.closing else np.maximum.accumulate(
+            pull_weights(np.linalg.norm(grasp - pinches, axis=-1), *GRASP_PULL))
         shift = pull[:, None] * (grasp - pinches)
         state.grasp_shift = shift[0]
         # the pinch line turned square to the object as demonstrated (either way round: a parallel pinch)

@@ -79,6 +79,11 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
     axis = objects[names.index("camera/connector")] - lens
     turned = np.arctan2(line[1], line[0]) - np.arctan2(axis[1], axis[0]) - a.grasp_yaw
     assert np.sin(turned) == pytest.approx(0.0, abs=1e-9)
+    # a horizon that arrives and then turns away: it stays on the lens (the gripper lags the plan)
+    away = lens + np.array([[0.3, 0.0, 0.2], [0.0, 0.0, 0.01], [0.2, 0.1, 0.1]])
+    got = pinch(ex.anchored_horizon(_horizon(away), 0, a, objects, state, np.zeros(3), 0.0, False)[:, :21])
+    np.testing.assert_allclose(got[0], away[0])
+    np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)
     state.closing = True  # closing the gripper: every sample dwells on the lens
     out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, np.zeros(3), 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(lens[None], 3, 0), atol=1e-12)
