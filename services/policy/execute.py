@@ -176,8 +176,13 @@ class AnchorState:
     docking: bool = False  # the mate point reached its target: docked until mated
     pressed_s: float = 0.0  # how long the mate has been pressed while aligned
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
-    mated_at: np.ndarray | None = None  # the pads when mated, and the policy's lowest pinch since
-    mated_pinch_z: float = 0.0
+    mated_at: np.ndarray | None = None  # the pads when mated (set at the first plan after)
+    mated_pinch_z: float = 0.0  # the policy's lowest pinch height since
+
+    def let_go(self) -> None:
+        """The grip lost the grasp point: back to reaching."""
+        self.held = self.mated = False
+        self.mated_at = None
 
 
 def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -257,8 +262,8 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
         (objects[mate_k] - target)[:2])) < MATE_DOCK[1])
     if state.docking:
         docked = np.ones_like(docked)
-    servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
     if not state.mated:
+        servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
         # hovering just above until it is over the target (slid along the board it sticks short)
         above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
         servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
@@ -409,8 +414,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             pads = opt.points(sim.joint_state()[0])[tips].mean(axis=0)
             near = np.linalg.norm(objects[grasp_k] - pads)
             if anchor_state.held and near > LOST_M:
-                anchor_state.held = anchor_state.mated = False
-                anchor_state.mated_at = None
+                anchor_state.let_go()
             was = squeeze
             squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa) and (anchor_state.held or near < HOLD_M)
             squeeze_since = t if squeeze and not was else squeeze_since

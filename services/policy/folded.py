@@ -12,7 +12,8 @@ which shrinks the first layer from n_in (~1000) to 3P (~150) columns. Features m
 the features it takes part in, contiguous, so a masked point costs one read of its own rows. Output
 rows the control loop does not read (the pair translations when their constraint weight is zero)
 are dropped from the head. Weights stay float32: at batch size one the folded net (about 9 MB) is
-read from the L3 cache instead of memory.
+read from the L3 cache instead of memory. The products run on numpy's BLAS, which took about half
+the time of torch's for these shapes on the hosts measured (docs/policy.md, Inference speed).
 
 Configurations whose inputs are not linear in the positions (side models, 7.8-normalized input
 pairs, the recurrent branch reading the whole input) are not folded (``foldable`` is False) and
@@ -81,9 +82,9 @@ class FoldedNet:
         c = c + G[:, mask0:small0] @ (1.0 - mean[mask0:small0])
         cols.append(G[:, small0:n_in])
         self.mean_small = mean[small0:n_in].numpy()
-        self.W1 = torch.cat(cols, dim=1).float().contiguous()
-        self.b1 = c.float()
-        self.G_vel_rows = G[:, vel0:mask0].T.float().contiguous() if self.vel_input else None
+        self.W1 = torch.cat(cols, dim=1).float().numpy()
+        self.b1 = c.float().numpy()
+        self.G_vel_rows = G[:, vel0:mask0].T.float().contiguous().numpy() if self.vel_input else None
         # per-feature masks from per-point masks, as PolicyNet.geometry builds them
         self.m_a = np.concatenate([net.m_local.numpy(), net.m_pi.numpy(), net.anchors.numpy()])
         self.m_b = np.concatenate([net.m_wrist.numpy(), net.m_pj.numpy(), net.anchors.numpy()])
@@ -92,14 +93,14 @@ class FoldedNet:
         rows = G[:, :n_lin].T.float()
         self.point_features = [np.flatnonzero((self.m_a == p) | (self.m_b == p)) for p in range(P)]
         mask_rows = G[:, mask0:small0].T.float()
-        self.point_rows = [torch.cat([rows[torch.from_numpy(f)], mask_rows[p:p + 1]]).contiguous()
+        self.point_rows = [torch.cat([rows[torch.from_numpy(f)], mask_rows[p:p + 1]]).contiguous().numpy()
                            for p, f in enumerate(self.point_features)]
         self.point_terms = [(plus[f], minus[f], scale[f], mean[:n_lin].numpy()[f]) for f in self.point_features]
         self._d = [np.ones((1, len(f) + 1), np.float32) for f in self.point_features]  # the last 1: the mask input
-        self.G_lin_rows = rows.contiguous()
+        self.G_lin_rows = rows.contiguous().numpy()
         self.m_vel = net.m_vel.numpy()
         linears = [m for m in net.trunk if isinstance(m, torch.nn.Linear)]
-        self.layers = [(m.weight.detach().clone().contiguous(), m.bias.detach().clone()) for m in linears[1:]]
+        self.layers = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in linears[1:]]
         head_rows, self.slices, width = [], {}, 0
         for key in keys:
             s = net.slices[key]
@@ -107,22 +108,15 @@ class FoldedNet:
             self.slices[key] = slice(width, width + s.stop - s.start)
             width += s.stop - s.start
         idx = torch.cat(head_rows)
-        self.head_w = net.head.weight.detach()[idx].clone().contiguous()
-        self.head_b = net.head.bias.detach()[idx].clone()
+        self.head_w = net.head.weight.detach()[idx].numpy().copy()
+        self.head_b = net.head.bias.detach()[idx].numpy().copy()
         self.tactile, self.memory, self.phase = cfg.tactile, cfg.memory, cfg.phase_input
-        # batch one runs on numpy's BLAS: its float32 matrix-vector product takes about half the time
-        # of torch.addmv on the hosts measured (docs/policy.md, P4)
-        self._np_w1, self._np_b1 = self.W1.numpy(), self.b1.numpy()
-        self._np_layers = [(W.numpy(), b.numpy()) for W, b in self.layers]
-        self._np_head = (self.head_w.numpy(), self.head_b.numpy())
-        self._np_point_rows = [r.numpy() for r in self.point_rows]
         self._rows(1)
 
     def _rows(self, B: int) -> None:
-        """Input buffers for B rows: float32 inputs shared with torch (no copies per call), and the
+        """Input buffers for B rows: float32 inputs (no allocation per call), and the
         positions with a zero appended (the "minus" of a height feature)."""
         self._x = np.zeros((B, self.W1.shape[1]), np.float32)
-        self._xt = torch.from_numpy(self._x)
         self._z = np.zeros((B, 3 * self.P + 1))
 
     def __call__(self, pos: np.ndarray, vel: np.ndarray, mask: np.ndarray, vmask: np.ndarray,
@@ -158,68 +152,31 @@ class FoldedNet:
         x[:, start:] -= self.mean_small
         if self.tactile:  # a masked tactile reading is zero after normalization
             x[:, tactile_at:tactile_at + tm.size] *= tm
-        if B == 1:
-            out = self._forward_one(x[0], flat, vel, mask, vmask)
-            return {k: out[s] for k, s in self.slices.items()}
-        with torch.inference_mode():
-            h = torch.addmv(self.b1, self.W1, self._xt[0]) if B == 1 else torch.addmm(self.b1, self._xt, self.W1.T)
-            hidden = np.flatnonzero(~mask)
-            if len(hidden):  # masked features: their normalized value is zero, not (x - mean) / std
-                z = self._z
-                z[:, :-1] = flat
-                for p in hidden:
-                    plus, minus, scale, mean = self.point_terms[p]
-                    d = self._d[p] if B == 1 else np.ones((B, len(plus) + 1), np.float32)  # last 1: mask input
-                    d[..., :-1] = scale * (z[:, plus] - z[:, minus]) - mean
-                    h -= (torch.from_numpy(d) @ self.point_rows[p]).reshape(h.shape)
-                if len(hidden) > 1:  # a feature of two masked points was taken out twice
-                    twice = np.flatnonzero(~mask[self.m_a] & ~mask[self.m_b] & (self.m_a != self.m_b))
-                    if len(twice):
-                        d = (self.scale[twice] * (z[:, self.plus[twice]] - z[:, self.minus[twice]])
-                             - self.mean_lin[twice]).astype(np.float32)
-                        h += (torch.from_numpy(d) @ self.G_lin_rows[torch.from_numpy(twice)]).reshape(h.shape)
-            if self.vel_input:
-                voff = np.flatnonzero(~vmask[self.m_vel])
-                if len(voff):
-                    d = vel.reshape(B, -1)[:, voff] * VEL_SCALE - self.mean_vel[voff]
-                    d = torch.from_numpy(d.astype(np.float32))
-                    h -= (d @ self.G_vel_rows[torch.from_numpy(voff)]).reshape(h.shape)
-            h.relu_()
-            for W, b in self.layers:
-                h = (torch.addmv(b, W, h) if B == 1 else torch.addmm(b, h, W.T)).relu_()
-            out = torch.addmv(self.head_b, self.head_w, h) if B == 1 else torch.addmm(self.head_b, h, self.head_w.T)
-            out = out.numpy().astype(np.float64)
-        return {k: out[..., s] if batched else out[s] for k, s in self.slices.items()}
-
-    def _forward_one(self, x: np.ndarray, flat: np.ndarray, vel: np.ndarray, mask: np.ndarray,
-                     vmask: np.ndarray) -> np.ndarray:
-        """The batched path of ``__call__`` for one state, on numpy's BLAS (float32)."""
-        h = self._np_w1 @ x
-        h += self._np_b1
+        h = x @ self.W1.T
+        h += self.b1
         hidden = np.flatnonzero(~mask)
         if len(hidden):  # masked features: their normalized value is zero, not (x - mean) / std
             z = self._z
             z[:, :-1] = flat
             for p in hidden:
                 plus, minus, scale, mean = self.point_terms[p]
-                d = self._d[p]
-                d[..., :-1] = scale * (z[:, plus] - z[:, minus]) - mean
-                h -= (d @ self._np_point_rows[p])[0]
+                d = self._d[p] if B == 1 else np.ones((B, len(plus) + 1), np.float32)  # last 1: mask input
+                d[:, :-1] = scale * (z[:, plus] - z[:, minus]) - mean
+                h -= d @ self.point_rows[p]
             if len(hidden) > 1:  # a feature of two masked points was taken out twice
                 twice = np.flatnonzero(~mask[self.m_a] & ~mask[self.m_b] & (self.m_a != self.m_b))
                 if len(twice):
-                    d = (self.scale[twice] * (z[0, self.plus[twice]] - z[0, self.minus[twice]])
-                         - self.mean_lin[twice]).astype(np.float32)
-                    h += d @ self.G_lin_rows.numpy()[twice]
+                    d = self.scale[twice] * (z[:, self.plus[twice]] - z[:, self.minus[twice]]) - self.mean_lin[twice]
+                    h += d.astype(np.float32) @ self.G_lin_rows[twice]
         if self.vel_input:
             voff = np.flatnonzero(~vmask[self.m_vel])
             if len(voff):
-                d = (vel.reshape(-1)[voff] * VEL_SCALE - self.mean_vel[voff]).astype(np.float32)
-                h -= d @ self.G_vel_rows.numpy()[voff]
+                d = vel.reshape(B, -1)[:, voff] * VEL_SCALE - self.mean_vel[voff]
+                h -= d.astype(np.float32) @ self.G_vel_rows[voff]
         np.maximum(h, 0.0, out=h)
-        for W, b in self._np_layers:
-            h = W @ h
+        for W, b in self.layers:
+            h = h @ W.T
             h += b
             np.maximum(h, 0.0, out=h)
-        W, b = self._np_head
-        return (W @ h + b).astype(np.float64)
+        out = (h @ self.head_w.T + self.head_b).astype(np.float64)
+        return {k: out[:, s] if batched else out[0, s] for k, s in self.slices.items()}
