@@ -56,13 +56,16 @@ FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
 HOLD_M = 0.008  # the gripper holds the module: shut, with the grasp point this close to its pads
 LOST_M = 0.02  # ... and has lost it when the point is this far from them
-GRASP_PULL = (0.03, 0.10)  # contact anchors: pulled fully within 3 cm, not at all beyond 10 cm
+GRASP_PULL = (0.03, 0.15)  # contact anchors: pulled fully within 3 cm, not at all beyond 15 cm
 MATE_PULL = (0.10, 0.20)
+APPROACH_CLEARANCE_M = 0.015  # the open gripper stays this high over the grasp point ...
+APPROACH_OVER_M = (0.004, 0.010)  # ... until its pads are within 10 mm of it sideways (down fully within 4 mm)
 TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch switches contact on / off
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
 DOCK_CLEARANCE_M = 0.004
-MATE_DOCK = (0.005, 0.02)  # ... and docked onto the observed target when over it (fully within 5 mm)
+DOCK_REACH_M = 0.004  # docking moves the pads at most this far from the grasp point sideways
+MATE_DOCK = (0.005, 0.04)  # ... and docked onto the observed target within 4 cm of it (fully within 5 mm)
 MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
 
@@ -225,6 +228,12 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
         pull = np.ones(len(pinches)) if state.closing else np.maximum.accumulate(
             pull_weights(np.linalg.norm(grasp - pinches, axis=-1), *GRASP_PULL))
         shift = pull[:, None] * (grasp - pinches)
+        if not state.closing:  # approached from above: the open gripper descends only once over the
+            # grasp point (coming in low from the side, a pad shoved the module away ahead of it)
+            miss = float(np.linalg.norm((pads - grasp)[:2]))
+            over = np.clip((miss - APPROACH_OVER_M[0]) / (APPROACH_OVER_M[1] - APPROACH_OVER_M[0]), 0.0, 1.0)
+            low = grasp[2] + APPROACH_CLEARANCE_M * over - (pinches[:, 2] + shift[:, 2])
+            shift[:, 2] += pull * np.maximum(low, 0.0)
         state.grasp_shift = shift[0]
         # the pinch line turned square to the object as demonstrated (either way round: a parallel pinch)
         square = heading(objects[state.mate_k] - objects[state.grasp_k]) + anchors.grasp_yaw
@@ -263,7 +272,12 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     if state.docking:
         docked = np.ones_like(docked)
     if not state.mated:
-        servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
+        # ... but never more than DOCK_REACH_M from the grasp point: a module that stops following
+        # (pinned on the board) would otherwise walk the pads off it a step every plan (seed 0, layout 10)
+        goal = pads + target - objects[mate_k]
+        reach = _flat(goal - objects[grasp_k])
+        goal = goal - reach * max(0.0, 1.0 - DOCK_REACH_M / max(float(np.linalg.norm(reach)), 1e-9))
+        servo = _flat(goal)[None] - _flat(pinches)
         # hovering just above until it is over the target (slid along the board it sticks short)
         above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
         servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
@@ -435,7 +449,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             gap = objects[mate_k] - objects[target_k] - anchors.mate_offset
             aligned = (anchor_state.held and not anchor_state.mated and np.linalg.norm(gap[:2]) < MATED_M
                        and abs(gap[2]) < MATED_DZ_M)  # pressed home: the push ends, or it fights the lift
-            pressing = aligned or touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
+            # predicted touch may press with the finger, but not through the gripper on a module not yet
+            # aligned: pressed onto the board 5 mm off, it sticks there (seed 0, layout 10)
+            pressing = aligned or (touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
+                                   and not (press_beside and anchor_state.held and not anchor_state.mated))
             push = EFFORT_N_PER_KPA * anchors.press_kpa if pressing else 0.0
             pusher = gripper_z if aligned else pusher
             anchor_state.pressed_s = anchor_state.pressed_s + dt if aligned else 0.0

@@ -68,7 +68,8 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
                            names.index("board/connector"), [names.index(f"board/{p}") for p in
                                                             ("c0", "c1", "c2", "c3", "connector")])
     pinches = lens + np.array([[0.3, 0.0, 0.2], [0.0, 0.015, 0.01], [0.0, 0.0, 0.012]])
-    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, np.zeros(3), 0.0, False)
+    over = lens + [0.0, 0.0, 0.02]  # the gripper's pads right over the lens
+    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, over, 0.0, False)
     got = pinch(out[:, :21])
     np.testing.assert_allclose(got[0], pinches[0])  # the policy is still far away: its goal stands
     np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)  # close by: on the lens exactly
@@ -81,11 +82,15 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
     assert np.sin(turned) == pytest.approx(0.0, abs=1e-9)
     # a horizon that arrives and then turns away: it stays on the lens (the gripper lags the plan)
     away = lens + np.array([[0.3, 0.0, 0.2], [0.0, 0.0, 0.01], [0.2, 0.1, 0.1]])
-    got = pinch(ex.anchored_horizon(_horizon(away), 0, a, objects, state, np.zeros(3), 0.0, False)[:, :21])
+    got = pinch(ex.anchored_horizon(_horizon(away), 0, a, objects, state, over, 0.0, False)[:, :21])
     np.testing.assert_allclose(got[0], away[0])
     np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)
+    # the pads still 3 cm off to the side: the gripper comes in over the lens, not low from the side
+    beside = lens + [0.03, 0.0, 0.005]
+    got = pinch(ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)[:, :21])
+    np.testing.assert_allclose(got[1:], [lens + [0, 0, ex.APPROACH_CLEARANCE_M]] * 2, atol=1e-12)
     state.closing = True  # closing the gripper: every sample dwells on the lens
-    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, np.zeros(3), 0.0, False)
+    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(lens[None], 3, 0), atol=1e-12)
 
 
