@@ -64,7 +64,6 @@ TOUCH_ON, TOUCH_OFF = 0.1, 0.05  # of the demonstrated pressure: predicted touch
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
 DOCK_CLEARANCE_M = 0.004
-DOCK_REACH_M = 0.004  # docking moves the pads at most this far from the grasp point sideways
 MATE_DOCK = (0.005, 0.04)  # ... and docked onto the observed target within 4 cm of it (fully within 5 mm)
 MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
@@ -272,12 +271,7 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     if state.docking:
         docked = np.ones_like(docked)
     if not state.mated:
-        # ... but never more than DOCK_REACH_M from the grasp point: a module that stops following
-        # (pinned on the board) would otherwise walk the pads off it a step every plan (seed 0, layout 10)
-        goal = pads + target - objects[mate_k]
-        reach = _flat(goal - objects[grasp_k])
-        goal = goal - reach * max(0.0, 1.0 - DOCK_REACH_M / max(float(np.linalg.norm(reach)), 1e-9))
-        servo = _flat(goal)[None] - _flat(pinches)
+        servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
         # hovering just above until it is over the target (slid along the board it sticks short)
         above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
         servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
@@ -449,10 +443,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             gap = objects[mate_k] - objects[target_k] - anchors.mate_offset
             aligned = (anchor_state.held and not anchor_state.mated and np.linalg.norm(gap[:2]) < MATED_M
                        and abs(gap[2]) < MATED_DZ_M)  # pressed home: the push ends, or it fights the lift
-            # predicted touch may press with the finger, but not through the gripper on a module not yet
-            # aligned: pressed onto the board 5 mm off, it sticks there (seed 0, layout 10)
-            pressing = aligned or (touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
-                                   and not (press_beside and anchor_state.held and not anchor_state.mated))
+            pressing = aligned or touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
             push = EFFORT_N_PER_KPA * anchors.press_kpa if pressing else 0.0
             pusher = gripper_z if aligned else pusher
             anchor_state.pressed_s = anchor_state.pressed_s + dt if aligned else 0.0
