@@ -38,18 +38,21 @@ def closest_point_distance(a: np.ndarray, b: np.ndarray, mask_b: np.ndarray | No
     return float(np.mean(0.5 * (a_to_b + b_to_a)))
 
 
-def trajectory_scores(pred_hands: np.ndarray, pred_objects: np.ndarray, demo) -> dict[str, float]:
-    """The four columns of Table 7.1 for one rollout against one validation Demo (metres)."""
+SCORE_KEYS = ("hand", "object", "hand_masked", "object_masked")
+
+
+def trajectory_scores(pred_hands: np.ndarray, pred_objects: np.ndarray, demo,
+                      keys: tuple[str, ...] = SCORE_KEYS) -> dict[str, float]:
+    """The columns of Table 7.1 (all four, or ``keys``) for one rollout against one validation
+    Demo (metres). Each column costs a pairwise distance pass: training selection asks for two."""
     t = demo.steps
     hands_ref = np.asarray(demo.hands).reshape(t, -1, 3)
     ph = np.asarray(pred_hands).reshape(len(pred_hands), -1, 3)
     po = np.asarray(pred_objects).reshape(len(pred_objects), -1, 3)
-    return {
-        "hand": closest_point_distance(ph, hands_ref),
-        "object": closest_point_distance(po, demo.objects),
-        "hand_masked": closest_point_distance(ph, hands_ref, np.asarray(demo.hand_mask).reshape(t, -1)),
-        "object_masked": closest_point_distance(po, demo.objects, demo.object_mask),
+    columns = {
+        "hand": lambda: closest_point_distance(ph, hands_ref),
+        "object": lambda: closest_point_distance(po, demo.objects),
+        "hand_masked": lambda: closest_point_distance(ph, hands_ref, np.asarray(demo.hand_mask).reshape(t, -1)),
+        "object_masked": lambda: closest_point_distance(po, demo.objects, demo.object_mask),
     }
-
-
-SCORE_KEYS = ("hand", "object", "hand_masked", "object_masked")
+    return {k: columns[k]() for k in keys}

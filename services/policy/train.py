@@ -40,7 +40,7 @@ def selection_score(method, demos: list[Demo]) -> dict[str, float]:
     scores = []
     for d in demos:
         hands, objects = method.rollout(d, d.steps)
-        scores.append(trajectory_scores(hands, objects, d))
+        scores.append(trajectory_scores(hands, objects, d, keys=("hand", "object")))
     res = {k: float(np.mean([s[k] for s in scores])) for k in ("hand", "object")}
     res["score"] = res["hand"] + res["object"]
     return res
