@@ -49,10 +49,7 @@ def trajectory_scores(pred_hands: np.ndarray, pred_objects: np.ndarray, demo,
     hands_ref = np.asarray(demo.hands).reshape(t, -1, 3)
     ph = np.asarray(pred_hands).reshape(len(pred_hands), -1, 3)
     po = np.asarray(pred_objects).reshape(len(pred_objects), -1, 3)
-    columns = {
-        "hand": lambda: closest_point_distance(ph, hands_ref),
-        "object": lambda: closest_point_distance(po, demo.objects),
-        "hand_masked": lambda: closest_point_distance(ph, hands_ref, np.asarray(demo.hand_mask).reshape(t, -1)),
-        "object_masked": lambda: closest_point_distance(po, demo.objects, demo.object_mask),
-    }
-    return {k: columns[k]() for k in keys}
+    pairs = {"hand": (ph, hands_ref, None), "object": (po, demo.objects, None),
+             "hand_masked": (ph, hands_ref, np.asarray(demo.hand_mask).reshape(t, -1)),
+             "object_masked": (po, demo.objects, demo.object_mask)}
+    return {k: closest_point_distance(*pairs[k]) for k in keys}

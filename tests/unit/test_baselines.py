@@ -191,6 +191,9 @@ def test_clean_chunk_prediction_learns_where_noise_prediction_stalls(demos):
     assert losses["sample"][1] < 0.5 * losses["sample"][0]
     assert losses["sample"][1] < 0.5 * losses["epsilon"][1]
     assert make("diffusion_unet").cfg.prediction == "sample"
+    policy.cfg.prediction = "noise"  # a misspelt target is refused, not run as epsilon
+    with pytest.raises(BaselineError, match="prediction target"):
+        policy.fit(demos[:3], progress=False)
 
 
 def test_unet_passes_every_action_value_through():

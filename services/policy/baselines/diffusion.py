@@ -144,6 +144,8 @@ class DiffusionPolicy:
 
         cfg = self.cfg
         check_train(train)
+        if cfg.prediction not in ("epsilon", "sample"):
+            raise BaselineError(f"unknown diffusion prediction target {cfg.prediction!r} (epsilon or sample)")
         torch.manual_seed(cfg.seed)
         rng = np.random.default_rng(cfg.seed)
         self.dt = train[0].dt
