@@ -5,7 +5,8 @@ rolled out (neural simulation / open loop) from each validation start state; the
 scored with the symmetric closest-point distance of services/policy/metrics.py, for hand and
 object keypoints, with and without the validation occlusion masks. Writes results.json,
 results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
-scale) and rollout_<method>.png (one example rollout per method) into --out.
+scale), rollout_<method>.png (one example rollout per method) and rollouts_<method>.npz (every
+rollout, so that `xm eval --rescore` recomputes the scores without fitting again) into --out.
 """
 
 from __future__ import annotations
@@ -125,12 +126,53 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         outs = rollouts(method, val, progress)
         t2 = time.perf_counter()
         results[name] = score(outs, val)
+        save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
         results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
+    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=len(train),
+                                          n_val=len(val)))
+    plot_results(results, out / "results.png")
+    return results
+
+
+def save_rollouts(outs: list[tuple[np.ndarray, np.ndarray]], path: Path, seed: int, quick: bool) -> None:
+    """Every validation rollout of one method: hands_<i>, objects_<i> in validation order, and the
+    protocol's seed and budget."""
+    arrays = {"seed": np.array(seed), "quick": np.array(quick)}
+    for i, (hands, objects) in enumerate(outs):
+        arrays[f"hands_{i}"], arrays[f"objects_{i}"] = hands, objects
+    np.savez_compressed(path, **arrays)
+
+
+def rescore(out_dir: str | Path, seed: int = 0, demos: list[Demo] | None = None) -> dict[str, dict[str, float]]:
+    """Scores recomputed from the saved rollouts of an earlier run in ``out_dir`` (same seed), with
+    the metric as it is now; rewrites results.json, results.md and results.png."""
+    out = Path(out_dir)
+    files = sorted(out.glob("rollouts_*.npz"))
+    if not files:
+        raise EvaluationError(f"no rollouts_<method>.npz in {out}: run `xm eval --out {out}` first")
+    if demos is None:
+        from services.world.teacher import assembly_protocol
+
+        demos = assembly_protocol(seed)
+    train, val = split(demos)
+    results, quick = {}, False
+    for f in files:
+        name = f.stem.removeprefix("rollouts_")
+        with np.load(f) as z:
+            if int(z["seed"]) != seed:
+                raise EvaluationError(f"{f} holds rollouts of seed {int(z['seed'])}, not {seed}: give --seed "
+                                      f"{int(z['seed'])}")
+            quick = quick or bool(z["quick"])
+            outs = [(z[f"hands_{i}"], z[f"objects_{i}"]) for i in range(len(val))]
+        results[name] = score(outs, val)
+    results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
+    timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}
+    (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=len(train),
                                           n_val=len(val)))
     plot_results(results, out / "results.png")
@@ -234,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--rescore", action="store_true",
+                        help="no fitting: recompute the scores of an earlier run in --out from its saved rollouts")
     parser.add_argument("--execute", action="store_true",
                         help="robot in the loop instead: the trained policy (--checkpoint) drives the simulated robot "
                         "through trajopt and the control board on the 12 validation layouts; writes execute.json")
@@ -256,8 +300,11 @@ def main(argv: list[str] | None = None) -> int:
         return execute_main(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
-                 merge=args.merge)
+        if args.rescore:
+            rescore(args.out, args.seed)
+        else:
+            evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
+                     merge=args.merge)
     except EvaluationError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
