@@ -1,15 +1,23 @@
-"""`xm eval` bookkeeping: a later run of some methods can keep the other rows of an earlier run."""
+"""`xm eval` bookkeeping: a later run of some methods can keep the other rows of an earlier run;
+saved rollouts are scored again without fitting."""
 
 from __future__ import annotations
 
 import json
 
-from services.policy.evaluate import evaluate
+import numpy as np
+import pytest
+
+from services.policy.evaluate import EvaluationError, evaluate, rescore
 from services.world.teacher import assembly_protocol
 
 
-def test_merge_keeps_earlier_rows_and_replaces_rerun_ones(tmp_path):
-    demos = assembly_protocol(0)
+@pytest.fixture(scope="module")
+def demos():
+    return assembly_protocol(0)
+
+
+def test_merge_keeps_earlier_rows_and_replaces_rerun_ones(tmp_path, demos):
     first = evaluate(methods=["naive", "promp_simple"], out_dir=tmp_path, quick=True, progress=False, demos=demos)
     again = evaluate(methods=["naive"], out_dir=tmp_path, quick=True, progress=False, demos=demos, merge=True)
     assert list(again) == ["promp_simple", "naive"]  # Table 7.1 order, whatever order they were run in
@@ -18,3 +26,19 @@ def test_merge_keeps_earlier_rows_and_replaces_rerun_ones(tmp_path):
     assert "(7) Simple ProMP" in (tmp_path / "results.md").read_text()
     alone = evaluate(methods=["naive"], out_dir=tmp_path, quick=True, progress=False, demos=demos)
     assert list(alone) == ["naive"]
+
+
+def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
+    first = evaluate(methods=["naive", "dmp"], out_dir=tmp_path, quick=True, progress=False, demos=demos)
+    assert rescore(tmp_path, 0, demos) == first
+    # a rollout changed on disk changes its score: the scores come from the files, not a cache
+    with np.load(tmp_path / "rollouts_naive.npz") as z:
+        arrays = dict(z)
+    arrays["objects_0"] = arrays["objects_0"] + 0.05
+    np.savez_compressed(tmp_path / "rollouts_naive.npz", **arrays)
+    again = rescore(tmp_path, 0, demos)
+    assert again["naive"]["object"] > first["naive"]["object"] and again["dmp"] == first["dmp"]
+    with pytest.raises(EvaluationError, match="seed 0, not 1"):
+        rescore(tmp_path, 1, demos)
+    with pytest.raises(EvaluationError, match="no rollouts"):
+        rescore(tmp_path / "empty", 0, demos)
