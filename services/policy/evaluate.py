@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -163,12 +164,16 @@ def rescore(out_dir: str | Path, seed: int = 0, demos: list[Demo] | None = None)
     results, quick = {}, False
     for f in files:
         name = f.stem.removeprefix("rollouts_")
-        with np.load(f) as z:
-            if int(z["seed"]) != seed:
-                raise EvaluationError(f"{f} holds rollouts of seed {int(z['seed'])}, not {seed}: give --seed "
-                                      f"{int(z['seed'])}")
-            quick = quick or bool(z["quick"])
-            outs = [(z[f"hands_{i}"], z[f"objects_{i}"]) for i in range(len(val))]
+        try:
+            with np.load(f) as z:
+                saved_seed = int(z["seed"])
+                if saved_seed == seed:
+                    quick = quick or bool(z["quick"])
+                    outs = [(z[f"hands_{i}"], z[f"objects_{i}"]) for i in range(len(val))]
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise EvaluationError(f"{f} is unreadable or incomplete ({exc}): run that method again") from exc
+        if saved_seed != seed:
+            raise EvaluationError(f"{f} holds rollouts of seed {saved_seed}, not {seed}: give --seed {saved_seed}")
         results[name] = score(outs, val)
     results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
     timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}

@@ -42,3 +42,10 @@ def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
         rescore(tmp_path, 1, demos)
     with pytest.raises(EvaluationError, match="no rollouts"):
         rescore(tmp_path / "empty", 0, demos)
+    del arrays["hands_11"]  # a truncated file is named, not a KeyError
+    np.savez_compressed(tmp_path / "rollouts_naive.npz", **arrays)
+    with pytest.raises(EvaluationError, match="rollouts_naive.npz is unreadable or incomplete"):
+        rescore(tmp_path, 0, demos)
+    (tmp_path / "rollouts_naive.npz").write_bytes(b"not a zip")
+    with pytest.raises(EvaluationError, match="rollouts_naive.npz is unreadable"):
+        rescore(tmp_path, 0, demos)
