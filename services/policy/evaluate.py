@@ -129,15 +129,25 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         results[name] = score(outs, val)
         save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
-        results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
+        results = in_table_order(results)
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
-    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=len(train),
-                                          n_val=len(val)))
-    plot_results(results, out / "results.png")
+    write_tables(out, results, timing, seed, quick, len(train), len(val))
     return results
+
+
+def in_table_order(results: dict) -> dict:
+    """The rows in Table 7.1's order, whatever order they were run in."""
+    return {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
+
+
+def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int) -> None:
+    """results.json, results.md and results.png of one run."""
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val))
+    plot_results(results, out / "results.png")
 
 
 def save_rollouts(outs: list[tuple[np.ndarray, np.ndarray]], path: Path, seed: int, quick: bool) -> None:
@@ -175,12 +185,9 @@ def rescore(out_dir: str | Path, seed: int = 0, demos: list[Demo] | None = None)
         if saved_seed != seed:
             raise EvaluationError(f"{f} holds rollouts of seed {saved_seed}, not {seed}: give --seed {saved_seed}")
         results[name] = score(outs, val)
-    results = {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
+    results = in_table_order(results)
     timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}
-    (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=len(train),
-                                          n_val=len(val)))
-    plot_results(results, out / "results.png")
+    write_tables(out, results, timing, seed, quick, len(train), len(val))
     return results
 
 
