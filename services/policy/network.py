@@ -78,7 +78,7 @@ class PolicyConfig:
     seq_len: int = 64  # recurrent training window
     reset_probability: float = 0.05  # recurrent training: reset positions to the demonstration
     w_pair: float = 0.0  # weight of the 7.8 pair constraint at inference; 1.0 measured worse (docs/policy.md)
-    w_dyn: float = 1.0
+    w_dyn: float = 3.0  # weight of J_D V_pinch against the net's object velocity (7.15); 1.0 let the board drift
     w_memory_prior: float = 0.01  # weight of 7.9 (H = H_P) against 7.10 (H = H_prev + dH_P dt); 1.0 measured worse
     w_plausible: float = 1e-3
     pair_eps: float = 0.0025  # m^2 (5 cm): the bias of the 7.8 normalization
