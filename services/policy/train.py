@@ -195,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
     parser.add_argument("--steps", type=int, default=None, help="optimizer steps (default: the preset's)")
     parser.add_argument("--val", type=int, default=0, help="recordings: hold out this many demonstrations")
+    parser.add_argument("--select", choices=["train", "validation"], default=None,
+                        help="which demonstrations' rollouts pick the checkpoint kept (default: validation where "
+                        "there is any held out, except with --teacher: train, as `xm eval` does, so the validation "
+                        "layouts stay unseen and --teacher S gives the net of row (1) of `xm eval --seed S`)")
     parser.add_argument("--out", default="runs/policy", help="output directory")
     args = parser.parse_args(argv)
     from services.policy.dataset import DatasetError, demos_from_mcap, split_demos
@@ -215,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         from services.world.teacher import assembly_protocol
 
         train_d, val_d = split_demos(assembly_protocol(args.teacher))
+        torch.manual_seed(args.teacher)  # as xm eval seeds each method
     else:
         print("error: no demonstrations: give recordings or --teacher SEED", file=sys.stderr)
         return 2
@@ -225,7 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg = PRESETS[args.preset]
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
-    res = train(cfg, train_d, val_d or None, args.out)
+    select = args.select or ("train" if args.teacher is not None and not args.recordings else "validation")
+    res = train(cfg, train_d, val_d if select == "validation" and val_d else None, args.out)
     print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, best at step {res.best_step} "
-          f"after {res.seconds_to_best:.0f} s of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm)")
+          f"after {res.seconds_to_best:.0f} s of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm "
+          f"from the {'validation' if select == 'validation' and val_d else 'training'} start states)")
     return 0

@@ -49,3 +49,14 @@ def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
     (tmp_path / "rollouts_naive.npz").write_bytes(b"not a zip")
     with pytest.raises(EvaluationError, match="rollouts_naive.npz is unreadable"):
         rescore(tmp_path, 0, demos)
+
+
+def test_xm_train_teacher_selects_on_the_training_starts_unless_told(tmp_path):
+    """`xm train --teacher S` keeps the validation layouts unseen (as row (1) of `xm eval`), so the
+    robot loop on them is out of sample; --select validation picks on them instead."""
+    from services.policy.train import main as train_main
+
+    assert train_main(["--teacher", "0", "--steps", "2", "--out", str(tmp_path / "a")]) == 0
+    assert json.loads((tmp_path / "a" / "train.json").read_text())["selection_demos"] == 3
+    assert train_main(["--teacher", "0", "--steps", "2", "--select", "validation", "--out", str(tmp_path / "b")]) == 0
+    assert json.loads((tmp_path / "b" / "train.json").read_text())["selection_demos"] == 12
