@@ -65,7 +65,9 @@ TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
 DOCK_CLEARANCE_M = 0.004
 MATE_DOCK = (0.005, 0.04)  # ... and docked onto the observed target within 4 cm of it (fully within 5 mm)
-MATED_M, MATED_DZ_M = 0.003, 0.005  # aligned: the mate point within 3 mm of its target sideways, 5 mm in height
+# aligned: the mate point within 2 mm of its target sideways, 5 mm in height (the snap-fit latches
+# wherever it is pressed home under the world's 3 mm; at 3 mm a latched pair sagged to 3.1 mm when lifted)
+MATED_M, MATED_DZ_M = 0.002, 0.005
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
 
 
@@ -295,6 +297,12 @@ def _flat(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, float) * [1.0, 1.0, 0.0]
 
 
+def anchored_press(was: bool, aligned: bool, docking: bool, kpa: float, demonstrated_kpa: float) -> bool:
+    """With contact anchors: the aligned mate presses; elsewhere predicted touch (``kpa``) decides,
+    except while the held module is docking: a push then pins it to the board short of its target."""
+    return aligned or (not docking and touch_switch(was, kpa, demonstrated_kpa))
+
+
 def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
     """Contact from predicted pressure, with hysteresis: on above TOUCH_ON of the demonstrated
     pressure, off again only below TOUCH_OFF of it (a prediction that wavers near one threshold
@@ -443,7 +451,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             gap = objects[mate_k] - objects[target_k] - anchors.mate_offset
             aligned = (anchor_state.held and not anchor_state.mated and np.linalg.norm(gap[:2]) < MATED_M
                        and abs(gap[2]) < MATED_DZ_M)  # pressed home: the push ends, or it fights the lift
-            pressing = aligned or touch_switch(pressing, float(runner.efforts[p, INDEX]), anchors.press_kpa)
+            pressing = anchored_press(pressing, aligned, anchor_state.held and not anchor_state.mated,
+                                      float(runner.efforts[p, INDEX]), anchors.press_kpa)
             push = EFFORT_N_PER_KPA * anchors.press_kpa if pressing else 0.0
             pusher = gripper_z if aligned else pusher
             anchor_state.pressed_s = anchor_state.pressed_s + dt if aligned else 0.0

@@ -129,3 +129,15 @@ def test_roles_are_read_from_the_rollout_and_the_gripper_keeps_its_wrist_in_rang
     index = np.stack([np.cos(ang), np.sin(ang), np.zeros(30)], axis=1) * 0.005
     assert gripper_flipped(thumb, index)
     assert not gripper_flipped(thumb, index[:1].repeat(30, 0))  # a still line near 170 deg fits either way
+
+
+def test_a_docking_module_is_pressed_only_once_aligned():
+    from services.policy.execute import anchored_press
+
+    # predicted touch presses elsewhere, with hysteresis
+    assert anchored_press(False, aligned=False, docking=False, kpa=5.0, demonstrated_kpa=10.0)
+    assert not anchored_press(False, aligned=False, docking=False, kpa=0.2, demonstrated_kpa=10.0)
+    # docking: the same touch does not push the held module onto the board short of its target ...
+    assert not anchored_press(True, aligned=False, docking=True, kpa=5.0, demonstrated_kpa=10.0)
+    # ... the aligned mate does, touch or not
+    assert anchored_press(False, aligned=True, docking=True, kpa=0.0, demonstrated_kpa=10.0)
