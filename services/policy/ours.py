@@ -103,9 +103,12 @@ class Ours:
         """Rigid body per point: 0 and 1 the hands, then one per object."""
         return np.concatenate([np.repeat([0, 1], KEYPOINTS_PER_HAND), 2 + D.object_groups(self.object_names)])
 
-    def solver(self) -> ConsistencySolver:
+    def solver(self, dt: float | None = None) -> ConsistencySolver:
+        """The inference solve; ``dt`` (default the sample period) is the step it integrates over:
+        a horizon may be rolled out at the trajectory optimizer's knot spacing instead (7.16: the
+        rollout's steps are the optimizer's keyframes)."""
         c = self.cfg
-        return ConsistencySolver(self.net.layout, self.dt, c.w_pair if c.pair_outputs else 0.0,
+        return ConsistencySolver(self.net.layout, dt or self.dt, c.w_pair if c.pair_outputs else 0.0,
                                  c.w_dyn if c.dynamics else 0.0, c.pair_eps)
 
     # --- training samples ---------------------------------------------------------------------
@@ -407,6 +410,7 @@ class Ours:
     def _step(self, state: dict, solver: ConsistencySolver | None, observed_objects: np.ndarray | None) -> dict:
         cfg = self.cfg
         solver = solver or self.solver()
+        dt = solver.dt  # the sample period, or a longer step (horizons at the optimizer's knots)
         out = self.network_outputs(state)
         if not np.isfinite(np.concatenate(list(out.values()))).all():
             raise PolicyError("network output contains NaN or inf")
@@ -430,8 +434,9 @@ class Ours:
         if cfg.pair_outputs and "pairs" in out and solver.w_pair > 0:
             lay = self.net.layout
             a = state["pos"][lay.anchors]
-            change = np.clip(out["pairs"].reshape(-1, 3) / PAIR_SCALE, -2 * cfg.max_speed * self.dt,
-                             2 * cfg.max_speed * self.dt)  # two points approach at most at twice max speed
+            # the net predicts a sample period's change; a longer step takes that many
+            change = np.clip(out["pairs"].reshape(-1, 3) / PAIR_SCALE * (dt / self.dt), -2 * cfg.max_speed * dt,
+                             2 * cfg.max_speed * dt)  # two points approach at most at twice max speed
             pairs = a[lay.pair_j] - a[lay.pair_i] + change
             if cfg.masks:
                 am = state["mask"][lay.anchors]
@@ -440,8 +445,8 @@ class Ours:
         if observed_objects is not None:
             pos[2 * KEYPOINTS_PER_HAND:] = observed_objects
         nxt = dict(state)
-        nxt["t"] = state.get("t", 0.0) + self.dt
-        nxt["vel"] = (pos - state["pos"]) / self.dt
+        nxt["t"] = state.get("t", 0.0) + dt
+        nxt["vel"] = (pos - state["pos"]) / dt
         nxt["pos"] = pos
         if cfg.masks:
             nxt["mask"] = out["mask"] > 0.0
@@ -452,7 +457,7 @@ class Ours:
             dH = out["dH"] * self.net.dH_std.numpy() / self.net.H_std.numpy()
             # bounded to +-5 training standard deviations: a linear reservoir driven by demonstration
             # speeds never leaves that range, and an untrained net must not run away through it
-            nxt["H"] = np.minimum(np.maximum(solver.memory(Hp, state["H"], dH, self.dt, cfg.w_memory_prior), -5.0), 5.0)
+            nxt["H"] = np.minimum(np.maximum(solver.memory(Hp, state["H"], dH, dt, cfg.w_memory_prior), -5.0), 5.0)
         if cfg.recurrent:
             nxt["rec"] = out["rec"]
         if not np.isfinite(pos).all():

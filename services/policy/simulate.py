@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.policy.consistency import ConsistencySolver
 from services.policy.ours import Ours, PolicyError
 from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 
@@ -96,6 +97,7 @@ class PolicyRunner:
         self.model = model
         self.model.net.eval()
         self.solver = model.solver()
+        self._coarse: ConsistencySolver | None = None  # horizons at another step (horizon's dt)
         self.state: dict | None = None
         self.efforts = np.zeros((2, len(TACTILE_REGIONS)))  # predicted tactile, kPa (7.2.10)
         self.horizon_tactile = np.zeros((0, 2, len(TACTILE_REGIONS)))  # of the last horizon()
@@ -157,18 +159,24 @@ class PolicyRunner:
         self.efforts = nxt["tactile"]
         return nxt["pos"]
 
-    def horizon(self, scene_obs: SceneObs | None, steps: int) -> np.ndarray:
-        """Rollout of ``steps`` samples from the latest observation (steps, P, 3); the running
-        memory is not advanced by the look-ahead."""
+    def horizon(self, scene_obs: SceneObs | None, steps: int, dt: float | None = None) -> np.ndarray:
+        """Rollout of ``steps`` samples from the latest observation (steps, P, 3), ``dt`` apart
+        (default the sample period; the trajectory optimizer's knot spacing costs fewer network
+        passes for the same look-ahead); the running memory is not advanced by the look-ahead."""
         if scene_obs is not None:
             self.observe(scene_obs)
         if self.state is None:
             raise PolicyInputError("no scene observed yet")
+        solver = self.solver
+        if dt is not None and abs(dt - solver.dt) > 1e-9:
+            if self._coarse is None or abs(self._coarse.dt - dt) > 1e-9:
+                self._coarse = self.model.solver(dt)
+            solver = self._coarse
         state = dict(self.state)
         out = np.empty((steps, len(state["pos"]), 3))
         tactile = np.empty((steps, *np.shape(state["tactile"])))
         for t in range(steps):
-            state = self.model.step(state, self.solver)
+            state = self.model.step(state, solver)
             out[t], tactile[t] = state["pos"], state["tactile"]
         self._check(out)
         self.horizon_tactile = tactile

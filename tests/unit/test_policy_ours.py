@@ -355,6 +355,19 @@ def test_runner_steps_horizons_and_guards_nan(trained, demos):
     assert runner.efforts.shape == (2, 6)
 
 
+def test_horizon_at_the_optimizers_knots_integrates_over_the_longer_step(trained, demos):
+    runner = PolicyRunner(trained)
+    runner.step(scene_of(demos[2], 0))
+    start, memory = runner.state["pos"].copy(), runner.state["H"].copy()
+    fine = runner.horizon(None, 10)
+    coarse = runner.horizon(None, 5, dt=2 * trained.dt)
+    assert coarse.shape == (5, 42 + K, 3) and np.isfinite(coarse).all()
+    # the first step reads the same network outputs, over twice the time
+    np.testing.assert_allclose(coarse[0] - start, 2 * (fine[0] - start), atol=1e-9)
+    assert np.abs(coarse[0] - start).max() > 1e-6
+    np.testing.assert_array_equal(runner.state["H"], memory)  # a look-ahead leaves the memory alone
+
+
 def test_simulate_follows_observed_objects(trained, demos):
     d = demos[2]
     roll = simulate(trained, d, 10, observed_objects=d.objects[:10])
