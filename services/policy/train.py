@@ -195,10 +195,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
     parser.add_argument("--steps", type=int, default=None, help="optimizer steps (default: the preset's)")
     parser.add_argument("--val", type=int, default=0, help="recordings: hold out this many demonstrations")
+    parser.add_argument("--threads", type=int, default=2,
+                        help="torch threads (default %(default)s); 1 trains bit for bit as `xm eval` does, so "
+                        "--teacher S --threads 1 gives the net of its row (1) (the thread count changes the "
+                        "summation order, and with it the net)")
     parser.add_argument("--select", choices=["train", "validation"], default=None,
                         help="which demonstrations' rollouts pick the checkpoint kept (default: validation where "
                         "there is any held out, except with --teacher: train, as `xm eval` does, so the validation "
-                        "layouts stay unseen and --teacher S gives the net of row (1) of `xm eval --seed S`)")
+                        "layouts stay unseen)")
     parser.add_argument("--out", default="runs/policy", help="output directory")
     args = parser.parse_args(argv)
     from services.policy.dataset import DatasetError, demos_from_mcap, split_demos
@@ -226,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     if not train_d:
         print("error: no training demonstrations left", file=sys.stderr)
         return 2
-    torch.set_num_threads(2)
+    torch.set_num_threads(max(1, args.threads))
     cfg = PRESETS[args.preset]
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
