@@ -223,7 +223,6 @@ def main(argv: list[str] | None = None) -> int:
         from services.world.teacher import assembly_protocol
 
         train_d, val_d = split_demos(assembly_protocol(args.teacher))
-        torch.manual_seed(args.teacher)  # as xm eval seeds each method
     else:
         print("error: no demonstrations: give recordings or --teacher SEED", file=sys.stderr)
         return 2
