@@ -234,8 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
     select = args.select or ("train" if args.teacher is not None and not args.recordings else "validation")
-    res = train(cfg, train_d, val_d if select == "validation" and val_d else None, args.out)
+    held_out = val_d if select == "validation" and val_d else None  # None: the training starts pick
+    res = train(cfg, train_d, held_out, args.out)
     print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, best at step {res.best_step} "
           f"after {res.seconds_to_best:.0f} s of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm "
-          f"from the {'validation' if select == 'validation' and val_d else 'training'} start states)")
+          f"from the {'validation' if held_out else 'training'} start states)")
     return 0
