@@ -38,19 +38,14 @@ class EvaluationError(ValueError):
     """Bad evaluation request (unknown method, no validation demonstrations)."""
 
 
-def make_method(name: str, quick: bool = False, seed: int = 0):
-    """A fresh unfitted method by its Table 7.1 name (rows 1-2 from services.policy.ours)."""
-    if name in OURS:
-        import dataclasses
+def make_method(name: str, quick: bool = False, seed: int = 0, draw: int = 0):
+    """A fresh unfitted method by its Table 7.1 name. Rows (1)-(3) are presets of services.policy.ours
+    whose ``PolicyConfig.seed`` is ``draw``; the other baselines take ``seed``."""
+    from services.policy.baselines.mlp import quick_budget
+    from services.policy.ours import PRESETS, Ours
 
-        from services.policy.ours import PRESETS, Ours
-
-        cfg = PRESETS[name]
-        if quick:
-            fields = {f.name for f in dataclasses.fields(cfg)}
-            cfg = dataclasses.replace(cfg, **{k: v for k, v in {"steps": 5, "hidden": (32, 32), "batch": 32}.items()
-                                              if k in fields})
-        return Ours(cfg)
+    if name in PRESETS:
+        return Ours(quick_budget(PRESETS[name].replace(seed=draw), quick))
     from services.policy.baselines import make
 
     return make(name, quick=quick, seed=seed)
@@ -91,11 +86,13 @@ def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[st
 
 def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[str, ...] = METHODS,
              out_dir: str | Path = "runs/eval", quick: bool = False, progress: bool = True,
-             demos: list[Demo] | None = None, merge: bool = False) -> dict[str, dict[str, float]]:
+             demos: list[Demo] | None = None, merge: bool = False, draw: int = 0) -> dict[str, dict[str, float]]:
     """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
 
     ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation').
-    ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table."""
+    ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
+    ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
+    noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md)."""
     import torch
     from tqdm import tqdm
 
@@ -121,8 +118,8 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     bar = tqdm(list(methods), desc="methods", disable=not progress)
     for name in bar:
         bar.set_postfix(method=name)
-        torch.manual_seed(seed)
-        method = make_method(name, quick=quick, seed=seed)
+        torch.manual_seed(seed + 1000 * draw)
+        method = make_method(name, quick=quick, seed=seed + 1000 * draw, draw=draw)
         t0 = time.perf_counter()
         method.fit(train, progress=progress)
         t1 = time.perf_counter()
@@ -136,7 +133,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
-    write_tables(out, results, timing, seed, quick, len(train), len(val))
+    write_tables(out, results, timing, seed, quick, len(train), len(val), draw)
     return results
 
 
@@ -145,10 +142,12 @@ def in_table_order(results: dict) -> dict:
     return {k: results[k] for k in sorted(results, key=lambda k: METHODS.index(k) if k in METHODS else 99)}
 
 
-def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int) -> None:
+def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int,
+                 draw: int = 0) -> None:
     """results.json, results.md and results.png of one run."""
     (out / "results.json").write_text(json.dumps(results, indent=2))
-    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val))
+    (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val,
+                                          draw=draw))
     plot_results(results, out / "results.png")
 
 
@@ -198,10 +197,11 @@ def _fmt(x: float) -> str:
 
 
 def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool = False, n_train: int = 3,
-          n_val: int = 12) -> str:
+          n_val: int = 12, draw: int = 0) -> str:
     """Markdown in the layout of Table 7.1, each cell with its ratio to the reference method."""
     ref = results.get(REFERENCE)
-    lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}: {n_train} train / {n_val} validation demos"
+    lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}"
+             + (f", training draw {draw}" if draw else "") + f": {n_train} train / {n_val} validation demos"
              + (" (--quick: tiny training budgets, numbers meaningless)" if quick else ""),
              "", "Symmetric closest-point distance in metres (lower is better); (x) = ratio to (1) Multimodal.", "",
              "| Method | Tactile | Memory | Hand | Object | Hand (masked) | Object (masked) | fit s | rollout s |",
@@ -286,6 +286,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/eval", help="output directory (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
+    parser.add_argument("--draw", type=int, default=0,
+                        help="training draw: the learned methods start from other random numbers (initial weights, "
+                        "batches, noise), the demonstrations stay; one training run is one draw (default %(default)s)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
@@ -318,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
             rescore(args.out, args.seed)
         else:
             evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
-                     merge=args.merge)
+                     merge=args.merge, draw=args.draw)
     except EvaluationError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

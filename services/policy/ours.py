@@ -305,8 +305,7 @@ class Ours:
 
     # --- Method interface ---------------------------------------------------------------------
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        """Trains on ``train``; the checkpoint kept is the one whose rollouts from the training start
-        states stay closest to the training demonstrations (no validation data is used here)."""
+        """Trains on ``train`` and keeps the final (averaged) weights; no validation data is used here."""
         from services.policy.train import fit_model
 
         fit_model(self, train, None, progress=progress)

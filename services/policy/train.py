@@ -1,10 +1,12 @@
 """Training of the chapter-7 policy, and `xm train`.
 
 ``train(config, train_demos, val_demos, out_dir)``: Adam with a cosine schedule, a tqdm bar, and
-in the schedule's second part (from ``eval_from``) every ``eval_every`` steps a neural-simulation
-rollout from each validation start state scored with the Table 7.1 distance; the best checkpoint
-(state_dict + JSON config, loads with ``torch.load(weights_only=True)``) is kept, with a
-loss-curve PNG and train.json.
+with held-out demonstrations, in the schedule's second part (from ``eval_from``) every
+``eval_every`` steps a neural-simulation rollout from each of their start states scored with the
+Table 7.1 distance; the best checkpoint is kept. Without held-out demonstrations the final
+(averaged) weights are kept: rollouts from the training starts cannot tell checkpoints apart
+(docs/policy.md, Session 15). The checkpoint (state_dict + JSON config) loads with
+``torch.load(weights_only=True)``; a loss-curve PNG and train.json go beside it.
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
     sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
     params = list(net.parameters())
     ema = [p.detach().clone() for p in params] if cfg.ema else None  # weights averaged over the steps
-    select = val_demos if val_demos else train_demos
+    select = val_demos or None  # None: keep the final weights; the training starts are scored once, at the end
     best = {"score": np.inf, "step": 0, "state": None, "t": 0.0}
     evals: list[dict] = []
     bar = tqdm(range(1, cfg.steps + 1), desc=f"train {cfg.name}", disable=not progress, leave=False)
@@ -105,7 +107,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         if step % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
         # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
-        if step == cfg.steps or (step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
+        if step == cfg.steps or (select and step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
             net.eval()
             if ema is not None:  # the averaged weights are scored (and kept); training goes on from its own
                 current = [p.detach().clone() for p in params]
@@ -113,12 +115,12 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
                     for p, e in zip(params, ema, strict=True):
                         p.copy_(e)
             try:
-                sc = selection_score(method, select)
+                sc = selection_score(method, select or train_demos)
             except PolicyError:
                 sc = {"hand": np.inf, "object": np.inf, "score": np.inf}
             sc["step"], sc["seconds"] = step, time.perf_counter() - t0
             evals.append(sc)
-            if sc["score"] < best["score"]:
+            if sc["score"] < best["score"] or not select:  # without held-out demos the last is kept
                 best = {"score": sc["score"], "step": step, "t": sc["seconds"],
                         "state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
             if ema is not None:
@@ -140,7 +142,8 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         method.save(str(result.checkpoint))
         (out_dir / "config.json").write_text(cfg.to_json())
         (out_dir / "train.json").write_text(json.dumps(
-            {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(select),
+            {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(select or []),
+             "kept": "best on the held-out demonstrations" if select else "final weights",
              "best_step": best["step"], "best_score_m": result.best_score, "seconds": seconds,
              "seconds_to_best": best["t"], "evals": evals}, indent=2, default=float))
         plot_losses(np.array(method.losses), evals, out_dir / "loss.png")
@@ -199,10 +202,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="torch threads (default %(default)s); 1 trains bit for bit as `xm eval` does, so "
                         "--teacher S --threads 1 gives the net of its row (1) (the thread count changes the "
                         "summation order, and with it the net)")
-    parser.add_argument("--select", choices=["train", "validation"], default=None,
-                        help="which demonstrations' rollouts pick the checkpoint kept (default: validation where "
-                        "there is any held out, except with --teacher: train, as `xm eval` does, so the validation "
-                        "layouts stay unseen)")
+    parser.add_argument("--select", choices=["final", "validation"], default=None,
+                        help="which weights are kept: the best on the held-out demonstrations' rollouts, or the "
+                        "final (averaged) ones (default: validation where any is held out, except with --teacher: "
+                        "final, as `xm eval` does, so the validation layouts stay unseen)")
     parser.add_argument("--out", default="runs/policy", help="output directory")
     args = parser.parse_args(argv)
     from services.policy.dataset import DatasetError, demos_from_mcap, split_demos
@@ -233,10 +236,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = PRESETS[args.preset]
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
-    select = args.select or ("train" if args.teacher is not None and not args.recordings else "validation")
+    select = args.select or ("final" if args.teacher is not None and not args.recordings else "validation")
     held_out = val_d if select == "validation" and val_d else None  # None: the training starts pick
     res = train(cfg, train_d, held_out, args.out)
-    print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, best at step {res.best_step} "
-          f"after {res.seconds_to_best:.0f} s of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm "
-          f"from the {'validation' if held_out else 'training'} start states)")
+    kept = f"best at step {res.best_step}" if held_out else "final weights"
+    print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, {kept} after {res.seconds_to_best:.0f} s "
+          f"of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm from the "
+          f"{'validation' if held_out else 'training'} start states)")
     return 0

@@ -51,12 +51,45 @@ def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
         rescore(tmp_path, 0, demos)
 
 
-def test_xm_train_teacher_selects_on_the_training_starts_unless_told(tmp_path):
+def test_xm_train_teacher_keeps_the_final_weights_unless_told(tmp_path):
     """`xm train --teacher S` keeps the validation layouts unseen (as row (1) of `xm eval`), so the
     robot loop on them is out of sample; --select validation picks on them instead."""
     from services.policy.train import main as train_main
 
     assert train_main(["--teacher", "0", "--steps", "2", "--out", str(tmp_path / "a")]) == 0
-    assert json.loads((tmp_path / "a" / "train.json").read_text())["selection_demos"] == 3
+    info = json.loads((tmp_path / "a" / "train.json").read_text())
+    assert (info["selection_demos"], info["kept"], info["best_step"]) == (0, "final weights", 2)
     assert train_main(["--teacher", "0", "--steps", "2", "--select", "validation", "--out", str(tmp_path / "b")]) == 0
     assert json.loads((tmp_path / "b" / "train.json").read_text())["selection_demos"] == 12
+
+
+def test_selection_keeps_the_best_held_out_checkpoint_and_otherwise_the_last():
+    """With held-out demos every scored checkpoint competes; without, only the final one is scored and kept."""
+    from services.policy.evaluate import split
+    from services.policy.network import preset
+    from services.policy.ours import Ours
+    from services.policy.train import fit_model
+    from services.world.teacher import assembly_protocol
+
+    train_d, val_d = split(assembly_protocol(0))
+    cfg = preset("single_state", steps=6, eval_every=1, eval_from=0.0, hidden=(32, 32), batch=32)
+    held = fit_model(Ours(cfg), train_d, val_d[:2], progress=False)
+    assert [e["step"] for e in held.evals] == [1, 2, 3, 4, 5, 6]
+    best = min(held.evals, key=lambda e: e["score"])
+    assert (held.best_step, held.best_score) == (best["step"], best["score"])
+    final = fit_model(Ours(cfg), train_d, None, progress=False)
+    assert [e["step"] for e in final.evals] == [6] and final.best_step == 6
+
+
+def test_a_training_draw_changes_the_learned_rows_and_only_them(tmp_path, demos):
+    """--draw K trains from other random numbers: another net for our rows, the same for draw 0
+    run twice, and the deterministic baselines unchanged."""
+    runs = {}
+    for name, draw in (("a", 0), ("b", 0), ("c", 1)):
+        runs[name] = evaluate(methods=["single_state", "promp_simple"], out_dir=tmp_path / name, quick=True,
+                              progress=False, demos=demos, draw=draw)
+    assert runs["a"] == runs["b"]
+    assert runs["c"]["single_state"] != runs["a"]["single_state"]
+    assert runs["c"]["promp_simple"] == runs["a"]["promp_simple"]
+    assert "training draw 1" in (tmp_path / "c" / "results.md").read_text()
+    assert "draw" not in (tmp_path / "a" / "results.md").read_text()

@@ -35,7 +35,8 @@ def window_averages(x: np.ndarray, t: np.ndarray, start: np.ndarray | None = Non
     return np.stack(parts, axis=1)
 
 
-def _shrunk(cfg, quick: bool):
+def quick_budget(cfg, quick: bool):
+    """``cfg`` with the tiny --quick training budget (a smoke test), or as it is."""
     if not quick:
         return cfg
     fields = {f.name for f in dataclasses.fields(cfg)}
@@ -50,11 +51,11 @@ def make_state_policy(name: str, quick: bool = False, seed: int = 0):
     except ImportError:
         PRESETS, Ours = {}, None
     if Ours is not None and name in PRESETS:
-        return Ours(_shrunk(PRESETS[name], quick))
+        return Ours(quick_budget(PRESETS[name], quick))
     if Ours is not None and name == "time_window" and "single_state" in PRESETS \
             and "time_window" in {f.name for f in dataclasses.fields(PRESETS["single_state"])}:
         cfg = dataclasses.replace(PRESETS["single_state"], name="time_window", time_window=True)
-        return Ours(_shrunk(cfg, quick))
+        return Ours(quick_budget(cfg, quick))
     return StateMLP(window=name == "time_window", quick=quick, seed=seed)
 
 
