@@ -85,7 +85,8 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
     sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
     params = list(net.parameters())
     ema = [p.detach().clone() for p in params] if cfg.ema else None  # weights averaged over the steps
-    select = val_demos or None  # None: keep the final weights; the training starts are scored once, at the end
+    keep_best = bool(val_demos)  # else the final weights are kept, and the training starts scored once, at the end
+    scored = val_demos or train_demos
     best = {"score": np.inf, "step": 0, "state": None, "t": 0.0}
     evals: list[dict] = []
     bar = tqdm(range(1, cfg.steps + 1), desc=f"train {cfg.name}", disable=not progress, leave=False)
@@ -107,7 +108,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         if step % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
         # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
-        if step == cfg.steps or (select and step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
+        if step == cfg.steps or (keep_best and step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
             net.eval()
             if ema is not None:  # the averaged weights are scored (and kept); training goes on from its own
                 current = [p.detach().clone() for p in params]
@@ -115,12 +116,12 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
                     for p, e in zip(params, ema, strict=True):
                         p.copy_(e)
             try:
-                sc = selection_score(method, select or train_demos)
+                sc = selection_score(method, scored)
             except PolicyError:
                 sc = {"hand": np.inf, "object": np.inf, "score": np.inf}
             sc["step"], sc["seconds"] = step, time.perf_counter() - t0
             evals.append(sc)
-            if sc["score"] < best["score"] or not select:  # without held-out demos the last is kept
+            if sc["score"] < best["score"] or not keep_best:
                 best = {"score": sc["score"], "step": step, "t": sc["seconds"],
                         "state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
             if ema is not None:
@@ -142,8 +143,8 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         method.save(str(result.checkpoint))
         (out_dir / "config.json").write_text(cfg.to_json())
         (out_dir / "train.json").write_text(json.dumps(
-            {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(select or []),
-             "kept": "best on the held-out demonstrations" if select else "final weights",
+            {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(val_demos or []),
+             "kept": "best on the held-out demonstrations" if keep_best else "final weights",
              "best_step": best["step"], "best_score_m": result.best_score, "seconds": seconds,
              "seconds_to_best": best["t"], "evals": evals}, indent=2, default=float))
         plot_losses(np.array(method.losses), evals, out_dir / "loss.png")
@@ -152,7 +153,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
 
 def train(config, train_demos: list[Demo], val_demos: list[Demo] | None, out_dir: str | Path | None,
           progress: bool = True) -> TrainResult:
-    """Trains a fresh policy (config: PolicyConfig or preset name) with best-on-validation selection."""
+    """Trains a fresh policy (config: PolicyConfig or preset name): best on ``val_demos``, else the final weights."""
     from services.policy.ours import Ours
 
     method = Ours(config)
@@ -237,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
     select = args.select or ("final" if args.teacher is not None and not args.recordings else "validation")
-    held_out = val_d if select == "validation" and val_d else None  # None: the training starts pick
+    held_out = val_d if select == "validation" and val_d else None  # None: the final weights are kept
     res = train(cfg, train_d, held_out, args.out)
     kept = f"best at step {res.best_step}" if held_out else "final weights"
     print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, {kept} after {res.seconds_to_best:.0f} s "
