@@ -6,7 +6,8 @@ scored with the symmetric closest-point distance of services/policy/metrics.py, 
 object keypoints, with and without the validation occlusion masks. Writes results.json,
 results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
 scale), rollout_<method>.png (one example rollout per method) and rollouts_<method>.npz (every
-rollout, so that `xm eval --rescore` recomputes the scores without fitting again) into --out.
+rollout, so that `xm eval --rescore` recomputes the scores without fitting again) into --out,
+and for rows (1)-(3) the scored net as policy_<method>.pt (`xm eval --execute --checkpoint`).
 """
 
 from __future__ import annotations
@@ -38,14 +39,15 @@ class EvaluationError(ValueError):
     """Bad evaluation request (unknown method, no validation demonstrations)."""
 
 
-def make_method(name: str, quick: bool = False, seed: int = 0, draw: int = 0):
+def make_method(name: str, quick: bool = False, seed: int = 0, draw: int = 0, changes: dict | None = None):
     """A fresh unfitted method by its Table 7.1 name. Rows (1)-(3) are presets of services.policy.ours
-    whose ``PolicyConfig.seed`` is ``draw``; the other baselines take ``seed``."""
+    whose ``PolicyConfig.seed`` is ``draw``, with ``changes`` to their config; the other baselines
+    take ``seed``."""
     from services.policy.baselines.mlp import quick_budget
     from services.policy.ours import PRESETS, Ours
 
     if name in PRESETS:
-        return Ours(quick_budget(PRESETS[name].replace(seed=draw), quick))
+        return Ours(quick_budget(PRESETS[name].replace(seed=draw, **(changes or {})), quick))
     from services.policy.baselines import make
 
     return make(name, quick=quick, seed=seed)
@@ -86,13 +88,15 @@ def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[st
 
 def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[str, ...] = METHODS,
              out_dir: str | Path = "runs/eval", quick: bool = False, progress: bool = True,
-             demos: list[Demo] | None = None, merge: bool = False, draw: int = 0) -> dict[str, dict[str, float]]:
+             demos: list[Demo] | None = None, merge: bool = False, draw: int = 0,
+             changes: dict | None = None) -> dict[str, dict[str, float]]:
     """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
 
     ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation').
     ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
     ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
-    noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md)."""
+    noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md).
+    ``changes``: PolicyConfig fields changed in rows (1)-(3) (`xm eval --set`)."""
     import torch
     from tqdm import tqdm
 
@@ -120,7 +124,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     for name in bar:
         bar.set_postfix(method=name)
         torch.manual_seed(train_seed)
-        method = make_method(name, quick=quick, seed=train_seed, draw=draw)
+        method = make_method(name, quick=quick, seed=train_seed, draw=draw, changes=changes)
         t0 = time.perf_counter()
         method.fit(train, progress=progress)
         t1 = time.perf_counter()
@@ -128,13 +132,15 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         t2 = time.perf_counter()
         results[name] = score(outs, val)
         save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
+        if hasattr(method, "save"):  # rows (1)-(3): the very net scored, for `xm eval --execute --checkpoint`
+            method.save(str(out / f"policy_{name}.pt"))
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
         results = in_table_order(results)
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
-    write_tables(out, results, timing, seed, quick, len(train), len(val), draw)
+    write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes)
     return results
 
 
@@ -144,11 +150,11 @@ def in_table_order(results: dict) -> dict:
 
 
 def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int,
-                 draw: int = 0) -> None:
+                 draw: int = 0, changes: dict | None = None) -> None:
     """results.json, results.md and results.png of one run."""
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val,
-                                          draw=draw))
+                                          draw=draw, changes=changes))
     plot_results(results, out / "results.png")
 
 
@@ -198,11 +204,13 @@ def _fmt(x: float) -> str:
 
 
 def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool = False, n_train: int = 3,
-          n_val: int = 12, draw: int = 0) -> str:
+          n_val: int = 12, draw: int = 0, changes: dict | None = None) -> str:
     """Markdown in the layout of Table 7.1, each cell with its ratio to the reference method."""
     ref = results.get(REFERENCE)
     lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}"
-             + (f", training draw {draw}" if draw else "") + f": {n_train} train / {n_val} validation demos"
+             + (f", training draw {draw}" if draw else "")
+             + (", rows (1)-(3) with " + ", ".join(f"{k}={v}" for k, v in changes.items()) if changes else "")
+             + f": {n_train} train / {n_val} validation demos"
              + (" (--quick: tiny training budgets, numbers meaningless)" if quick else ""),
              "", "Symmetric closest-point distance in metres (lower is better); (x) = ratio to (1) Multimodal.", "",
              "| Method | Tactile | Memory | Hand | Object | Hand (masked) | Object (masked) | fit s | rollout s |",
@@ -280,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="xm eval", description="Table 7.1 protocol: fit every method on 3 teacher demonstrations, roll out "
         "from 12 validation start states, score with the symmetric closest-point distance. Writes results.json, "
-        "results.md, results.png and rollout_<method>.png into --out.")
+        "results.md, results.png, rollout_<method>.png and, for rows (1)-(3), the scored net policy_<method>.pt "
+        "into --out.")
     parser.add_argument("--task", default="assembly", choices=["assembly"],
                         help="demonstrated task (default %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="teacher layout seed of the 15 demos (default %(default)s)")
@@ -290,6 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draw", type=int, default=0,
                         help="training draw: the learned methods start from other random numbers (initial weights, "
                         "batches, noise), the demonstrations stay; one training run is one draw (default %(default)s)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="change a PolicyConfig field of rows (1)-(3), e.g. --set reservoir_periods=0.25,8 "
+                        "(repeatable; docs/policy.md lists the fields)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
@@ -317,12 +329,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.execute:
         return execute_main(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    from services.policy.network import config_changes
+
+    try:
+        changes = config_changes(args.set)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     try:
         if args.rescore:
             rescore(args.out, args.seed)
         else:
             evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
-                     merge=args.merge, draw=args.draw)
+                     merge=args.merge, draw=args.draw, changes=changes)
     except EvaluationError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -69,6 +69,7 @@ class PolicyConfig:
     noise_loss_ref: float = 0.0  # m; > 0 weighs each sample's velocity loss by ref / (ref + noise scale)
     reservoir: int = 32
     reservoir_radius: float = 0.98
+    reservoir_periods: tuple[float, float] = (0.0, 0.0)  # s; > 0: W_R's rotation periods fixed, log-spaced over this range
     w_dH_loss: float = 1.0  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)
     hidden: tuple[int, ...] = (2048, 512, 512, 512)
@@ -102,7 +103,7 @@ class PolicyConfig:
         raw = json.loads(text)
         known = {f.name for f in fields(cls)}
         raw = {k: v for k, v in raw.items() if k in known}
-        for key in ("hidden", "noise_exponent"):
+        for key in ("hidden", "noise_exponent", "reservoir_periods"):
             if key in raw:
                 raw[key] = tuple(raw[key])
         return cls(**raw)
@@ -122,6 +123,32 @@ def preset(name: str, **changes) -> PolicyConfig:
     if name not in PRESETS:
         raise KeyError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
     return PRESETS[name].replace(**changes)
+
+
+def config_changes(items: list[str]) -> dict:
+    """``KEY=VALUE`` strings (the CLIs' ``--set``) as PolicyConfig changes, each typed like its field;
+    tuples are comma-separated. ValueError names the bad item."""
+    defaults = asdict(PolicyConfig())
+    changes: dict = {}
+    for item in items:
+        key, sep, value = (part.strip() for part in item.partition("="))
+        if not sep or key not in defaults or key == "name":
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE with KEY a PolicyConfig field "
+                             f"({', '.join(k for k in defaults if k != 'name')})")
+        current = defaults[key]
+        try:
+            if isinstance(current, bool):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError
+                changes[key] = value.lower() in ("true", "1")
+            elif isinstance(current, (tuple, list)):
+                changes[key] = tuple(type(current[0])(v) for v in value.split(","))
+            else:
+                changes[key] = type(current)(value)
+        except ValueError:
+            raise ValueError(f"--set {key}={value!r}: not a {type(current).__name__} like the default "
+                             f"{current!r}") from None
+    return changes
 
 
 def _mlp(sizes: list[int], act: type[nn.Module], dropout: float = 0.0, last_act: bool = False) -> nn.Sequential:

@@ -68,7 +68,8 @@ class Ours:
         torch.manual_seed(cfg.seed)
         self.net = PolicyNet(cfg, self.K)
         P = self.net.layout.P
-        self.reservoir = Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.seed) if cfg.memory else None
+        periods = tuple(t / self.dt for t in cfg.reservoir_periods) if min(cfg.reservoir_periods) > 0 else None
+        self.reservoir = Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.seed, periods) if cfg.memory else None
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)
         self.body = self.bodies()

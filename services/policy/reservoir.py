@@ -3,6 +3,10 @@
 H_{t+1} = W_R H_t + W_I m_t V_t, run forwards and backwards in time over masked keypoint
 velocities, H_t = H_{t,+1} + H_{t,-1}. W_R is a random orthogonal matrix scaled to ``radius``
 (the decay per step sets the memory span: 0.98 at 50 Hz is about one second), W_I is Gaussian.
+A random orthogonal matrix turns nearly all of its state quickly (rotation periods of a few
+steps) and keeps one or two slow directions, chosen by chance; ``periods`` instead fixes the
+rotation periods, spread log-evenly, and leaves only the eigenbasis random (docs/policy.md,
+Session 16).
 
 Because the map is linear, a rotation of the velocities about gravity by angle a gives
 H = cos(a) H_xy + sin(a) H_perp + H_z, so rotated activations are precomputed exactly
@@ -15,9 +19,19 @@ import numpy as np
 
 
 class Reservoir:
-    def __init__(self, points: int, size: int = 32, radius: float = 0.98, seed: int = 0) -> None:
+    def __init__(self, points: int, size: int = 32, radius: float = 0.98, seed: int = 0,
+                 periods: tuple[float, float] | None = None) -> None:
+        """periods: (shortest, longest) rotation period in steps, or None for a plain random orthogonal W_R."""
         rng = np.random.default_rng(seed)
         q, _ = np.linalg.qr(rng.normal(size=(size, size)))
+        if periods is not None:  # the same eigenbasis q, rotated by fixed angles pairwise
+            turns = np.zeros((size, size))
+            for i, period in enumerate(np.geomspace(periods[0], periods[1], size // 2)):
+                c, s = np.cos(2 * np.pi / period), np.sin(2 * np.pi / period)
+                turns[2 * i:2 * i + 2, 2 * i:2 * i + 2] = [[c, -s], [s, c]]
+            if size % 2:
+                turns[-1, -1] = 1.0
+            q = q @ turns @ q.T
         self.W_R = (radius * q).astype(np.float64)
         self.W_I = rng.normal(0.0, 1.0 / np.sqrt(3 * points), (size, 3 * points))
         self.size, self.points = size, points

@@ -198,6 +198,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="instead: the 15-demonstration assembly protocol of this seed (3 train, 12 validation)")
     parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
     parser.add_argument("--steps", type=int, default=None, help="optimizer steps (default: the preset's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="change a PolicyConfig field of the preset, e.g. --set reservoir_periods=0.25,8 "
+                        "(repeatable)")
     parser.add_argument("--val", type=int, default=0, help="recordings: hold out this many demonstrations")
     parser.add_argument("--threads", type=int, default=2,
                         help="torch threads (default %(default)s); 1 trains bit for bit as `xm eval` does, so "
@@ -210,6 +213,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/policy", help="output directory")
     args = parser.parse_args(argv)
     from services.policy.dataset import DatasetError, demos_from_mcap, split_demos
+    from services.policy.network import config_changes
+
+    try:
+        changes = config_changes(args.set)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
     if args.recordings:
         demos = []
@@ -234,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         print("error: no training demonstrations left", file=sys.stderr)
         return 2
     torch.set_num_threads(max(1, args.threads))
-    cfg = PRESETS[args.preset]
+    cfg = PRESETS[args.preset].replace(**changes)
     if args.steps:
         cfg = cfg.replace(steps=args.steps)
     select = args.select or ("final" if args.teacher is not None and not args.recordings else "validation")

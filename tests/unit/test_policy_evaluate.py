@@ -93,3 +93,28 @@ def test_a_training_draw_changes_the_learned_rows_and_only_them(tmp_path, demos)
     assert runs["c"]["promp_simple"] == runs["a"]["promp_simple"]
     assert "training draw 1" in (tmp_path / "c" / "results.md").read_text()
     assert "draw" not in (tmp_path / "a" / "results.md").read_text()
+
+
+def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
+    from services.policy.evaluate import main as eval_main
+    from services.policy.train import main as train_main
+
+    assert eval_main(["--set", "reservoir_period=1,2", "--out", str(tmp_path)]) == 2
+    assert "reservoir_period=1,2" in capsys.readouterr().err
+    assert train_main(["--teacher", "0", "--set", "steps=many", "--out", str(tmp_path)]) == 2
+    assert "not a int" in capsys.readouterr().err
+
+
+def test_xm_eval_keeps_the_net_it_scored(tmp_path, demos):
+    """policy_<row>.pt is the very net of the row: reloaded, it scores the same; baselines leave none."""
+    from services.policy.evaluate import rollouts, score, split
+    from services.policy.ours import Ours
+
+    rows = evaluate(methods=["single_state", "promp_simple"], out_dir=tmp_path, quick=True, progress=False,
+                    demos=demos, changes={"dropout": 0.1})
+    assert "rows (1)-(3) with dropout=0.1" in (tmp_path / "results.md").read_text()
+    assert sorted(p.name for p in tmp_path.glob("policy_*.pt")) == ["policy_single_state.pt"]
+    val = split(demos)[1]
+    reloaded = Ours.load(str(tmp_path / "policy_single_state.pt"))
+    assert reloaded.cfg.dropout == 0.1
+    assert score(rollouts(reloaded, val, False), val) == pytest.approx(rows["single_state"], abs=1e-9)

@@ -8,7 +8,7 @@ import torch
 
 from services.policy import dataset as D
 from services.policy.consistency import ConsistencySolver, follow_bodies
-from services.policy.network import Layout, PolicyConfig, preset
+from services.policy.network import Layout, PolicyConfig, config_changes, preset
 from services.policy.ours import Ours, PolicyError
 from services.policy.reservoir import Reservoir
 from services.policy.simulate import PolicyInputError, PolicyRunner, SceneObs, simulate
@@ -81,6 +81,30 @@ def test_reservoir_components_equal_rerun_on_rotated_velocities():
     a = 1.1
     np.testing.assert_allclose(Reservoir.rotated(res.components(v, mask), a), res.run(D.rotate_z(v, a), mask),
                                atol=1e-9)
+
+
+def test_reservoir_with_fixed_periods_draws_only_its_eigenbasis():
+    spectra = []
+    for seed in (0, 1):
+        res = Reservoir(5, 8, 0.9, seed=seed, periods=(4.0, 32.0))
+        np.testing.assert_allclose(res.W_R @ res.W_R.T, 0.81 * np.eye(8), atol=1e-12)
+        ev = np.linalg.eigvals(res.W_R)
+        np.testing.assert_allclose(np.abs(ev), 0.9)
+        spectra.append(np.sort(2 * np.pi / np.abs(np.angle(ev))))
+    np.testing.assert_allclose(spectra[0], np.repeat([4.0, 8.0, 16.0, 32.0], 2))
+    np.testing.assert_allclose(spectra[0], spectra[1])
+    plain = [np.sort(np.abs(np.angle(np.linalg.eigvals(Reservoir(5, 8, 0.9, seed=s).W_R)))) for s in (0, 1)]
+    assert not np.allclose(plain[0], plain[1])  # a plain random orthogonal W_R: the periods change with the draw
+
+
+def test_config_changes_are_typed_like_their_fields_and_bad_ones_named():
+    got = config_changes(["reservoir_periods=0.25,8", "hidden=64,32", "mirror=false", "lr=3e-4", "steps=10"])
+    assert got == {"reservoir_periods": (0.25, 8.0), "hidden": (64, 32), "mirror": False, "lr": 3e-4, "steps": 10}
+    assert preset("multimodal", **got).hidden == (64, 32)
+    for bad, says in (("colour=red", "'colour=red'"), ("steps", "'steps'"), ("steps=ten", "not a int"),
+                      ("mirror=maybe", "not a bool"), ("name=x", "'name=x'")):
+        with pytest.raises(ValueError, match=says):
+            config_changes([bad])
 
 
 def test_frame_yaw_recovers_the_turn_of_the_widest_object():
