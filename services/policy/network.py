@@ -69,7 +69,7 @@ class PolicyConfig:
     noise_loss_ref: float = 0.0  # m; > 0 weighs each sample's velocity loss by ref / (ref + noise scale)
     reservoir: int = 32
     reservoir_radius: float = 0.98
-    reservoir_periods: tuple[float, float] = (0.0, 0.0)  # s; > 0: W_R's rotation periods fixed, log-spaced over this range
+    reservoir_periods: tuple[float, float] = (0.0, 0.0)  # s; > 0: W_R turns with these periods (log-spaced)
     w_dH_loss: float = 1.0  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)
     hidden: tuple[int, ...] = (2048, 512, 512, 512)
