@@ -100,13 +100,9 @@ class PolicyConfig:
 
     @classmethod
     def from_json(cls, text: str) -> PolicyConfig:
-        raw = json.loads(text)
-        known = {f.name for f in fields(cls)}
-        raw = {k: v for k, v in raw.items() if k in known}
-        for key in ("hidden", "noise_exponent", "reservoir_periods"):
-            if key in raw:
-                raw[key] = tuple(raw[key])
-        return cls(**raw)
+        known = {f.name for f in fields(cls)}  # fields of older or newer versions are left out
+        return cls(**{k: tuple(v) if isinstance(v, list) else v  # JSON has no tuples
+                      for k, v in json.loads(text).items() if k in known})
 
     def replace(self, **changes) -> PolicyConfig:
         return type(self)(**{**asdict(self), **changes})

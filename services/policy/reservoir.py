@@ -4,7 +4,7 @@ H_{t+1} = W_R H_t + W_I m_t V_t, run forwards and backwards in time over masked 
 velocities, H_t = H_{t,+1} + H_{t,-1}. W_R is a random orthogonal matrix scaled to ``radius``
 (the decay per step sets the memory span: 0.98 at 50 Hz is about one second), W_I is Gaussian.
 A random orthogonal matrix turns nearly all of its state quickly (rotation periods of a few
-steps) and keeps one or two slow directions, chosen by chance; ``periods`` instead fixes the
+steps) and keeps one slow direction, chosen by chance; ``periods`` instead fixes the
 rotation periods, spread log-evenly, and leaves only the eigenbasis random (docs/policy.md,
 Session 16).
 
