@@ -10,6 +10,8 @@ needs about 2 mm. The demonstrations themselves say where the contacts are:
   the pinch line's heading against the object's (a parallel gripper closes square on it);
 - the mate anchor: the pair of points, one on the held object and one on another object, that
   comes closest in every demonstration (the module's connector on the board's), with its offset;
+- the lift anchor: how far every demonstration lifts the held object once mated (the module,
+  carrying the board off the table);
 - how hard: the grasping and pressing pressures the gloved demonstrations measured.
 
 At execution (``execute_layout(anchored=True)``), a goal the policy puts near an anchor is pulled
@@ -46,6 +48,7 @@ class ContactAnchors:
     mate_yaw: float  # held object's heading (mate -> grasp point) less the target's (target -> its object's centre)
     grasp_kpa: float  # the grasping thumb + index pressure the gloved demonstrations held (median peak)
     press_kpa: float  # the other hand's index pressure when it pressed (median peak over gloved demonstrations)
+    lift_m: float = 0.0  # how far the grasp point rises after the mate (least over demonstrations)
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -114,11 +117,14 @@ def mine_anchors(demos: list[Demo]) -> ContactAnchors:
                    - heading(d.objects[t0, mate_k] - d.objects[t0, grasp_k]) for d, (h, _, t0, _) in zip(demos, grasps,
                                                                                                        strict=True)]
     grasp_yaw = float(np.angle(np.mean(np.exp(2j * np.array(pinch_turns))))) / 2
+    # the grasp point's highest rise after the mate, in the demonstration that lifts least
+    lift = min(float((d.objects[t[i, j]:, grasp_k, 2] - d.objects[t[i, j], grasp_k, 2]).max())
+               for d, (_, _, t) in zip(demos, closest, strict=True))
     return ContactAnchors(grasp_point, np.median([o for *_, o in grasps], axis=0), grasp_yaw, names[own[i]],
                           names[other[j]],
                           mate_offset, float(np.linalg.norm(offsets - mate_offset, axis=-1).max()), mate_yaw,
                           _peak(demos, [h for h, *_ in grasps], (THUMB, INDEX), "grasping"),
-                          _peak(demos, [1 - h for h, *_ in grasps], (INDEX,), "pressing"))
+                          _peak(demos, [1 - h for h, *_ in grasps], (INDEX,), "pressing"), max(lift, 0.0))
 
 
 def _peak(demos: list[Demo], hands: list[int], regions: tuple[int, ...], role: str) -> float:

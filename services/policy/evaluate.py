@@ -317,6 +317,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="--execute: the policy observes its grasping hand where the robot's gripper is (moved "
                              "rigidly onto the pads), as the thesis's robot saw its end-effector keypoints; "
                              "--no-hand-feedback: its own prediction (default: on)")
+    parser.add_argument("--catch-mm", type=float, default=0.0,
+                        help="--execute: hand feedback starts only once the gripper has come this close to the "
+                        "policy's own hand (the gripper starts where no demonstrated hand was; 30 measured in "
+                        "docs/policy.md, Session 17); 0: from the first step (default)")
     parser.add_argument("--anchors", action=argparse.BooleanOptionalAction, default=True,
                         help="--execute: contact anchors mined from the training demonstrations (grasp point and "
                         "heading, connector mate, pressures; docs/policy.md) close the last centimetres; "
@@ -326,7 +330,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
                         "perfect policy)")
     args = parser.parse_args(argv)
+    if args.set and (args.execute or args.rescore):
+        print("error: --set changes the training of rows (1)-(3); --execute runs the checkpoint with its own config "
+              "and --rescore trains nothing (drop --set, or train first: xm eval --set ... or xm train --set ...)",
+              file=sys.stderr)
+        return 2
     if args.execute:
+        if args.catch_mm < 0 or not np.isfinite(args.catch_mm):
+            print(f"error: --catch-mm must be 0 or a positive distance in mm, not {args.catch_mm}", file=sys.stderr)
+            return 2
         return execute_main(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     from services.policy.network import config_changes
@@ -384,7 +396,8 @@ def execute_main(args: argparse.Namespace) -> int:
             return 2
     results = []
     for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors)
+        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
+                           catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None)
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
@@ -397,7 +410,7 @@ def execute_main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
-                                                  "hand_feedback": args.hand_feedback,
+                                                  "hand_feedback": args.hand_feedback, "catch_mm": args.catch_mm,
                                                   "anchors": anchors.to_dict() if anchors else None,
                                                   "layouts": results}, indent=2))
     how = "with contact anchors" if anchors else "without contact anchors"

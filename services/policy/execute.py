@@ -23,7 +23,8 @@ gripper there (on/off with hysteresis, at the demonstrated force) and it dwells 
 settles; holding, the module is turned to the demonstrated heading against the board, its
 intended placement shifted over the board's connector (eased in), docked there by servoing the
 observed connectors together, pressed home by the gripper, and only then the policy's own lift
-passes again. The policy still chooses the hand, the path, the timing of grasp and lift.
+passes again, raised where it falls short of the demonstrations' lift (the lift anchor). The
+policy still chooses the hand, the path and the timing of the grasp.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ MATE_DOCK = (0.005, 0.04)  # ... and docked onto the observed target within 4 cm
 # wherever it is pressed home under the world's 3 mm; at 3 mm a latched pair sagged to 3.1 mm when lifted)
 MATED_M, MATED_DZ_M = 0.002, 0.005
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
+LIFT_S = 0.5  # ... then lifted as high as the demonstrations did within this long (the teacher takes 0.4 s)
 
 
 def hand_point_names(grasp_hand: str, flipped: bool = False) -> list[str]:
@@ -106,6 +108,20 @@ def gripper_flipped(thumb: np.ndarray, index: np.ndarray, wrist0: float = 0.0,
         theta += 2 * np.pi * np.round((wrist0 - theta[0]) / (2 * np.pi))  # start from the wrist's turn
         worst.append(np.abs(theta).max())
     return bool(worst[1] < worst[0] and worst[0] > limit - 0.2)
+
+
+def observed_hands(hands: np.ndarray, g: int, pads: np.ndarray, observing: bool,
+                   catch_m: float | None) -> tuple[np.ndarray, bool]:
+    """Hand feedback: ``hands`` (2,21,3) with the grasping hand ``g`` moved rigidly so its pinch lies
+    between the gripper's ``pads`` (3,), once observing; and whether it is. Observing starts when
+    the pads first come within ``catch_m`` of the hand's own pinch (None: at once) and then stays."""
+    miss = pads - 0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP])
+    observing = observing or catch_m is None or float(np.linalg.norm(miss)) < catch_m
+    if not observing:
+        return hands, False
+    out = hands.copy()
+    out[g] += miss
+    return out, True
 
 
 def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
@@ -183,11 +199,12 @@ class AnchorState:
     mated: bool = False  # pressed home: the policy's own height passes again (its lift)
     mated_at: np.ndarray | None = None  # the pads when mated (set at the first plan after)
     mated_pinch_z: float = 0.0  # the policy's lowest pinch height since
+    mated_s: float = 0.0  # how long since pressed home (kept by the caller)
 
     def let_go(self) -> None:
         """The grip lost the grasp point: back to reaching."""
         self.held = self.mated = False
-        self.mated_at = None
+        self.mated_at, self.mated_s = None, 0.0
 
 
 def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -202,7 +219,7 @@ def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np
 
 def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objects: np.ndarray,
                      state: AnchorState, pads: np.ndarray, gripper_heading: float, flipped: bool,
-                     plan_samples: int = 5) -> np.ndarray:
+                     plan_samples: int = 5, sample_dt: float = 0.02) -> np.ndarray:
     """The policy's horizon (S, P, 3) with its grasping hand ``g`` moved rigidly.
 
     Reaching: sample by sample, its pinch pulled onto the observed grasp point and its pinch line
@@ -212,10 +229,11 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
     point, carried along, comes closest to its observed target) lies over that target; and where
     it would be over the target, docked: the pads servo the observed mate point onto it and lower
     it to the target's height. Mated (pressed home while aligned): the sideways docking stays, the
-    policy's own height passes (its lift). ``gripper_heading``: the gripper's thumb -> index
-    heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb pad;
-    ``plan_samples``: horizon samples until the next plan (the placement shift eases in over the
-    horizon, and what has been eased in by then stays in force)."""
+    policy's own height passes (its lift), but not below the lift anchor: the demonstrations' lift
+    (``anchors.lift_m``) reached LIFT_S after the mate. ``gripper_heading``: the gripper's thumb ->
+    index heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb
+    pad; ``plan_samples``: horizon samples until the next plan (the placement shift eases in over
+    the horizon, and what has been eased in by then stays in force); ``sample_dt``: their spacing."""
     hand = slice(g * KEYPOINTS_PER_HAND, (g + 1) * KEYPOINTS_PER_HAND)
     pts = horizon[:, hand]
     pinches = pinch(pts)
@@ -287,6 +305,10 @@ def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objec
         state.mated_pinch_z = min(state.mated_pinch_z, float(pinches[0, 2]))
         servo = state.mated_at[None] - pinches
         servo[:, 2] = 0.0 if state.observed_hand else state.mated_at[2] - state.mated_pinch_z
+        # the lift anchor: at least as high as the demonstrations lift what they assembled, at their
+        # pace (the policy's own lift passes where higher)
+        lift = anchors.lift_m * np.clip((state.mated_s + sample_dt * np.arange(1, len(horizon) + 1)) / LIFT_S, 0, 1)
+        servo[:, 2] = np.maximum(servo[:, 2], state.mated_at[2] + lift - pinches[:, 2])
     shift = (1 - docked) * shift + docked * servo
     out = horizon.copy()
     out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
@@ -314,7 +336,7 @@ def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
-                   horizon_dt: float | None = None) -> ExecutionResult:
+                   horizon_dt: float | None = None, catch_m: float | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
@@ -329,7 +351,11 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     module is held, onto the placement that brings its mate point to the observed target.
     ``horizon_dt``: the step of the policy's horizon rollouts (default its sample period; the
     optimizer's knot spacing, 7.16's keyframes, takes 2.5 times fewer network passes but measured
-    10 / 12 against 12 / 12 on seed 1, docs/policy.md Session 14)."""
+    10 / 12 against 12 / 12 on seed 1, docs/policy.md Session 14).
+    ``catch_m``: with feedback, the grasping hand is observed at the gripper only from when the pads
+    first come this close to the policy's own pinch (None: from the first step). The gripper starts
+    where no demonstrated hand was; until it has caught up with the policy's hand it follows the
+    policy's own prediction."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
@@ -373,20 +399,22 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     lens = names.index("camera/lens")
     closest, opening, max_kpa, min_gap, policy_closest = np.inf, np.nan, 0.0, np.inf, np.inf
     frame, press_beside = 0, False
+    observing = feedback and catch_m is None  # the grasping hand is observed at the gripper
     squeeze, pressing, squeeze_since, grip = False, False, 0.0, 1.0
     if anchors is not None:
         grasp_k, mate_k, target_k = (names.index(n) for n in (anchors.grasp_point, anchors.mate_point,
                                                                  anchors.mate_target))
         target_object = [i for i, n in enumerate(names) if n.split("/")[0] == anchors.mate_target.split("/")[0]]
-        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, feedback)
+        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, feedback and catch_m is None)
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
         # the policy's own next hands (runner.state keeps the observation it was given)
         if feedback and k:
-            pads = opt.points(sim.joint_state()[0])[tips].mean(axis=0)
-            hands = hands.copy()
-            hands[g] += pads - 0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP])
+            hands, observing = observed_hands(hands, g, opt.points(sim.joint_state()[0])[tips].mean(axis=0),
+                                              observing, catch_m)
+            if anchors is not None:
+                anchor_state.observed_hand = observing
         hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
             2, KEYPOINTS_PER_HAND, 3)
         policy_closest = min(policy_closest, float(np.linalg.norm(
@@ -397,7 +425,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                 robot_tips = opt.points(sim.joint_state()[0])[tips]
                 horizon = anchored_horizon(horizon, g, anchors, objects, anchor_state, robot_tips.mean(axis=0),
                                            heading(robot_tips[1] - robot_tips[0]), flipped,
-                                           max(1, round(plan_period_s / h_dt)))
+                                           max(1, round(plan_period_s / h_dt)), h_dt)
             # sample i is the state at t + (i + 1) h_dt; stamped one policy period early, as always
             plan = PlanArrays(t + h_dt - dt, h_dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
@@ -465,6 +493,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
             pusher = gripper_z if aligned else pusher
             anchor_state.pressed_s = anchor_state.pressed_s + dt if aligned else 0.0
             anchor_state.mated = anchor_state.mated or anchor_state.pressed_s >= MATED_PRESS_S
+            anchor_state.mated_s = anchor_state.mated_s + dt if anchor_state.mated else 0.0
         effort[pusher] = push
         modes = np.full(n, Mode.POSITION, np.uint8)
         stiffness, damping = np.zeros(n), np.zeros(n)

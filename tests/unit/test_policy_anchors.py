@@ -3,6 +3,8 @@ robot executes (services/policy/anchors.py, execute.anchored_horizon)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -123,6 +125,7 @@ def test_holding_turns_and_docks_the_module_onto_its_target(demos):
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2],
                                pads[2] + target[2] + hover - objects[idx["camera/connector"]][2])
     state.mated = True  # pressed home: the pads stay where they pressed, the policy's lift passes from there
+    a = dataclasses.replace(a, lift_m=0.0)  # (without the lift anchor: test_the_lift_anchor_...)
     pressed = pads - [0.0, 0.0, 0.03]
     still_lowering = pinches - [0.0, 0.0, 0.01]  # the policy is still on its way down: no lift yet
     out = ex.anchored_horizon(_horizon(still_lowering), 0, a, objects, state, pressed, 0.0, False)
@@ -133,6 +136,35 @@ def test_holding_turns_and_docks_the_module_onto_its_target(demos):
     state.observed_hand = True  # the policy sees its hand at the pads (hand feedback): its own height passes
     out = ex.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2], lift[:, 2], atol=1e-12)
+
+
+def test_the_lift_anchor_raises_the_mated_module_as_high_as_every_demonstration_did(demos):
+    a = mine_anchors(demos[:3])
+    # the teacher lifts the module about 5 cm once it is pressed home (it carries the board along)
+    assert 0.03 < a.lift_m < 0.07
+    names = demos[0].object_names
+    idx = {n: i for i, n in enumerate(names)}
+    objects = demos[3].objects[0].astype(float)
+    state = ex.AnchorState(idx["camera/lens"], idx["camera/connector"], idx["board/connector"],
+                           [idx[f"board/{p}"] for p in ("c0", "c1", "c2", "c3", "connector")], observed_hand=True,
+                           held=True, docking=True, mated=True)
+    pressed = objects[idx["board/connector"]] + [0.0, 0.03, 0.01]
+    still = np.repeat(pressed[None], 4, 0)  # the policy, seeing its hand at the pads, does not lift
+    out = ex.anchored_horizon(_horizon(still), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
+    # at the demonstrations' pace: all of it LIFT_S after the mate
+    rise = a.lift_m * np.minimum(1, np.arange(1, 5) * 0.1 / ex.LIFT_S)
+    np.testing.assert_allclose(pinch(out[:, :21])[:, 2], pressed[2] + rise, atol=1e-12)
+    np.testing.assert_allclose(pinch(out[:, :21])[:, :2], still[:, :2], atol=1e-12)  # straight up
+    state.mated_s = 0.2  # later: further up, from the height where it was pressed home
+    out = ex.anchored_horizon(_horizon(still + [0, 0, 0.01]), 0, a, objects, state, pressed + [0, 0, 0.01], 0.0,
+                              False, sample_dt=0.1)
+    rise = a.lift_m * np.minimum(1, (0.2 + np.arange(1, 5) * 0.1) / ex.LIFT_S)
+    np.testing.assert_allclose(pinch(out[:, :21])[:, 2], pressed[2] + rise, atol=1e-12)
+    higher = still + np.linspace(0.02, 0.1, 4)[:, None] * [0.0, 0.0, 1.0]  # the policy's own lift passes
+    out = ex.anchored_horizon(_horizon(higher), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
+    assert pinch(out[:, :21])[-1, 2] == pytest.approx(higher[-1, 2], abs=1e-12)
+    state.let_go()  # the grip lost the module: the lift is over
+    assert state.mated_s == 0.0 and not state.mated and state.mated_at is None
 
 
 def test_anchors_recover_a_teacher_whose_hand_is_off_by_two_centimetres(monkeypatch, demos):

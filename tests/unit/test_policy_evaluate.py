@@ -103,6 +103,12 @@ def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
     assert "reservoir_period=1,2" in capsys.readouterr().err
     assert train_main(["--teacher", "0", "--set", "steps=many", "--out", str(tmp_path)]) == 2
     assert "not a int" in capsys.readouterr().err
+    # where nothing is trained a change would be silently ignored: refused instead
+    for mode in ("--execute", "--rescore"):
+        assert eval_main([mode, "--set", "dropout=0.1", "--out", str(tmp_path)]) == 2
+        assert "--set changes the training" in capsys.readouterr().err
+    assert eval_main(["--execute", "--catch-mm", "-5", "--out", str(tmp_path)]) == 2
+    assert "--catch-mm must be 0 or a positive" in capsys.readouterr().err
 
 
 def test_xm_eval_keeps_the_net_it_scored(tmp_path, demos):

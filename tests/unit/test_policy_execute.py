@@ -9,7 +9,13 @@ import numpy as np
 import torch
 
 from services.policy.evaluate import main as eval_main
-from services.policy.execute import execute_layout, grasping_hand, gripper_flipped, hand_point_names
+from services.policy.execute import (
+    execute_layout,
+    grasping_hand,
+    gripper_flipped,
+    hand_point_names,
+    observed_hands,
+)
 from services.policy.ours import Ours, preset
 from services.world.teacher import assembly_protocol
 
@@ -66,7 +72,8 @@ def test_hand_feedback_moves_the_grasping_hand_onto_the_gripper(monkeypatch):
     prediction moved rigidly (every point by one translation) onto the gripper's pads; the pressing
     hand stays the policy's own."""
     seen, returned, model = _spied_tiny_policy(monkeypatch)
-    r = execute_layout(model, seed=0, demo=4, seconds=0.1, feedback=True)  # layout 4: a left-hand grasp
+    # layout 4: a left-hand grasp; observed from the first step (catch_m=None)
+    r = execute_layout(model, seed=0, demo=4, seconds=0.1, feedback=True, catch_m=None)
     g, p = (0, 1) if r.chosen_hand == "left" else (1, 0)
     shifts = [seen[k][g] - returned[k - 1][g] for k in range(1, len(seen))]
     for s in shifts:
@@ -75,6 +82,26 @@ def test_hand_feedback_moves_the_grasping_hand_onto_the_gripper(monkeypatch):
     for k in range(1, len(seen)):
         np.testing.assert_allclose(seen[k][p], returned[k - 1][p])
     assert np.isfinite(r.policy_closest_mm)
+
+
+def test_hand_feedback_waits_until_the_gripper_has_caught_up_with_the_policys_hand():
+    """The gripper starts where no demonstrated hand was: the policy observes its grasping hand
+    there only once the pads have come within catch_m of its own pinch, and from then on."""
+    hands = np.zeros((2, 21, 3))
+    hands[1] += [0.1, 0.2, 0.3]  # the right hand's pinch (thumb-index midpoint) at (0.1, 0.2, 0.3)
+    far, near = np.array([0.1, 0.25, 0.3]), np.array([0.1, 0.22, 0.3])  # 50 and 20 mm away
+    out, observing = observed_hands(hands, 1, far, False, 0.03)
+    assert not observing and out is hands
+    out, observing = observed_hands(hands, 1, near, False, 0.03)
+    assert observing
+    np.testing.assert_allclose(out[1], hands[1] + [0.0, 0.02, 0.0], atol=1e-12)  # moved rigidly onto the pads
+    np.testing.assert_allclose(out[0], hands[0])  # the other hand is the policy's own
+    out, observing = observed_hands(hands, 1, far, True, 0.03)  # caught up once: observed from then on
+    assert observing
+    np.testing.assert_allclose(out[1], hands[1] + [0.0, 0.05, 0.0], atol=1e-12)
+    out, observing = observed_hands(hands, 1, far, False, None)  # no catch distance: at once
+    assert observing and np.allclose(out[1], hands[1] + [0.0, 0.05, 0.0])
+    assert np.all(hands[1] == [0.1, 0.2, 0.3])  # the input is left as it was
 
 
 def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
