@@ -115,7 +115,7 @@ def observed_hands(hands: np.ndarray, g: int, pads: np.ndarray, observing: bool,
     """Hand feedback: ``hands`` (2,21,3) with the grasping hand ``g`` moved rigidly so its pinch lies
     between the gripper's ``pads`` (3,), once observing; and whether it is. Observing starts when
     the pads first come within ``catch_m`` of the hand's own pinch (None: at once) and then stays."""
-    miss = pads - 0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP])
+    miss = pads - pinch(hands[g])
     observing = observing or catch_m is None or float(np.linalg.norm(miss)) < catch_m
     if not observing:
         return hands, False
@@ -127,8 +127,7 @@ def observed_hands(hands: np.ndarray, g: int, pads: np.ndarray, observing: bool,
 def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
     """hands (T,2,21,3) of a rollout, lens (3,) the module: the hand whose thumb-index midpoint
     comes closest to the module."""
-    pinch = 0.5 * (hands[:, :, THUMB_TIP] + hands[:, :, INDEX_TIP])
-    return HAND_NAMES[int(np.argmin(np.linalg.norm(pinch - lens, axis=-1).min(axis=0)))]
+    return HAND_NAMES[int(np.argmin(np.linalg.norm(pinch(hands) - lens, axis=-1).min(axis=0)))]
 
 
 class TeacherReplay:
@@ -405,7 +404,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         grasp_k, mate_k, target_k = (names.index(n) for n in (anchors.grasp_point, anchors.mate_point,
                                                                  anchors.mate_target))
         target_object = [i for i, n in enumerate(names) if n.split("/")[0] == anchors.mate_target.split("/")[0]]
-        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, feedback and catch_m is None)
+        anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, observing)
     for k in range(steps):
         t = sim.time
         _, objects = sim.object_keypoints()
@@ -418,7 +417,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
             2, KEYPOINTS_PER_HAND, 3)
         policy_closest = min(policy_closest, float(np.linalg.norm(
-            0.5 * (hands[g, THUMB_TIP] + hands[g, INDEX_TIP]) - objects[lens])))
+            pinch(hands[g]) - objects[lens])))
         if k % plan_every == 0:
             horizon = runner.horizon(None, int(round(horizon_s / h_dt)) + 1, h_dt)
             if anchors is not None:
