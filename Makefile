@@ -24,6 +24,8 @@ $(STAMP): pyproject.toml
 	# torch first and pinned: the CPU wheel lies on disk; any other spec downloads gigabytes.
 	$(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e '.[dev,baselines]'
+	# compile the policy's horizon loop once (numba caches it; about 20 s)
+	$(BIN)/python -c "from services.policy.compiled import warm; warm()"
 	touch $(STAMP)
 
 run: $(STAMP) $(POLICY)

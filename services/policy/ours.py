@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from services.policy import compiled as C
 from services.policy import dataset as D
 from services.policy.consistency import ConsistencySolver, follow_bodies, rigid_velocities
 from services.policy.folded import FoldedNet, foldable
@@ -55,6 +56,7 @@ class Ours:
         self._folded_net: PolicyNet | None = None
         self._folded_tensors: list[torch.Tensor] = []
         self._folded_stamp: tuple = ()
+        self._compiled: C.CompiledRollout | None = None
         self.frame_idx, self.frame_ref = np.zeros(0, int), np.zeros((0, 2))  # canonical frame (setup)
         self._pool, self._pool_names = np.zeros((0, 0)), None  # body_pooled's averaging matrix and its names
 
@@ -339,6 +341,40 @@ class Ours:
             self._folded, self._folded_net, self._folded_stamp = FoldedNet(self.net, tuple(keys)), self.net, stamp
         return self._folded
 
+    def compiled(self) -> C.CompiledRollout | None:
+        """The compiled rollout loop (compiled.py) over the current folded net; None where the
+        config or ``fold_inference`` rules it out."""
+        if not self.fold_inference or not C.supports(self):
+            return None
+        fold = self.folded()
+        if self._compiled is None or self._compiled.fold is not fold:
+            self._compiled = C.CompiledRollout(self, fold, MAX_TACTILE_KPA)
+        return self._compiled
+
+    def roll(self, state: dict, steps: int, solver: ConsistencySolver | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``steps`` policy steps from ``state`` (which is not changed): positions (S,P,3), tactile
+        (S,2,R) and memory (S,size) after each. One compiled call where the config allows (P4),
+        else ``step`` after ``step``; the same results either way."""
+        solver = solver or self.solver()
+        fast = self.compiled()
+        if fast is not None:
+            pos, tact, mem, _, status, _ = fast(state, steps, solver.dt, solver.w_dyn)
+            if status == C.NET_NAN:
+                raise PolicyError("network output contains NaN or inf")
+            if status == C.POS_NAN:
+                raise PolicyError("consistency solve produced NaN positions")
+            return pos, tact, mem
+        pos = np.empty((steps, *np.shape(state["pos"])))
+        tact = np.empty((steps, *np.shape(state["tactile"])))
+        mem = np.empty((steps, len(state.get("H", []))))
+        for t in range(steps):
+            state = self.step(state, solver)
+            pos[t], tact[t] = state["pos"], state["tactile"]
+            if "H" in state:
+                mem[t] = state["H"]
+        return pos, tact, mem
+
     def weights_updated(self) -> None:
         """The weights changed in a way their version counters do not show (a fused optimizer step):
         the folded copy is rebuilt on next use."""
@@ -468,13 +504,10 @@ class Ours:
         if self.net is None:
             raise PolicyError("fit() or load() first")
         self.net.eval()
-        solver = self.solver()
         state = self.initial_state(start)
         out = np.empty((steps, len(state["pos"]), 3))
         out[0] = state["pos"]
-        for t in range(1, steps):
-            state = self.step(state, solver)
-            out[t] = state["pos"]
+        out[1:] = self.roll(state, steps - 1)[0]
         n = 2 * KEYPOINTS_PER_HAND
         return out[:, :n].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), out[:, n:]
 

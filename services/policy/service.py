@@ -65,7 +65,10 @@ class PolicyService:
         try:
             import torch
 
+            from services.policy.compiled import warm
+
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
+            warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
             return PolicyRunner.from_checkpoint(path)
         except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
             self.node.set_status("degraded", f"policy checkpoint {path} unusable ({exc}): serving the naive "

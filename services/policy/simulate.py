@@ -79,11 +79,14 @@ def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects
     pos[0], tact[0] = state["pos"], state["tactile"]
     if "H" in state:
         mem[0] = state["H"]
-    for t in range(1, steps):
-        state = model.step(state, solver, None if observed_objects is None else observed_objects[t])
-        pos[t], tact[t] = state["pos"], state["tactile"]
-        if "H" in state:
-            mem[t] = state["H"]
+    if observed_objects is None:  # one call, compiled where the config allows (Ours.roll)
+        pos[1:], tact[1:], mem[1:] = model.roll(state, steps - 1, solver)
+    else:
+        for t in range(1, steps):
+            state = model.step(state, solver, observed_objects[t])
+            pos[t], tact[t] = state["pos"], state["tactile"]
+            if "H" in state:
+                mem[t] = state["H"]
     return Rollout(pos[:, :HAND_POINTS].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), pos[:, HAND_POINTS:], tact, mem)
 
 
@@ -166,12 +169,7 @@ class PolicyRunner:
         if self.state is None:
             raise PolicyInputError("no scene observed yet")
         solver = self.solver if dt is None or dt == self.solver.dt else self.model.solver(dt)  # ~25 µs
-        state = dict(self.state)
-        out = np.empty((steps, len(state["pos"]), 3))
-        tactile = np.empty((steps, *np.shape(state["tactile"])))
-        for t in range(steps):
-            state = self.model.step(state, solver)
-            out[t], tactile[t] = state["pos"], state["tactile"]
+        out, tactile, _ = self.model.roll(self.state, steps, solver)
         self._check(out)
         self.horizon_tactile = tactile
         return out

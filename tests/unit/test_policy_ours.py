@@ -544,3 +544,68 @@ def test_rigid_fit_recovers_a_rigid_motion_and_stays_finite_on_a_line():
     _, _, w_line = rigid_fit(np.cross([0.0, 0.0, 1.0], line), line)
     np.testing.assert_allclose(w_line, [0.0, 0.0, 1.0], atol=1e-6)
     assert np.isfinite(rigid_fit(np.ones((4, 3)), np.zeros((4, 3)))[2]).all()
+
+
+ROLL_CASES = {
+    "multimodal": {},
+    "no_tactile": {"tactile": False},
+    "single_state": {"tactile": False, "memory": False},
+    "no_masks": {"masks": False},
+    "no_follow": {"follow_unobserved": False},
+    "no_dynamics": {"dynamics": False},
+    "per_point_dynamics": {"body_dynamics": False},
+}
+
+
+@pytest.mark.parametrize("case", sorted(ROLL_CASES))
+def test_compiled_rollout_equals_the_step_loop(demos, case, monkeypatch):
+    """P4's compiled horizon (compiled.py) is the same rollout as Ours.step after Ours.step:
+    hidden points at the start and whatever the untrained net masks later, memory, tactile."""
+    from services.policy import compiled as C
+
+    torch.set_num_threads(1)
+    method = Ours(tiny(preset("multimodal", **ROLL_CASES[case])))
+    method.setup(demos[:2])
+    method.net.eval()
+    with torch.no_grad():  # the dynamics head at full size: an untrained J_D barely moves the objects
+        method.net.head.weight.mul_(3.0)
+    assert method.compiled() is not None
+    rng = np.random.default_rng(0)
+    state = method.initial_state(demos[2])
+    P = len(state["pos"])
+    mask = np.ones(P, bool)
+    mask[[3, 21, 22, 44]] = False
+    state = dict(state, mask=mask, tactile=rng.uniform(0, 30, (2, 6)), tmask=rng.random((2, 6)) < 0.5)
+    for dt in (None, 0.05):  # the sample period, and the optimizer's knots
+        solver = method.solver(dt)
+        # 12 steps: float32 rounding grows through an untrained net's memory gains (20-40x) over longer ones
+        fast = method.roll(state, 12, solver)
+        with monkeypatch.context() as m:
+            m.setattr(C, "supports", lambda model: False)
+            slow = method.roll(state, 12, solver)
+        assert np.abs(fast[0][-1] - state["pos"]).max() > 1e-3  # it moved
+        for name, a, b in zip(("positions", "tactile", "memory"), fast, slow, strict=True):
+            # float32 products summed in another order; tactile is in kPa (20x the net's output)
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5 * np.abs(b).max(initial=0.1),
+                                       err_msg=f"{name}, dt {dt}")
+
+
+def test_compiled_rollout_refuses_nan_and_compiles_once(demos):
+    from services.policy import compiled as C
+
+    method = Ours(tiny(preset("multimodal")))
+    method.setup(demos[:2])
+    method.net.eval()
+    C.warm()
+    state = method.initial_state(demos[2])
+    method.roll(state, 3)
+    assert len(C._rollout.signatures) == 1  # warm() compiled what the real call runs
+    with torch.no_grad():
+        method.net.head.bias[0] = float("nan")
+    with pytest.raises(PolicyError, match="NaN"):
+        method.roll(state, 3)
+    assert Ours(tiny(preset("multimodal"), turns=3)).cfg.turns == 3
+    turned = Ours(tiny(preset("multimodal"), turns=3))
+    turned.setup(demos[:2])
+    turned.net.eval()
+    assert turned.compiled() is None  # turned copies keep the step loop
