@@ -52,6 +52,7 @@ class Ours:
         self.train_seconds = 0.0
         self.K, self.dt, self.object_names = 0, 0.02, []
         self.fold_inference = True  # batch-one inference through folded() (P4); False: plain PolicyNet
+        self.compile_inference = True  # rollouts through compiled() (P4); False: step after step
         self._folded: FoldedNet | None = None
         self._folded_net: PolicyNet | None = None
         self._folded_tensors: list[torch.Tensor] = []
@@ -343,8 +344,8 @@ class Ours:
 
     def compiled(self) -> C.CompiledRollout | None:
         """The compiled rollout loop (compiled.py) over the current folded net; None where the
-        config or ``fold_inference`` rules it out."""
-        if not self.fold_inference or not C.supports(self):
+        config, ``fold_inference`` or ``compile_inference`` rules it out."""
+        if not (self.fold_inference and self.compile_inference) or not C.supports(self):
             return None
         fold = self.folded()
         if self._compiled is None or self._compiled.fold is not fold:
