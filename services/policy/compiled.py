@@ -41,8 +41,9 @@ class CompiledRollout:
         self.w1t = np.ascontiguousarray(fold.W1.T)  # (inputs, hidden): one row per input
         self.b1 = fold.b1
         # the hidden layers after the first, transposed and packed flat: (inputs, outputs) per layer
-        self.hidden_w = np.concatenate([W.T.ravel() for W, _ in fold.layers]).astype(np.float32)
-        self.hidden_b = np.concatenate([b for _, b in fold.layers]).astype(np.float32)
+        none = [np.zeros(0, np.float32)]  # a net with one hidden layer
+        self.hidden_w = np.concatenate([W.T.ravel() for W, _ in fold.layers] or none).astype(np.float32)
+        self.hidden_b = np.concatenate([b for _, b in fold.layers] or none).astype(np.float32)
         self.hidden_shape = np.array([W.T.shape for W, _ in fold.layers], np.int64).reshape(-1, 2)
         self.head_t, self.head_b = np.ascontiguousarray(fold.head_w.T), fold.head_b
         n_lin = len(fold.plus)
