@@ -113,10 +113,10 @@ class PolicyService:
 
         runner = self.runner
         dt = runner.model.dt
-        every = max(1, int(round(1.0 / (self.p.rate_hz * dt))))  # network steps per plan
+        plan_every = 1.0 / self.p.rate_hz - 0.5 * dt  # sim seconds between plans (ticks may be skipped)
         steps = max(2, int(round(self.p.horizon_s / dt)))
         names = HAND_POINT_NAMES + [f"object/{n}" for n in runner.model.object_names]
-        tick = 0
+        last_plan = -np.inf
         async for t in self.node.clock.ticks(1.0 / dt):
             if self.scene is None:
                 continue
@@ -124,7 +124,8 @@ class PolicyService:
                 obs = SceneObs.from_msg(self.scene) if self.fresh_scene or runner.state is None else None
                 self.fresh_scene = False
                 runner.step(obs)
-                if tick % every == 0:
+                if t - last_plan >= plan_every:
+                    last_plan = t
                     self._publish(t, runner.horizon(None, steps), names, dt)
             except PolicyInputError as exc:
                 self.node.stats.count("bad_scene")
@@ -133,7 +134,6 @@ class PolicyService:
             except PolicyError:
                 self.node.stats.count("nan_plan")  # never let NaN reach trajopt
                 runner.reset()
-            tick += 1
 
     def _publish(self, t: float, points: np.ndarray, names: list[str], dt: float) -> None:
         if not np.isfinite(points).all():
