@@ -37,7 +37,7 @@ class CompiledRollout:
 
     def __init__(self, model, fold: FoldedNet, max_tactile: float) -> None:
         cfg, P = model.cfg, fold.P
-        self.fold, self.P, self.K = fold, P, model.K
+        self.fold, self.P = fold, P
         self.w1t = np.ascontiguousarray(fold.W1.T)  # (inputs, hidden): one row per input
         self.b1 = fold.b1
         # the hidden layers after the first, transposed and packed flat: (inputs, outputs) per layer
@@ -75,24 +75,22 @@ class CompiledRollout:
         self.w_prior, self.vmax, self.max_tactile = float(cfg.w_memory_prior), float(cfg.max_speed), max_tactile
 
     def __call__(self, state: dict, steps: int, dt: float, w_dyn: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Rolls ``steps`` steps of ``dt`` from ``state``. Returns positions (S,P,3), tactile
-        (S,2,R), memory (S,size), the last mask, a status (OK, NET_NAN, POS_NAN) and the step it
-        stopped at."""
-        pos0 = np.ascontiguousarray(state["pos"], dtype=np.float64)
+        (S,2,R), memory (S,size) and a status (OK, NET_NAN, POS_NAN)."""
         tact0 = np.ascontiguousarray(state["tactile"], dtype=np.float64).reshape(-1)
-        tmask = np.ascontiguousarray(state["tmask"], dtype=np.float64).reshape(-1)
         H0 = np.ascontiguousarray(state["H"], dtype=np.float64) if "H" in state else np.zeros(0)
-        mask0 = np.asarray(state["mask"], np.bool_).copy()
         pos = np.empty((steps, self.P, 3))
         tact = np.empty((steps, tact0.size))
         mem = np.empty((steps, H0.size))
-        status, at = _rollout(pos0, tact0, tmask, H0, mask0, steps, float(dt), float(w_dyn), self.w1t, self.b1,
-                              self.hidden_w, self.hidden_b, self.hidden_shape, self.head_t, self.head_b, *self.lin,
-                              self.mask_rows, self.mean_small, self.parts, self.pool, self.pinch, self.body, self.flags,
-                              self.dH_gain, self.w_prior, self.vmax, self.max_tactile, TACTILE_SCALE, VEL_SCALE,
-                              pos, tact, mem)
-        return pos, tact.reshape(steps, 2, -1), mem, mask0, int(status), int(at)
+        status = _rollout(np.ascontiguousarray(state["pos"], dtype=np.float64), tact0,
+                          np.ascontiguousarray(state["tmask"], dtype=np.float64).reshape(-1), H0,
+                          np.asarray(state["mask"], np.bool_).copy(), steps, float(dt), float(w_dyn), self.w1t,
+                          self.b1, self.hidden_w, self.hidden_b, self.hidden_shape, self.head_t, self.head_b,
+                          *self.lin, self.mask_rows, self.mean_small, self.parts, self.pool, self.pinch, self.body,
+                          self.flags, self.dH_gain, self.w_prior, self.vmax, self.max_tactile, TACTILE_SCALE,
+                          VEL_SCALE, pos, tact, mem)
+        return pos, tact.reshape(steps, 2, -1), mem, int(status)
 
 
 def warm() -> None:
@@ -187,7 +185,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
              plus, minus, scale, mean_lin, m_a, m_b, lin_rows, mask_rows, mean_small, parts, pool, pinch, body,
              flags, dH_gain, w_prior, vmax, max_tactile, tactile_scale, vel_scale, pos_out, tact_out, mem_out):
     """Ours._step ``steps`` times (folded forward pass + consistency solve), writing each step's
-    positions, tactile and memory; ``mask`` is updated in place. Returns (status, step)."""
+    positions, tactile and memory; ``mask`` is updated in place. Returns the status."""
     masks, follow, dynamics, tactile, memory = flags[0], flags[1], flags[2], flags[3], flags[4]
     P = pos0.shape[0]
     K = pool.shape[0]
@@ -234,7 +232,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
         out = _dense_relu(h, head_t, head_b, False).astype(np.float64)
         for i in range(out.size):
             if not np.isfinite(out[i]):
-                return 1, s
+                return NET_NAN
         # --- the consistency solve (Ours._step) ---
         v = out[parts[0, 0]:parts[0, 1]].reshape(P, 3) / vel_scale
         v = np.minimum(np.maximum(v, -vmax), vmax)
@@ -279,9 +277,9 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
         for i in range(P):
             for k in range(3):
                 if not np.isfinite(nxt[i, k]):
-                    return 2, s
+                    return POS_NAN
         pos = nxt
         pos_out[s] = pos
         tact_out[s] = tac
         mem_out[s] = H
-    return 0, steps
+    return OK

@@ -352,15 +352,16 @@ class Ours:
             self._compiled = C.CompiledRollout(self, fold, MAX_TACTILE_KPA)
         return self._compiled
 
-    def roll(self, state: dict, steps: int, solver: ConsistencySolver | None = None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def roll(self, state: dict, steps: int, solver: ConsistencySolver | None = None,
+             observed_objects: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``steps`` policy steps from ``state`` (which is not changed): positions (S,P,3), tactile
-        (S,2,R) and memory (S,size) after each. One compiled call where the config allows (P4),
-        else ``step`` after ``step``; the same results either way."""
+        (S,2,R) and memory (S,size) after each; ``observed_objects`` (S,K,3) as in ``step``. One
+        compiled call where the config allows (P4), else ``step`` after ``step``; the same results
+        either way."""
         solver = solver or self.solver()
-        fast = self.compiled()
+        fast = self.compiled() if observed_objects is None else None
         if fast is not None:
-            pos, tact, mem, _, status, _ = fast(state, steps, solver.dt, solver.w_dyn)
+            pos, tact, mem, status = fast(state, steps, solver.dt, solver.w_dyn)
             if status == C.NET_NAN:
                 raise PolicyError("network output contains NaN or inf")
             if status == C.POS_NAN:
@@ -370,7 +371,7 @@ class Ours:
         tact = np.empty((steps, *np.shape(state["tactile"])))
         mem = np.empty((steps, len(state.get("H", []))))
         for t in range(steps):
-            state = self.step(state, solver)
+            state = self.step(state, solver, None if observed_objects is None else observed_objects[t])
             pos[t], tact[t] = state["pos"], state["tactile"]
             if "H" in state:
                 mem[t] = state["H"]

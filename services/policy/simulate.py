@@ -79,14 +79,8 @@ def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects
     pos[0], tact[0] = state["pos"], state["tactile"]
     if "H" in state:
         mem[0] = state["H"]
-    if observed_objects is None:  # one call, compiled where the config allows (Ours.roll)
-        pos[1:], tact[1:], mem[1:] = model.roll(state, steps - 1, solver)
-    else:
-        for t in range(1, steps):
-            state = model.step(state, solver, observed_objects[t])
-            pos[t], tact[t] = state["pos"], state["tactile"]
-            if "H" in state:
-                mem[t] = state["H"]
+    pos[1:], tact[1:], mem[1:] = model.roll(state, steps - 1, solver,
+                                            None if observed_objects is None else observed_objects[1:steps])
     return Rollout(pos[:, :HAND_POINTS].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), pos[:, HAND_POINTS:], tact, mem)
 
 

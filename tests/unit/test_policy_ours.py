@@ -546,15 +546,8 @@ def test_rigid_fit_recovers_a_rigid_motion_and_stays_finite_on_a_line():
     assert np.isfinite(rigid_fit(np.ones((4, 3)), np.zeros((4, 3)))[2]).all()
 
 
-ROLL_CASES = {
-    "multimodal": {},
-    "no_tactile": {"tactile": False},
-    "single_state": {"tactile": False, "memory": False},
-    "no_masks": {"masks": False},
-    "no_follow": {"follow_unobserved": False},
-    "no_dynamics": {"dynamics": False},
-    "per_point_dynamics": {"body_dynamics": False},
-}
+ROLL_CASES = {k: SWITCHES[k] for k in ("multimodal", "no_tactile", "single_state", "no_masks", "no_dynamics")} | {
+    "no_follow": {"follow_unobserved": False}, "per_point_dynamics": {"body_dynamics": False}}
 
 
 @pytest.mark.parametrize("case", sorted(ROLL_CASES))
