@@ -94,6 +94,23 @@ class PolicyConfig:
     eval_every: int = 500
     eval_from: float = 0.5  # first selection rollout at this fraction of the steps (best came at 7500 of 8000)
     seed: int = 0
+    candidates: int = 1  # > 1: this many draws are trained for candidate_fraction of the steps, and the one
+    candidate_fraction: float = 1.0  # whose selection rollouts then score best is kept (and trained on to the end)
+    candidate: int = 0  # which of the draws this is (set on the kept net's config)
+
+    def __post_init__(self) -> None:
+        if self.candidates < 1 or not 0 < self.candidate_fraction <= 1 or not 0 <= self.candidate < self.candidates:
+            raise ValueError(f"candidates must be at least 1 and candidate_fraction in (0, 1], not "
+                             f"{self.candidates} and {self.candidate_fraction} (candidate {self.candidate})")
+
+    @property
+    def init_seed(self) -> int:
+        """Seed of the initial weights, the reservoir and the sample order: one per candidate draw."""
+        return self.seed * self.candidates + self.candidate
+
+    @property
+    def candidate_steps(self) -> int:
+        return min(max(1, round(self.candidate_fraction * self.steps)), self.steps)
 
     def to_json(self) -> str:
         return json.dumps(asdict(self))
@@ -144,6 +161,10 @@ def config_changes(items: list[str]) -> dict:
         except ValueError:
             raise ValueError(f"--set {key}={value!r}: not a {type(current).__name__} like the default "
                              f"{current!r}") from None
+    try:
+        PolicyConfig(**changes)
+    except ValueError as exc:
+        raise ValueError(f"--set: {exc}") from None
     return changes
 
 

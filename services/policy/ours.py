@@ -61,6 +61,16 @@ class Ours:
         self.frame_idx, self.frame_ref = np.zeros(0, int), np.zeros((0, 2))  # canonical frame (setup)
         self._pool, self._pool_names = np.zeros((0, 0)), None  # body_pooled's averaging matrix and its names
 
+    def sibling(self, config: PolicyConfig) -> Ours:
+        """A fresh, untrained instance with this one's inference switches (another training draw)."""
+        other = type(self)(config)
+        other.fold_inference, other.compile_inference = self.fold_inference, self.compile_inference
+        return other
+
+    def adopt(self, other: Ours) -> None:
+        """Takes over another instance's whole state: the training draw that was kept."""
+        self.__dict__.update(other.__dict__)
+
     # --- setup --------------------------------------------------------------------------------
     def setup(self, train: list[Demo]) -> D.StepData:
         """Builds the network, reservoir and statistics from the training demonstrations."""
@@ -68,11 +78,12 @@ class Ours:
             raise PolicyError("no training demonstrations")
         cfg = self.cfg
         self.K, self.dt, self.object_names = train[0].objects.shape[1], float(train[0].dt), list(train[0].object_names)
-        torch.manual_seed(cfg.seed)
+        torch.manual_seed(cfg.init_seed)
         self.net = PolicyNet(cfg, self.K)
         P = self.net.layout.P
         periods = tuple(t / self.dt for t in cfg.reservoir_periods) if min(cfg.reservoir_periods) > 0 else None
-        self.reservoir = Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.seed, periods) if cfg.memory else None
+        self.reservoir = (Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.init_seed, periods)
+                          if cfg.memory else None)
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)
         self.body = self.bodies()
@@ -80,7 +91,7 @@ class Ours:
             idx, self.frame_ref = D.reference_object(self.object_names, train[0].objects[0].astype(np.float64))
             self.frame_idx = idx + 2 * KEYPOINTS_PER_HAND
         if cfg.memory:
-            rng = np.random.default_rng(cfg.seed + 1)
+            rng = np.random.default_rng(cfg.init_seed + 1)
             if cfg.canonical_frame:
                 angle = -self.yaw(data.pos)
             else:
@@ -93,7 +104,7 @@ class Ours:
             starts = data.step_index == 0
             a0 = angle[starts] if cfg.canonical_frame else 0.0
             self.net.H0.copy_(_t(Reservoir.rotated(data.H[:, starts], a0).mean(0)))
-        rng = np.random.default_rng(cfg.seed + 2)
+        rng = np.random.default_rng(cfg.init_seed + 2)
         with torch.no_grad():
             x = self.batch_inputs(self.make_batch(data, rng, 2048, noise=False))[0]
         self.net.set_statistics(x)

@@ -23,6 +23,16 @@ from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 from shared.runtime import Node, latest
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+MAX_CATCH_UP = 25  # policy steps run for ticks the clock skipped (0.5 s at 50 Hz); a longer stall is not caught up
+
+
+def policy_steps(t: float, last_t: float | None, dt: float, cap: int = MAX_CATCH_UP) -> int:
+    """Policy steps due at tick time ``t`` when the last step ran at ``last_t``: one per sample
+    period elapsed (the clock skips ticks when the process is late, and the memory must still
+    advance with time), at least one, at most ``cap``."""
+    if last_t is None:
+        return 1
+    return int(min(cap, max(1, round((t - last_t) / dt))))
 
 
 class PolicyService:
@@ -116,13 +126,19 @@ class PolicyService:
         plan_every = 1.0 / self.p.rate_hz - 0.5 * dt  # sim seconds between plans (ticks may be skipped)
         steps = max(2, int(round(self.p.horizon_s / dt)))
         names = HAND_POINT_NAMES + [f"object/{n}" for n in runner.model.object_names]
-        last_plan = -np.inf
+        last_plan, last_step = -np.inf, None
         async for t in self.node.clock.ticks(1.0 / dt):
             if self.scene is None:
                 continue
             try:
                 obs = SceneObs.from_msg(self.scene) if self.fresh_scene or runner.state is None else None
                 self.fresh_scene = False
+                missed = policy_steps(t, last_step, dt) - 1 if runner.state is not None else 0
+                last_step = t
+                for _ in range(missed):  # the skipped ticks, on the policy's own prediction
+                    runner.step(None)
+                if missed:
+                    self.node.stats.count("ticks_caught_up", n=missed)
                 runner.step(obs)
                 if t - last_plan >= plan_every:
                     last_plan = t

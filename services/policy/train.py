@@ -64,75 +64,137 @@ def optimizer_step(method, opt: torch.optim.Optimizer, loss: torch.Tensor) -> No
     method.weights_updated()
 
 
+class _Training:
+    """One draw's training state. Stepping is deterministic, so a candidate draw that is kept
+    after its first steps ends exactly where its training alone would have."""
+
+    def __init__(self, method, train_demos: list[Demo]) -> None:
+        cfg = method.cfg
+        self.method, self.step = method, 0
+        self.data = method.setup(train_demos)
+        self.rng = np.random.default_rng(cfg.init_seed)
+        self.opt = make_optimizer(method.net, cfg.lr)
+        warm = max(1, cfg.steps // 20)
+
+        def schedule(s: int) -> float:  # linear warm-up, cosine decay to 2 %
+            return min(1.0, (s + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(s, cfg.steps) / cfg.steps)))
+
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, schedule)
+        self.params = list(method.net.parameters())
+        self.ema = [p.detach().clone() for p in self.params] if cfg.ema else None  # weights averaged over the steps
+
+    def advance(self) -> float:
+        """One optimizer step; returns the loss."""
+        from services.policy.ours import PolicyError
+
+        method, cfg = self.method, self.method.cfg
+        self.step += 1
+        method.net.train()
+        if cfg.recurrent:  # 7.2.7: trajectories with integrated positions and resets
+            loss, _ = method.sequence_loss(self.data, self.rng)
+        else:
+            loss, _ = method.loss(method.make_batch(self.data, self.rng, cfg.batch))
+        optimizer_step(method, self.opt, loss)
+        self.sched.step()
+        if self.ema is not None:
+            with torch.no_grad():  # the usual warm-up: early weights do not linger
+                w = 1.0 - min(cfg.ema, (1 + self.step) / (10 + self.step))
+                torch._foreach_lerp_(self.ema, self.params, w)  # one call for all tensors (1.6 ms, 1.8 as a loop)
+        method.losses.append(loss.item())
+        if not np.isfinite(method.losses[-1]):
+            raise PolicyError(f"training loss became {method.losses[-1]} at step {self.step}")
+        return method.losses[-1]
+
+    def score(self, demos: list[Demo]) -> tuple[dict[str, float], dict[str, torch.Tensor]]:
+        """Selection rollouts of the averaged weights; returns the scores and those weights."""
+        from services.policy.ours import PolicyError
+
+        net = self.method.net
+        net.eval()
+        current = [p.detach().clone() for p in self.params] if self.ema is not None else []
+        with torch.no_grad():  # the averaged weights are scored (and kept); training goes on from its own
+            for p, e in zip(self.params, self.ema or [], strict=False):
+                p.copy_(e)
+        try:
+            sc = selection_score(self.method, demos)
+        except PolicyError:
+            sc = {"hand": np.inf, "object": np.inf, "score": np.inf}
+        state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        with torch.no_grad():
+            for p, c in zip(self.params, current, strict=False):
+                p.copy_(c)
+        return sc, state
+
+
+def pick_candidate(method, train_demos: list[Demo], scored: list[Demo], progress: bool
+                   ) -> tuple[_Training, list[dict], dict[str, torch.Tensor]]:
+    """Trains ``cfg.candidates`` draws for ``cfg.candidate_steps`` steps each and returns the run of
+    the one whose selection rollouts score best (``method`` now holds it), every draw's scores,
+    and the kept draw's scored (averaged) weights (docs/policy.md, Session 19)."""
+    from tqdm import tqdm
+
+    cfg = method.cfg
+    runs, scores, states = [], [], []
+    for k in range(cfg.candidates):
+        m = method if k == 0 else method.sibling(cfg.replace(candidate=k))
+        m.cfg = cfg.replace(candidate=k)
+        run = _Training(m, train_demos)
+        for _ in tqdm(range(cfg.candidate_steps), desc=f"train {cfg.name} draw {k + 1}/{cfg.candidates}",
+                      disable=not progress, leave=False):
+            run.advance()
+        sc, state = run.score(scored)
+        scores.append({"candidate": k, "hand": sc["hand"], "object": sc["object"], "score": sc["score"]})
+        runs.append(run)
+        states.append(state)
+        if progress:
+            tqdm.write(f"draw {k + 1}/{cfg.candidates} at step {cfg.candidate_steps}: "
+                       f"rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
+    best = int(np.argmin([s["score"] for s in scores]))
+    if best:
+        method.adopt(runs[best].method)
+        runs[best].method = method
+    return runs[best], scores, states[best]
+
+
 def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, progress: bool = True,
               out_dir: Path | None = None) -> TrainResult:
     """Trains ``method`` (an ours.Ours) in place; leaves it holding the best weights."""
     from tqdm import tqdm
 
-    from services.policy.ours import PolicyError
-
-    cfg = method.cfg
     t0 = time.perf_counter()
-    data = method.setup(train_demos)
-    net = method.net
-    rng = np.random.default_rng(cfg.seed)
-    opt = make_optimizer(net, cfg.lr)
-    warm = max(1, cfg.steps // 20)
-
-    def schedule(s: int) -> float:  # linear warm-up, cosine decay to 2 %
-        return min(1.0, (s + 1) / warm) * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * min(s, cfg.steps) / cfg.steps)))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, schedule)
-    params = list(net.parameters())
-    ema = [p.detach().clone() for p in params] if cfg.ema else None  # weights averaged over the steps
     keep_best = bool(val_demos)  # else the final weights are kept, and the training starts scored once, at the end
     scored = val_demos or train_demos
+    candidates: list[dict] = []
     best = {"score": np.inf, "step": 0, "state": None, "t": 0.0}
     evals: list[dict] = []
-    bar = tqdm(range(1, cfg.steps + 1), desc=f"train {cfg.name}", disable=not progress, leave=False)
+    if method.cfg.candidates > 1:
+        run, candidates, state = pick_candidate(method, train_demos, scored, progress)
+        if run.step == method.cfg.steps:  # the draws were compared on their final weights
+            kept = dict(candidates[method.cfg.candidate], step=run.step, seconds=time.perf_counter() - t0)
+            evals.append(kept)
+            best = {"score": kept["score"], "step": run.step, "t": kept["seconds"], "state": state}
+    else:
+        run = _Training(method, train_demos)
+    cfg = method.cfg
+    bar = tqdm(range(run.step + 1, cfg.steps + 1), desc=f"train {cfg.name}", disable=not progress, leave=False)
     for step in bar:
-        net.train()
-        if cfg.recurrent:  # 7.2.7: trajectories with integrated positions and resets
-            loss, _ = method.sequence_loss(data, rng)
-        else:
-            loss, _ = method.loss(method.make_batch(data, rng, cfg.batch))
-        optimizer_step(method, opt, loss)
-        sched.step()
-        if ema is not None:
-            with torch.no_grad():  # the usual warm-up: early weights do not linger
-                w = 1.0 - min(cfg.ema, (1 + step) / (10 + step))
-                torch._foreach_lerp_(ema, params, w)  # one call for all tensors (1.6 ms against 1.8 as a loop)
-        method.losses.append(loss.item())
-        if not np.isfinite(method.losses[-1]):
-            raise PolicyError(f"training loss became {method.losses[-1]} at step {step}")
+        run.advance()
         if step % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
         # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
         if step == cfg.steps or (keep_best and step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
-            net.eval()
-            if ema is not None:  # the averaged weights are scored (and kept); training goes on from its own
-                current = [p.detach().clone() for p in params]
-                with torch.no_grad():
-                    for p, e in zip(params, ema, strict=True):
-                        p.copy_(e)
-            try:
-                sc = selection_score(method, scored)
-            except PolicyError:
-                sc = {"hand": np.inf, "object": np.inf, "score": np.inf}
+            sc, state = run.score(scored)
             sc["step"], sc["seconds"] = step, time.perf_counter() - t0
             evals.append(sc)
             if sc["score"] < best["score"] or not keep_best:
-                best = {"score": sc["score"], "step": step, "t": sc["seconds"],
-                        "state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
-            if ema is not None:
-                with torch.no_grad():
-                    for p, c in zip(params, current, strict=True):
-                        p.copy_(c)
+                best = {"score": sc["score"], "step": step, "t": sc["seconds"], "state": state}
             if progress:
                 bar.write(f"step {step}: rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
+    net = method.net
     if best["state"] is not None:
         net.load_state_dict(best["state"])
     net.eval()
+    method.weights_updated()
     seconds = time.perf_counter() - t0
     method.train_seconds = seconds
     result = TrainResult(None, best["step"], float(best["score"]), seconds, best["t"], list(method.losses), evals)
@@ -145,6 +207,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
         (out_dir / "train.json").write_text(json.dumps(
             {"preset": cfg.name, "train_demos": len(train_demos), "selection_demos": len(val_demos or []),
              "kept": "best on the held-out demonstrations" if keep_best else "final weights",
+             "candidates": candidates, "kept_candidate": cfg.candidate,
              "best_step": best["step"], "best_score_m": result.best_score, "seconds": seconds,
              "seconds_to_best": best["t"], "evals": evals}, indent=2, default=float))
         plot_losses(np.array(method.losses), evals, out_dir / "loss.png")
@@ -199,8 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
     parser.add_argument("--steps", type=int, default=None, help="optimizer steps (default: the preset's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="change a PolicyConfig field of the preset, e.g. --set reservoir_periods=0.25,8 "
-                        "(repeatable)")
+                        help="change a PolicyConfig field of the preset, e.g. --set reservoir_periods=0.25,8, or "
+                        "--set candidates=2 (train two draws, keep the one whose rollouts from the selection "
+                        "demonstrations score best; twice the time) (repeatable)")
     parser.add_argument("--val", type=int, default=0, help="recordings: hold out this many demonstrations")
     parser.add_argument("--threads", type=int, default=2,
                         help="torch threads (default %(default)s); 1 trains bit for bit as `xm eval` does, so "

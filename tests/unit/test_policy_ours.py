@@ -51,7 +51,8 @@ def demos():
 
 
 def tiny(cfg: PolicyConfig, **kw) -> PolicyConfig:
-    return cfg.replace(hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6, seq_len=4, **kw)
+    return cfg.replace(**{"hidden": (32, 32), "steps": 3, "batch": 16, "eval_every": 10 ** 6, "seq_len": 4,
+                          "candidates": 1} | kw)
 
 
 def test_mirror_swaps_hands_and_preserves_distances(demos):
@@ -102,7 +103,8 @@ def test_config_changes_are_typed_like_their_fields_and_bad_ones_named():
     assert got == {"reservoir_periods": (0.25, 8.0), "hidden": (64, 32), "mirror": False, "lr": 3e-4, "steps": 10}
     assert preset("multimodal", **got).hidden == (64, 32)
     for bad, says in (("colour=red", "'colour=red'"), ("steps", "'steps'"), ("steps=ten", "not a int"),
-                      ("mirror=maybe", "not a bool"), ("name=x", "'name=x'")):
+                      ("mirror=maybe", "not a bool"), ("name=x", "'name=x'"), ("candidates=0", "at least 1"),
+                      ("candidate_fraction=1.5", "in \\(0, 1\\]")):
         with pytest.raises(ValueError, match=says):
             config_changes([bad])
 
@@ -493,6 +495,35 @@ def test_ema_weights_are_what_is_scored_and_kept(demos, monkeypatch):
     for k, e in zip(kept, ema, strict=True):
         torch.testing.assert_close(k, e)
     assert not all(torch.allclose(k, last) for k, last in zip(kept, seen[-1], strict=True))
+
+
+@pytest.mark.parametrize("fraction", [0.3, 1.0])
+def test_candidate_draws_keep_the_best_scoring_one_exactly_as_trained_alone(demos, monkeypatch, fraction):
+    torch.set_num_threads(1)
+    from services.policy import train as T
+
+    cfg = tiny(preset("multimodal"), ema=0.9, steps=6, candidates=2, candidate_fraction=fraction, seed=3)
+    picked = []
+    score = T.selection_score
+
+    def rigged(method, scored):  # the second draw scores better at the pick, whatever its rollouts say
+        res = score(method, scored)
+        if len(picked) < 2:
+            picked.append(method.cfg.candidate)
+            res["score"] = 1.0 - method.cfg.candidate
+        return res
+
+    monkeypatch.setattr(T, "selection_score", rigged)
+    method = Ours(cfg)
+    T.fit_model(method, demos[:2], None, progress=False)
+    assert picked == [0, 1] and method.cfg.candidate == 1 and method.cfg.init_seed == 7
+    assert len(method.losses) == cfg.steps
+    alone = Ours(cfg.replace(candidates=1, seed=7))  # the same draw trained on its own
+    T.fit_model(alone, demos[:2], None, progress=False)
+    np.testing.assert_allclose(method.losses, alone.losses, rtol=1e-6)
+    for a, b in zip(method.net.state_dict().values(), alone.net.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b)
+    np.testing.assert_array_equal(method.reservoir.W_R, alone.reservoir.W_R)
 
 
 def test_turn_averaging_makes_the_step_equivariant_to_quarter_turns(trained, demos):
