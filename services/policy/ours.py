@@ -50,6 +50,7 @@ class Ours:
         self.reservoir: Reservoir | None = None
         self.losses: list[float] = []
         self.train_seconds = 0.0
+        self.candidate_scores: list[dict] = []  # each training draw's selection scores (cfg.candidates > 1)
         self.K, self.dt, self.object_names = 0, 0.02, []
         self.fold_inference = True  # batch-one inference through folded() (P4); False: plain PolicyNet
         self.compile_inference = True  # rollouts through compiled() (P4); False: step after step

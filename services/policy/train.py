@@ -197,6 +197,7 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
     method.weights_updated()
     seconds = time.perf_counter() - t0
     method.train_seconds = seconds
+    method.candidate_scores = candidates
     result = TrainResult(None, best["step"], float(best["score"]), seconds, best["t"], list(method.losses), evals)
     if out_dir is not None:
         out_dir = Path(out_dir)

@@ -517,6 +517,7 @@ def test_candidate_draws_keep_the_best_scoring_one_exactly_as_trained_alone(demo
     method = Ours(cfg)
     T.fit_model(method, demos[:2], None, progress=False)
     assert picked == [0, 1] and method.cfg.candidate == 1 and method.cfg.init_seed == 7
+    assert [c["candidate"] for c in method.candidate_scores] == [0, 1]
     assert len(method.losses) == cfg.steps
     alone = Ours(cfg.replace(candidates=1, seed=7))  # the same draw trained on its own
     T.fit_model(alone, demos[:2], None, progress=False)
