@@ -135,7 +135,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         if hasattr(method, "save"):  # rows (1)-(3): the very net scored, for `xm eval --execute --checkpoint`
             method.save(str(out / f"policy_{name}.pt"))
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
-        if getattr(getattr(method, "cfg", None), "candidates", 1) > 1:  # which of the draws was kept
+        if getattr(method, "candidate_scores", None):  # cfg.candidates > 1: every draw, and the one kept
             timing[name] |= {"candidates": method.candidate_scores, "kept_candidate": method.cfg.candidate}
         results = in_table_order(results)
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")

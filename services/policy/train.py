@@ -134,26 +134,28 @@ def pick_candidate(method, train_demos: list[Demo], scored: list[Demo], progress
     from tqdm import tqdm
 
     cfg = method.cfg
-    runs, scores, states = [], [], []
+    scores: list[dict] = []
+    kept: tuple[_Training, dict[str, torch.Tensor]] | None = None  # only the best so far stays in memory
     for k in range(cfg.candidates):
-        m = method if k == 0 else method.sibling(cfg.replace(candidate=k))
-        m.cfg = cfg.replace(candidate=k)
+        draw = cfg.replace(candidate=k)
+        m = method if k == 0 else method.sibling(draw)
+        m.cfg = draw
         run = _Training(m, train_demos)
         for _ in tqdm(range(cfg.candidate_steps), desc=f"train {cfg.name} draw {k + 1}/{cfg.candidates}",
                       disable=not progress, leave=False):
             run.advance()
         sc, state = run.score(scored)
         scores.append({"candidate": k, "hand": sc["hand"], "object": sc["object"], "score": sc["score"]})
-        runs.append(run)
-        states.append(state)
+        if kept is None or sc["score"] < min(s["score"] for s in scores[:-1]):
+            kept = (run, state)
         if progress:
             tqdm.write(f"draw {k + 1}/{cfg.candidates} at step {cfg.candidate_steps}: "
                        f"rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
-    best = int(np.argmin([s["score"] for s in scores]))
-    if best:
-        method.adopt(runs[best].method)
-        runs[best].method = method
-    return runs[best], scores, states[best]
+    run, state = kept
+    if run.method is not method:  # a later draw won: ``method`` takes over its state
+        method.adopt(run.method)
+        run.method = method
+    return run, scores, state
 
 
 def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, progress: bool = True,
