@@ -135,23 +135,25 @@ def pick_candidate(method, train_demos: list[Demo], scored: list[Demo], progress
 
     cfg = method.cfg
     scores: list[dict] = []
-    kept: tuple[_Training, dict[str, torch.Tensor]] | None = None  # only the best so far stays in memory
+    kept: tuple[_Training, dict[str, torch.Tensor], float] | None = None  # only the best so far stays in memory
     for k in range(cfg.candidates):
         draw = cfg.replace(candidate=k)
-        m = method if k == 0 else method.sibling(draw)
-        m.cfg = draw
+        if k == 0:
+            m, method.cfg = method, draw
+        else:
+            m = method.sibling(draw)
         run = _Training(m, train_demos)
         for _ in tqdm(range(cfg.candidate_steps), desc=f"train {cfg.name} draw {k + 1}/{cfg.candidates}",
                       disable=not progress, leave=False):
             run.advance()
         sc, state = run.score(scored)
         scores.append({"candidate": k, "hand": sc["hand"], "object": sc["object"], "score": sc["score"]})
-        if kept is None or sc["score"] < min(s["score"] for s in scores[:-1]):
-            kept = (run, state)
+        if kept is None or sc["score"] < kept[2]:
+            kept = (run, state, sc["score"])
         if progress:
             tqdm.write(f"draw {k + 1}/{cfg.candidates} at step {cfg.candidate_steps}: "
                        f"rollout hand {sc['hand'] * 1e3:.1f} mm, object {sc['object'] * 1e3:.1f} mm")
-    run, state = kept
+    run, state, _ = kept
     if run.method is not method:  # a later draw won: ``method`` takes over its state
         method.adopt(run.method)
         run.method = method
