@@ -83,7 +83,8 @@ class Ours:
         self.net = PolicyNet(cfg, self.K)
         P = self.net.layout.P
         periods = tuple(t / self.dt for t in cfg.reservoir_periods) if min(cfg.reservoir_periods) > 0 else None
-        self.reservoir = (Reservoir(P, cfg.reservoir, cfg.reservoir_radius, cfg.init_seed, periods)
+        reservoir_seed = cfg.init_seed if cfg.reservoir_seed < 0 else cfg.reservoir_seed
+        self.reservoir = (Reservoir(P, cfg.reservoir, cfg.reservoir_radius, reservoir_seed, periods)
                           if cfg.memory else None)
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)

@@ -98,6 +98,20 @@ def test_reservoir_with_fixed_periods_draws_only_its_eigenbasis():
     assert not np.allclose(plain[0], plain[1])  # a plain random orthogonal W_R: the periods change with the draw
 
 
+def test_reservoir_seed_draws_the_reservoir_apart_from_the_weights(demos):
+    nets = {}
+    for seed, reservoir_seed in ((0, -1), (1, -1), (1, 0)):
+        method = Ours(tiny(preset("multimodal"), seed=seed, reservoir_seed=reservoir_seed))
+        method.setup(demos[:2])
+        nets[seed, reservoir_seed] = method
+    own, other, mixed = nets[0, -1], nets[1, -1], nets[1, 0]
+    np.testing.assert_array_equal(mixed.reservoir.W_R, own.reservoir.W_R)  # draw 0's reservoir ...
+    np.testing.assert_array_equal(mixed.reservoir.W_I, own.reservoir.W_I)
+    assert not np.allclose(other.reservoir.W_R, own.reservoir.W_R)
+    for a, b in zip(mixed.net.trunk.parameters(), other.net.trunk.parameters(), strict=True):
+        torch.testing.assert_close(a, b)  # ... under draw 1's initial weights
+
+
 def test_config_changes_are_typed_like_their_fields_and_bad_ones_named():
     got = config_changes(["reservoir_periods=0.25,8", "hidden=64,32", "mirror=false", "lr=3e-4", "steps=10"])
     assert got == {"reservoir_periods": (0.25, 8.0), "hidden": (64, 32), "mirror": False, "lr": 3e-4, "steps": 10}
