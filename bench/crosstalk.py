@@ -4,13 +4,17 @@ Writes .bench/crosstalk.json. Target: <= 1 ms per frame."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from services.glove.crosstalk import compensate, direct, naive, readings
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+from services.glove.crosstalk import compensate, direct, naive, readings  # noqa: E402
 
 
 def median_us(fn, frames: list[np.ndarray]) -> float:
@@ -23,6 +27,7 @@ def median_us(fn, frames: list[np.ndarray]) -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     rng = np.random.default_rng(1)
     frames = []
     for _ in range(2000):

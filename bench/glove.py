@@ -5,6 +5,7 @@ Writes .bench/glove.json. Target: 0 loss, p99 <= 2 ms."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import signal
@@ -18,12 +19,14 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from services.glove.sensor_model import GloveSensorModel
-from services.world.pty_device import PtyDevice
-from shared import msgs
-from shared.protocols import tactile
-from shared.runtime import open_client, open_router
-from tests.conftest import free_port, write_deployment
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+from services.glove.sensor_model import GloveSensorModel  # noqa: E402
+from services.world.pty_device import PtyDevice  # noqa: E402
+from shared import msgs  # noqa: E402
+from shared.protocols import tactile  # noqa: E402
+from shared.runtime import open_client, open_router  # noqa: E402
+from tests.conftest import free_port, write_deployment  # noqa: E402
 
 RATE_HZ = 1000
 SECONDS = 5.0
@@ -50,6 +53,7 @@ def raw_pty_latency(n: int = 2000) -> np.ndarray:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     tmp = Path(tempfile.mkdtemp())

@@ -1,7 +1,9 @@
-"""Policy benchmarks: P4 (one policy step with the consistency solve; a 1 s horizon rollout at the
-policy's sample period and at the trajectory optimizer's knots) against
-the plain forward pass measured in the same run, and P5 (training wall time to the best validation
-rollout). Writes .bench/policy.json. Timing is reported, never asserted.
+"""Policy benchmarks P4 (policy step and 1 s horizon) and P5 (training time to the best rollout).
+
+P4: one policy step with the consistency solve, and a 1 s horizon rollout at the policy's sample
+period and at the trajectory optimizer's knots, against the plain forward pass measured in the
+same run. P5: training wall time to the best validation rollout. Writes .bench/policy.json.
+Timing is reported, never asserted.
 
     .venv/bin/python bench/policy.py            # P4 on a briefly trained model, P5 with the preset
     .venv/bin/python bench/policy.py --quick    # P5 with a short training (smoke)
@@ -92,7 +94,7 @@ def cpu_model() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="short training for P5")
     parser.add_argument("--preset", default="multimodal")
     parser.add_argument("--seed", type=int, default=0)

@@ -7,17 +7,21 @@ throughput >= 0.8x raw.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from shared import msgs
-from shared.runtime import Node, fifo, latest, open_client, open_router
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+from shared import msgs  # noqa: E402
+from shared.runtime import Node, fifo, latest, open_client, open_router  # noqa: E402
 
 N_PING = 2000
 N_WARM = 200
@@ -142,6 +146,7 @@ async def typed_throughput(endpoint: str) -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     results = {}
