@@ -1,8 +1,9 @@
-"""The policy's recursive rollout compiled with numba (P4): a whole horizon in one call.
+"""The policy's recursive rollout compiled with numba (P4): a whole horizon, or one step, in one call.
 
-``Ours.step`` spends about half of a step in Python and numpy call overhead around the folded
-network's products (docs/policy.md, Session 18), so a 1 s horizon of 50 sequential steps cannot
-get near 10 ms that way. Here the same step (folded forward pass, 7.2.5 mask handling, 7.15
+The step in Python (``Ours._step``) spends about half of its time in Python and numpy call
+overhead around the folded network's products (docs/policy.md, Session 18), so a 1 s horizon of
+50 sequential steps cannot get near 10 ms that way, and since Session 22 ``Ours.step`` itself runs
+here as a horizon of one. Here the same step (folded forward pass, 7.2.5 mask handling, 7.15
 dynamics reconciliation, the integral of 7.5, 7.9-7.10 memory, tactile feedback) runs as one
 compiled loop. Dense layers are written as sums of weight rows over the nonzero inputs: after a
 ReLU most inputs are zero, so most rows are never read, and each row read is a contiguous
@@ -10,7 +11,7 @@ vectorized update.
 
 It covers the configurations the presets use; ``supports`` says which. The rest (turned copies,
 canonical frame, rigid objects, pair constraints with weight, velocity or phase inputs, side
-models, the recurrent branch) keep ``Ours.step``. ``test_compiled_rollout_equals_the_step_loop``
+models, the recurrent branch) keep the Python step. ``test_compiled_rollout_equals_the_step_loop``
 checks both give the same rollout.
 """
 
@@ -75,22 +76,24 @@ class CompiledRollout:
         self.w_prior, self.vmax, self.max_tactile = float(cfg.w_memory_prior), float(cfg.max_speed), max_tactile
 
     def __call__(self, state: dict, steps: int, dt: float, w_dyn: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """Rolls ``steps`` steps of ``dt`` from ``state``. Returns positions (S,P,3), tactile
-        (S,2,R), memory (S,size) and a status (OK, NET_NAN, POS_NAN)."""
+        (S,2,R), memory (S,size), the observed-point mask after the last step (P,) and a status
+        (OK, NET_NAN, POS_NAN)."""
         tact0 = np.ascontiguousarray(state["tactile"], dtype=np.float64).reshape(-1)
         H0 = np.ascontiguousarray(state["H"], dtype=np.float64) if "H" in state else np.zeros(0)
         pos = np.empty((steps, self.P, 3))
         tact = np.empty((steps, tact0.size))
         mem = np.empty((steps, H0.size))
+        mask = np.array(state["mask"], np.bool_)  # a copy: the loop updates it in place
         status = _rollout(np.ascontiguousarray(state["pos"], dtype=np.float64), tact0,
                           np.ascontiguousarray(state["tmask"], dtype=np.float64).reshape(-1), H0,
-                          np.asarray(state["mask"], np.bool_).copy(), steps, float(dt), float(w_dyn), self.w1t,
+                          mask, steps, float(dt), float(w_dyn), self.w1t,
                           self.b1, self.hidden_w, self.hidden_b, self.hidden_shape, self.head_t, self.head_b,
                           *self.lin, self.mask_rows, self.mean_small, self.parts, self.pool, self.pinch, self.body,
                           self.flags, self.dH_gain, self.w_prior, self.vmax, self.max_tactile, TACTILE_SCALE,
                           VEL_SCALE, pos, tact, mem)
-        return pos, tact.reshape(steps, 2, -1), mem, int(status)
+        return pos, tact.reshape(steps, 2, -1), mem, mask, int(status)
 
 
 def warm() -> None:

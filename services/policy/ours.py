@@ -53,7 +53,7 @@ class Ours:
         self.candidate_scores: list[dict] = []  # each training draw's selection scores (cfg.candidates > 1)
         self.K, self.dt, self.object_names = 0, 0.02, []
         self.fold_inference = True  # batch-one inference through folded() (P4); False: plain PolicyNet
-        self.compile_inference = True  # rollouts through compiled() (P4); False: step after step
+        self.compile_inference = True  # steps and rollouts through compiled() (P4); False: the Python step
         self._folded: FoldedNet | None = None
         self._folded_net: PolicyNet | None = None
         self._folded_tensors: list[torch.Tensor] = []
@@ -374,12 +374,7 @@ class Ours:
         solver = solver or self.solver()
         fast = self.compiled() if observed_objects is None else None
         if fast is not None:
-            pos, tact, mem, status = fast(state, steps, solver.dt, solver.w_dyn)
-            if status == C.NET_NAN:
-                raise PolicyError("network output contains NaN or inf")
-            if status == C.POS_NAN:
-                raise PolicyError("consistency solve produced NaN positions")
-            return pos, tact, mem
+            return self._roll_compiled(fast, state, steps, solver)[:3]
         pos = np.empty((steps, *np.shape(state["pos"])))
         tact = np.empty((steps, *np.shape(state["tactile"])))
         mem = np.empty((steps, len(state.get("H", []))))
@@ -389,6 +384,16 @@ class Ours:
             if "H" in state:
                 mem[t] = state["H"]
         return pos, tact, mem
+
+    @staticmethod
+    def _roll_compiled(fast: C.CompiledRollout, state: dict, steps: int, solver: ConsistencySolver
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        pos, tact, mem, mask, status = fast(state, steps, solver.dt, solver.w_dyn)
+        if status == C.NET_NAN:
+            raise PolicyError("network output contains NaN or inf")
+        if status == C.POS_NAN:
+            raise PolicyError("consistency solve produced NaN positions")
+        return pos, tact, mem, mask
 
     def weights_updated(self) -> None:
         """The weights changed in a way their version counters do not show (a fused optimizer step):
@@ -462,6 +467,9 @@ class Ours:
         cfg = self.cfg
         solver = solver or self.solver()
         dt = solver.dt  # the sample period, or a longer step (horizons at the optimizer's knots)
+        fast = self.compiled() if observed_objects is None else None
+        if fast is not None:  # one step of the compiled loop: the same step without numpy's call overhead (P4)
+            return self._step_compiled(fast, state, solver)
         out = self.network_outputs(state)
         if not np.isfinite(np.concatenate(list(out.values()))).all():
             raise PolicyError("network output contains NaN or inf")
@@ -513,6 +521,21 @@ class Ours:
             nxt["rec"] = out["rec"]
         if not np.isfinite(pos).all():
             raise PolicyError("consistency solve produced NaN positions")
+        return nxt
+
+    def _step_compiled(self, fast: C.CompiledRollout, state: dict, solver: ConsistencySolver) -> dict:
+        """``_step`` through the compiled loop (configs ``compiled.supports``): the same next state."""
+        pos, tact, mem, mask = self._roll_compiled(fast, state, 1, solver)
+        nxt = dict(state)
+        nxt["t"] = state.get("t", 0.0) + solver.dt
+        nxt["vel"] = (pos[0] - state["pos"]) / solver.dt
+        nxt["pos"] = pos[0]
+        if self.cfg.masks:
+            nxt["mask"] = mask
+        if self.cfg.tactile:
+            nxt["tactile"] = tact[0]
+        if self.cfg.memory:
+            nxt["H"] = mem[0]
         return nxt
 
     def rollout(self, start: Demo, steps: int) -> tuple[np.ndarray, np.ndarray]:

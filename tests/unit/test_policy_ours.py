@@ -627,6 +627,36 @@ def test_compiled_rollout_equals_the_step_loop(demos, case):
                                        err_msg=f"{name}, dt {dt}")
 
 
+@pytest.mark.parametrize("case", ["multimodal", "no_masks", "single_state"])
+def test_one_step_through_the_compiled_loop_is_the_python_step(demos, case):
+    """P4: ``Ours.step`` runs through the compiled loop where it can; every field of the next
+    state (positions, velocities, mask, tactile, memory, time) is the Python step's."""
+    torch.set_num_threads(1)
+    method = Ours(tiny(preset("multimodal", **ROLL_CASES[case])))
+    method.setup(demos[:2])
+    method.net.eval()
+    state = method.initial_state(demos[2])
+    mask = np.ones(len(state["pos"]), bool)
+    mask[[3, 44]] = False
+    state = dict(state, mask=mask, tactile=np.full((2, 6), 12.0), tmask=np.ones((2, 6), bool))
+    solver = method.solver()
+    fast = [state]
+    for _ in range(3):
+        fast.append(method.step(fast[-1], solver))
+    assert method.compiled() is not None
+    method.compile_inference = False
+    slow = [state]
+    for _ in range(3):
+        slow.append(method.step(slow[-1], solver))
+    method.compile_inference = True
+    for a, b in zip(fast[1:], slow[1:], strict=True):
+        assert a.keys() == b.keys()
+        for key in b:
+            np.testing.assert_allclose(np.asarray(a[key], float), np.asarray(b[key], float), rtol=1e-4,
+                                       atol=1e-5 * np.abs(np.asarray(b[key], float)).max(initial=1.0), err_msg=key)
+    assert (fast[1]["mask"] != mask).any() or case == "no_masks"  # the net's own mask came through
+
+
 def test_compiled_rollout_refuses_nan_and_compiles_once(demos):
     from services.policy import compiled as C
 
