@@ -70,7 +70,6 @@ class PolicyConfig:
     reservoir: int = 32
     reservoir_radius: float = 0.98
     reservoir_periods: tuple[float, float] = (0.0, 0.0)  # s; > 0: W_R turns with these periods (log-spaced)
-    reservoir_bodies: bool = False  # the reservoir is driven by each rigid body's mean velocity, not every point's
     reservoir_seed: int = -1  # >= 0: the reservoir's own seed, apart from the weights' and samples' (-1: init_seed)
     w_dH_loss: float = 1.0  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)

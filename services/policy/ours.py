@@ -84,8 +84,8 @@ class Ours:
         P = self.net.layout.P
         periods = tuple(t / self.dt for t in cfg.reservoir_periods) if min(cfg.reservoir_periods) > 0 else None
         reservoir_seed = cfg.init_seed if cfg.reservoir_seed < 0 else cfg.reservoir_seed
-        self.reservoir = (Reservoir(P, cfg.reservoir, cfg.reservoir_radius, reservoir_seed, periods,
-                                    self.bodies() if cfg.reservoir_bodies else None) if cfg.memory else None)
+        self.reservoir = (Reservoir(P, cfg.reservoir, cfg.reservoir_radius, reservoir_seed, periods)
+                          if cfg.memory else None)
         arrays = [D.demo_arrays(d) for d in D.augmented(train, cfg.mirror)]
         data = D.step_data(arrays, self.reservoir, cfg.left_probability)
         self.body = self.bodies()

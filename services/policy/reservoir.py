@@ -20,10 +20,8 @@ import numpy as np
 
 class Reservoir:
     def __init__(self, points: int, size: int = 32, radius: float = 0.98, seed: int = 0,
-                 periods: tuple[float, float] | None = None, bodies: np.ndarray | None = None) -> None:
-        """periods: (shortest, longest) rotation period in steps, or None for a plain random orthogonal W_R.
-        bodies: (points,) rigid body of each point; given, the reservoir is driven by each body's mean
-        velocity instead of every point's (W_I = G A, A the per-body average)."""
+                 periods: tuple[float, float] | None = None) -> None:
+        """periods: (shortest, longest) rotation period in steps, or None for a plain random orthogonal W_R."""
         rng = np.random.default_rng(seed)
         q, _ = np.linalg.qr(rng.normal(size=(size, size)))
         if periods is not None:  # the same eigenbasis q, rotated by fixed angles pairwise
@@ -35,19 +33,7 @@ class Reservoir:
                 turns[-1, -1] = 1.0
             q = q @ turns @ q.T
         self.W_R = (radius * q).astype(np.float64)
-        if bodies is None:
-            self.W_I = rng.normal(0.0, 1.0 / np.sqrt(3 * points), (size, 3 * points))
-        else:
-            bodies = np.asarray(bodies)
-            if bodies.shape != (points,):
-                raise ValueError(f"bodies must give one body per point ({points}), not shape {bodies.shape}")
-            names = np.unique(bodies)
-            average = np.zeros((3 * len(names), 3 * points))
-            for b, name in enumerate(names):
-                members = np.flatnonzero(bodies == name)
-                for c in range(3):
-                    average[3 * b + c, 3 * members + c] = 1.0 / len(members)
-            self.W_I = rng.normal(0.0, 1.0 / np.sqrt(3 * len(names)), (size, 3 * len(names))) @ average
+        self.W_I = rng.normal(0.0, 1.0 / np.sqrt(3 * points), (size, 3 * points))
         self.size, self.points = size, points
 
     def run(self, v: np.ndarray, mask: np.ndarray) -> np.ndarray:

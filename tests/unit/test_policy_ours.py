@@ -98,22 +98,6 @@ def test_reservoir_with_fixed_periods_draws_only_its_eigenbasis():
     assert not np.allclose(plain[0], plain[1])  # a plain random orthogonal W_R: the periods change with the draw
 
 
-def test_reservoir_driven_by_bodies_sees_only_each_bodys_mean_velocity():
-    rng = np.random.default_rng(3)
-    bodies = np.array([0, 0, 0, 1, 1])
-    res = Reservoir(5, 8, 0.95, seed=2, bodies=bodies)
-    v, mask = rng.normal(size=(30, 5, 3)), np.ones((30, 5), bool)
-    shuffled = v.copy()  # the same per-body means, other velocities per point
-    shuffled[:, :3] = v[:, [2, 0, 1]] + rng.normal(size=(30, 1, 3)) * np.array([1, -1, 0])[None, :, None]
-    shuffled[:, 3:] = v[:, [4, 3]]
-    np.testing.assert_allclose(res.run(shuffled, mask), res.run(v, mask), atol=1e-9)
-    moved = v.copy()
-    moved[:, 3] += 0.5  # body 1's mean changes
-    assert not np.allclose(res.run(moved, mask), res.run(v, mask))
-    with pytest.raises(ValueError, match="one body per point"):
-        Reservoir(5, 8, bodies=np.zeros(4))
-
-
 def test_reservoir_seed_draws_the_reservoir_apart_from_the_weights(demos):
     nets = {}
     for seed, reservoir_seed in ((0, -1), (1, -1), (1, 0)):
