@@ -65,6 +65,8 @@ class PolicyConfig:
     correction_speed: float = 0.0  # m/s; > 0: small displacements are corrected at least this fast (gain up to 1/dt)
     rigid_noise: float = 1.0  # per-body translation noise, relative to the per-point noise
     object_noise: float = 0.5  # object noise relative to hand noise
+    lag_noise: float = 0.0  # probability that a sample's noise is the scene lagging behind: positions of up to
+    lag_s: float = 0.3  # this many seconds earlier (as a robot trails its plan), corrected like other noise
     goal_relative: bool = False  # denoising: a displaced object the hand acts on next moves the hand's target along
     noise_loss_ref: float = 0.0  # m; > 0 weighs each sample's velocity loss by ref / (ref + noise scale)
     reservoir: int = 32

@@ -142,6 +142,8 @@ class Ours:
             z /= np.sqrt(1 + cfg.rigid_noise ** 2)
             z[:, 2 * KEYPOINTS_PER_HAND:] *= cfg.object_noise
             R = z * scale[:, None, None]
+            if cfg.lag_noise > 0:
+                R = self.lag_displacement(data, b, rng, R)
         else:
             R = np.zeros_like(b["pos"])
         gain = self.correction_gain(scale, data.dt)[:, None, None]
@@ -176,6 +178,21 @@ class Ours:
             b["H_in"] = Hn + rng.normal(0, 1, Hn.shape) * (scale * cfg.reservoir_noise)[:, None]
             del nHn
         return b
+
+    def lag_displacement(self, data: D.StepData, b: dict, rng: np.random.Generator, R: np.ndarray) -> np.ndarray:
+        """``R`` with a ``lag_noise`` share of the samples' noise replaced by the scene's displacement
+        back to up to ``lag_s`` earlier in its demonstration (turned with the sample)."""
+        n = len(R)
+        lag = np.minimum(rng.integers(1, max(2, round(self.cfg.lag_s / data.dt) + 1), n), data.step_index[b["index"]])
+        use = (rng.random(n) < self.cfg.lag_noise) & (lag > 0)
+        if not use.any():
+            return R
+        idx = b["index"][use]
+        earlier = D.rotate_z(data.pos[idx - lag[use]] - data.pos[idx], b["angle"][use][:, None])
+        earlier[~(data.mask[idx - lag[use]] & data.mask[idx])] = 0.0  # unseen then or now: no known lag
+        R = R.copy()
+        R[use] = earlier
+        return R
 
     def body_pooled(self, J):
         """With ``body_dynamics``: each object point's J_D replaced by its body's mean, so that a

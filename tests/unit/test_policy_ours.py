@@ -98,6 +98,23 @@ def test_reservoir_with_fixed_periods_draws_only_its_eigenbasis():
     assert not np.allclose(plain[0], plain[1])  # a plain random orthogonal W_R: the periods change with the draw
 
 
+def test_lag_noise_shows_the_scene_as_it_was_earlier_and_corrects_towards_now(demos):
+    method = Ours(tiny(preset("multimodal"), lag_noise=1.0, lag_s=0.1))
+    data = method.setup(demos[:2])
+    b = method.make_batch(data, np.random.default_rng(0), 64)
+    R = b["pos"] - b["clean_pos"]
+    lagged = data.step_index[b["index"]] > 0  # a first step has no earlier scene: ordinary noise
+    for k in np.flatnonzero(lagged)[:8]:
+        i, a = b["index"][k], b["angle"][k]
+        back = [D.rotate_z(data.pos[i - j] - data.pos[i], a) for j in range(1, 6)]  # up to 0.1 s back
+        seen = data.mask[i] & data.mask[i - 1]
+        assert any(np.allclose(R[k][seen], r[seen]) for r in back)
+    gain = method.correction_gain(b["scale"], data.dt)[:, None, None]
+    np.testing.assert_allclose(b["target_vel"], b["next_vel"] - R * gain)
+    plain = Ours(tiny(preset("multimodal"))).setup(demos[:2])
+    assert len(plain) == len(data)  # the option changes the noise, not the data
+
+
 def test_reservoir_seed_draws_the_reservoir_apart_from_the_weights(demos):
     nets = {}
     for seed, reservoir_seed in ((0, -1), (1, -1), (1, 0)):
