@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEPLOYMENT ?= deploy/sim.toml
-# The network the policy service serves: trained here on first use (about 7 min on 2 cores, progress bar),
+# The network the policy service serves: trained here on first use (about 10 min on 2 cores, progress bar),
 # from the world's scripted teacher; nothing is downloaded.
 POLICY_PRESET ?= no_tactile
 POLICY := runs/policy/policy.pt
