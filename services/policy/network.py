@@ -136,7 +136,7 @@ PRESETS: dict[str, PolicyConfig] = {
     "multimodal": PolicyConfig(body_dynamics=True, ema=0.999, **_STEADY),
     "no_tactile": PolicyConfig(name="no_tactile", tactile=False, body_dynamics=True, ema=0.999, **_STEADY),
     "single_state": PolicyConfig(name="single_state", tactile=False, memory=False, body_dynamics=True, ema=0.999,
-                                 lag_noise=0.25),  # no reservoir to fix
+                                 lag_noise=_STEADY["lag_noise"]),  # no reservoir to fix
 }
 
 
