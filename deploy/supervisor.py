@@ -26,7 +26,7 @@ import zenoh
 from shared.config import ConfigError, Deployment, load_deployment
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
-from shared.wiring import start_order
+from shared.wiring import bind, edges, start_order
 
 BACKOFF_START_S = 0.5
 BACKOFF_MAX_S = 20.0
@@ -66,13 +66,16 @@ class Supervisor:
                 have = ", ".join(sorted({s for s, _ in wanted}))
                 raise ConfigError(f"--only: unknown service(s) {', '.join(unknown)} (this deployment has: {have})")
             wanted = [(s, i) for s, i in wanted if s in only]
-        for svc, _ in wanted:
+        for svc, inst in wanted:
             if importlib.util.find_spec(f"services.{svc}.__main__") is None:
                 raise ConfigError(f"service {svc!r} has no services/{svc}/__main__.py in this build")
+            bind(deployment, svc, inst)  # a bad input remap stops here, not in a restart loop
         self.children = [Child(s, i) for s, i in wanted]
         self.log_dir = deployment.run_dir / "logs"
         self.log = setup_logging("supervisor")
         self._stopping = False
+        for problem in edges(deployment)[1]:  # `xm graph` shows the whole dataflow
+            self.log.warning(f"wiring: {problem}")
 
     async def run(self, stop: asyncio.Event, open_browser: bool = False) -> None:
         self.deployment.run_dir.mkdir(parents=True, exist_ok=True)
