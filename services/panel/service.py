@@ -67,7 +67,7 @@ class PanelService:
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        for port in ("state", "scene", "plan", "session"):  # ports.py: state is the deployment's robot's
+        for port in ("state", "scene", "plan", "session"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
             node.input(port, self._keeper(port, by_source=True))
