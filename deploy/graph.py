@@ -17,11 +17,16 @@ from shared.config import ConfigError, Deployment, load_deployment
 from shared.ports import ports_of
 from shared.wiring import Edge, bind, edges, published, start_order
 
-DEFAULT_OUT = "runs/graph/{name}.svg"
+DEFAULT_OUT = "runs/graph/{name}.svg"  # runs/ is not tracked
 
 
 def _rate(hz: float) -> str:
     return f"{hz:g} Hz"
+
+
+def _output(e: Edge) -> str:
+    """The producer's port, with the one key read of a fanned-out port: ``image[cam0]``."""
+    return f"{e.output}[{e.only}]" if e.only else e.output
 
 
 def unconnected(deployment: Deployment) -> list[str]:
@@ -54,7 +59,7 @@ def text(deployment: Deployment) -> tuple[str, list[str]]:
         ports = ports_of(service)
         first = "  [hosts devices: started first]" if ports.hosts_devices else ""
         lines.append(f"  {service + '/' + instance:<18} {ports.doc}{first}")
-    rows = [(f"{e.producer}/{e.output}", f"{e.consumer}/{e.input}", e.msgtype, _rate(e.rate_hz), str(e.queue))
+    rows = [(f"{e.producer}/{_output(e)}", f"{e.consumer}/{e.input}", e.msgtype, _rate(e.rate_hz), str(e.queue))
             for e in graph]
     clock = next((k for k in published(deployment) if k.key == "xm/clock"), None)
     if deployment.clock == "sim" and clock is not None:  # the node subscribes it itself (shared/runtime)
@@ -83,7 +88,7 @@ def dot_source(deployment: Deployment) -> str:
     for service, instance in deployment.instances():
         out.append(f'  "{service}/{instance}" [label="{service}/{instance}\\n{ports_of(service).doc}"];')
     for e in graph:
-        label = f"{e.output} → {e.input}\\n{e.msgtype.split('/')[-1]}, {_rate(e.rate_hz)}, {e.queue}"
+        label = f"{_output(e)} → {e.input}\\n{e.msgtype.split('/')[-1]}, {_rate(e.rate_hz)}, {e.queue}"
         out.append(f'  "{e.producer}" -> "{e.consumer}" [label="{label}"];')
     out.append("}")
     return "\n".join(out) + "\n"
@@ -113,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         "Exit status 1 when an input has no publisher in the deployment.")
     parser.add_argument("deployment", nargs="?", default="deploy/sim.toml", help="deployment TOML file "
                         "(default: %(default)s)")
-    parser.add_argument("--svg", metavar="PATH", help=f"where to write the SVG (default: {DEFAULT_OUT})")
+    parser.add_argument("--svg", metavar="PATH",
+                        help="where to write the SVG (default: runs/graph/<deployment file name>.svg)")
     parser.add_argument("--no-svg", action="store_true", help="only print")
     parser.add_argument("--dot", action="store_true", help="print the Graphviz DOT source instead of the table")
     args = parser.parse_args(argv)

@@ -46,6 +46,7 @@ class BoundInput:
     queue: QueuePolicy
     sources: tuple[Source, ...]
     key_exprs: tuple[str, ...]  # one subscription per source
+    only: str | None = None
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,7 @@ class Edge:
     rate_hz: float
     queue: QueuePolicy
     key: str  # the consumer's subscription
+    only: str | None = None  # one key of a fanned-out output (one camera)
 
 
 def _robot(deployment: Deployment, service: str, instance: str) -> str:
@@ -115,7 +117,7 @@ def _resolve(inp: Input, remap: str | list[str] | None, robot: str, where: str) 
             raise ConfigError(f"{where}: {inp.only!r} is not one of {source}'s keys ({', '.join(out.each)})")
         sources.append(source)
         exprs.append(out.key_for(source.service, source.instance, inp.only or "*"))
-    return BoundInput(inp.port, inp.msgtype, inp.queue, tuple(sources), tuple(exprs))
+    return BoundInput(inp.port, inp.msgtype, inp.queue, tuple(sources), tuple(exprs), inp.only)
 
 
 def _bound_output(out: Output, service: str, instance: str) -> BoundOutput:
@@ -177,7 +179,7 @@ def edges(deployment: Deployment) -> tuple[list[Edge], list[str]]:
                 producers = {(k.service, k.instance, k.port): k for k in hits}
                 for (svc, inst, port), k in producers.items():
                     out.append(Edge(f"{svc}/{inst}", port, f"{service}/{instance}", inp.port, inp.msgtype,
-                                    k.rate_hz, inp.queue, expr))
+                                    k.rate_hz, inp.queue, expr, inp.only))
     if deployment.clock == "sim" and not any(k.key == "xm/clock" for k in keys):
         problems.append("clock = \"sim\" but no instance publishes xm/clock (a world service)")
     return out, problems

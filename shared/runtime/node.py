@@ -186,8 +186,8 @@ class Node:
     def __init__(self, service: str, instance: str, session: zenoh.Session, clock_mode: str = "wall",
                  log: logging.Logger | None = None, ports: Binding | None = None) -> None:
         self.service = service
-        self.ports = ports  # the instance's declared ports resolved to keys (shared/wiring.py)
         self.instance = instance
+        self.ports = ports  # the instance's declared ports resolved to keys (shared/wiring.py)
         self.session = session
         self.loop = asyncio.get_running_loop()
         self.log = log or logging.getLogger("xm")
