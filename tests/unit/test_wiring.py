@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from deploy import graph as graph_module
 from deploy.graph import main as graph_main
 from shared import keys
 from shared.config import ConfigError, load_deployment
@@ -118,9 +119,15 @@ def test_xm_graph_prints_every_edge_and_fails_on_a_missing_publisher(tmp_path, c
     assert re.search(r"world/sim/clock\s+every instance", printed.out)
     if shutil.which("dot"):
         assert out.read_text().lstrip().startswith("<?xml") and "policy/main" in out.read_text()
-    else:
-        assert "graphviz" in printed.err and out.with_suffix(".dot").exists()
     broken = tmp_path / "broken.toml"
     broken.write_text(_sim_text().replace("[services.recon.main]", "[services.recon.left]"))
     assert graph_main([str(broken), "--no-svg"]) == 1
     assert "no instance of this deployment publishes it" in capsys.readouterr().out
+
+
+def test_xm_graph_without_graphviz_writes_the_dot_file_and_says_how_to_render_it(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(graph_module.shutil, "which", lambda _name: None)
+    out = tmp_path / "sim.svg"
+    assert graph_main([str(ROOT / "deploy/sim.toml"), "--svg", str(out)]) == 0
+    assert "apt-get install graphviz" in capsys.readouterr().err
+    assert not out.exists() and '"recon/main" -> "policy/main"' in out.with_suffix(".dot").read_text()
