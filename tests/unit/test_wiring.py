@@ -10,6 +10,7 @@ import pytest
 
 from deploy import graph as graph_module
 from deploy.graph import main as graph_main
+from deploy.supervisor import up_main
 from shared import keys
 from shared.config import ConfigError, load_deployment
 from shared.ports import declared_services, ports_of
@@ -131,3 +132,11 @@ def test_xm_graph_without_graphviz_writes_the_dot_file_and_says_how_to_render_it
     assert graph_main([str(ROOT / "deploy/sim.toml"), "--svg", str(out)]) == 0
     assert "apt-get install graphviz" in capsys.readouterr().err
     assert not out.exists() and '"recon/main" -> "policy/main"' in out.with_suffix(".dot").read_text()
+
+
+def test_xm_up_refuses_a_bad_remap_before_starting_anything(tmp_path, capsys):
+    path = tmp_path / "d.toml"
+    remap = '[services.policy.main]\ninputs = { scene = "world/sim" }'
+    path.write_text(_sim_text().replace("[services.policy.main]", remap))
+    assert up_main([str(path), "--duration", "1"]) == 2
+    assert "policy.main.inputs.scene: source 'world/sim': world has no output 'scene'" in capsys.readouterr().err
