@@ -230,7 +230,7 @@ class Node:
         key = topic_or_key if topic_or_key.startswith("xm/") else self.key(topic_or_key)
         msgtype = msgtype or keyreg.msgtype_of(key)
         if msgtype is None:
-            raise ValueError(f"key {key} is not in shared/keys.py; register it or pass msgtype")
+            raise ValueError(f"key {key} is declared by no services/*/ports.py; declare it or pass msgtype")
         return Publisher(self, key, msgtype)
 
     def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
