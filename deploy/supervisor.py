@@ -1,6 +1,7 @@
 """The supervisor behind ``xm up``: Zenoh router, one process per service, logs, restarts.
 
-Every service instance of the deployment runs as ``python -m services.<name>``; its output is
+Every service instance of the deployment (a ``services/<name>`` package declaring its ports) runs
+as ``python -m services.<name>``; its output is
 prefixed and collected (console + ``<run_dir>/logs/<name>-<instance>.log``). A process that
 dies is restarted with exponential backoff; liveliness tokens tell who is up. Ctrl-C stops
 everything: SIGTERM, a grace period, then SIGKILL.
@@ -25,13 +26,12 @@ import zenoh
 from shared.config import ConfigError, Deployment, load_deployment
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
+from shared.wiring import bind, edges, start_order
 
 BACKOFF_START_S = 0.5
 BACKOFF_MAX_S = 20.0
 HEALTHY_AFTER_S = 30.0  # a run this long resets the backoff
 STOP_GRACE_S = 5.0
-# Start order: the world first, it creates the simulated devices the drivers open.
-START_ORDER = ("world", "recorder", "glove", "robot", "camhub", "recon", "trajopt", "policy", "panel")
 
 
 def backoff_delay(consecutive_failures: int) -> float:
@@ -59,21 +59,23 @@ class Supervisor:
     def __init__(self, deployment: Deployment, only: list[str] | None = None, quiet: bool = False) -> None:
         self.deployment = deployment
         self.quiet = quiet
-        wanted = deployment.instances()
+        wanted = start_order(deployment)  # the deployment's order; services hosting devices (world) first
         if only:
             unknown = sorted(set(only) - {s for s, _ in wanted})
             if unknown:
                 have = ", ".join(sorted({s for s, _ in wanted}))
                 raise ConfigError(f"--only: unknown service(s) {', '.join(unknown)} (this deployment has: {have})")
             wanted = [(s, i) for s, i in wanted if s in only]
-        for svc, _ in wanted:
+        for svc, inst in wanted:
             if importlib.util.find_spec(f"services.{svc}.__main__") is None:
                 raise ConfigError(f"service {svc!r} has no services/{svc}/__main__.py in this build")
-        wanted.sort(key=lambda si: START_ORDER.index(si[0]) if si[0] in START_ORDER else len(START_ORDER))
+            bind(deployment, svc, inst)  # a bad input remap stops here, not in a restart loop
         self.children = [Child(s, i) for s, i in wanted]
         self.log_dir = deployment.run_dir / "logs"
         self.log = setup_logging("supervisor")
         self._stopping = False
+        for problem in edges(deployment)[1]:  # `xm graph` shows the whole dataflow
+            self.log.warning(f"wiring: {problem}")
 
     async def run(self, stop: asyncio.Event, open_browser: bool = False) -> None:
         self.deployment.run_dir.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("deploy.supervisor:up_main", "run a deployment: router + every service, restarts, logs"),
     "status": ("deploy.supervisor:status_main", "list running services: pid, uptime, restarts, rates"),
+    "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
     "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
     "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
     "train": ("services.policy.train:main", "train the policy from recordings or teacher demos"),

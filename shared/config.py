@@ -7,11 +7,16 @@ A deployment is TOML::
     router = "tcp/127.0.0.1:7447"
     clock = "sim"                 # "sim": time from xm/clock; "wall": system time
     run_dir = "/tmp/xm-sim"       # ptys and sockets of simulated devices
+    robot = "workcell"            # robot model: default of every service's `robot` parameter
 
     [services.glove.left]         # one table per service instance
     port = "{run_dir}/glove-left"
 
-Parameters are checked against the service's dataclass; errors name the file, key and type.
+    [services.policy.main]
+    inputs = { scene = "recon/main" }   # optional: remap an input port to another producer
+
+A service is any ``services/<name>`` package with a ``ports.py`` (shared/ports.py). Parameters are
+checked against the service's dataclass; errors name the file, key and type.
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-KNOWN_SERVICES = ("world", "glove", "camhub", "recon", "policy", "trajopt", "robot", "recorder", "panel")
+from shared.ports import declared_services
+
+DEFAULT_ROBOT = "workcell"
 
 T = TypeVar("T")
 
@@ -41,6 +48,7 @@ class Deployment:
     clock: str
     run_dir: Path
     services: dict[str, dict[str, dict[str, Any]]] = field(default_factory=dict)  # name -> instance -> params
+    robot: str = DEFAULT_ROBOT
 
     def instances(self) -> list[tuple[str, str]]:
         return [(name, inst) for name, insts in self.services.items() for inst in insts]
@@ -51,7 +59,18 @@ class Deployment:
         except KeyError:
             known = ", ".join(f"{s}/{i}" for s, i in self.instances()) or "none"
             raise ConfigError(f"{self.path}: no instance {service}/{instance} (deployment has: {known})") from None
-        return {k: _expand(v, self.run_dir) for k, v in raw.items()}
+        return {k: _expand(v, self.run_dir) for k, v in raw.items() if k != "inputs"}
+
+    def inputs(self, service: str, instance: str) -> dict[str, str | list[str]]:
+        """The instance's input remaps (``inputs = { port = "service/instance" }``), empty if none."""
+        return dict(self.services.get(service, {}).get(instance, {}).get("inputs", {}))
+
+    def service_params(self, cls: type[T], service: str, instance: str) -> T:
+        """The instance's parameters as ``cls``; a ``robot`` field defaults to the deployment's robot."""
+        raw = self.params(service, instance)
+        if "robot" in {f.name for f in dataclasses.fields(cls)}:  # type: ignore[arg-type]
+            raw.setdefault("robot", self.robot)
+        return parse_params(cls, raw, f"{self.path}: services.{service}.{instance}")
 
 
 def _expand(value: Any, run_dir: Path) -> Any:
@@ -86,17 +105,31 @@ def load_deployment(path: str | Path) -> Deployment:
     if clock not in ("wall", "sim"):
         raise ConfigError(f"{path}: deployment.clock: expected \"wall\" or \"sim\", got {clock!r}")
     run_dir = Path(_expect(head.get("run_dir", f"/tmp/xm-{name}"), str, f"{path}: deployment.run_dir"))
+    robot = _expect(head.get("robot", DEFAULT_ROBOT), str, f"{path}: deployment.robot")
     services_raw = data.get("services", {})
     _expect(services_raw, dict, f"{path}: services")
+    known = declared_services()
     services: dict[str, dict[str, dict[str, Any]]] = {}
     for svc, insts in services_raw.items():
-        if svc not in KNOWN_SERVICES:
-            raise ConfigError(f"{path}: services.{svc}: unknown service (known: {', '.join(KNOWN_SERVICES)})")
+        if svc not in known:
+            raise ConfigError(f"{path}: services.{svc}: unknown service (known: {', '.join(known)}; "
+                              "a service is a services/<name> package with a ports.py)")
         _expect(insts, dict, f"{path}: services.{svc}")
         for inst, params in insts.items():
             _expect(params, dict, f"{path}: services.{svc}.{inst}")
+            _check_remaps(params.get("inputs", {}), f"{path}: services.{svc}.{inst}.inputs")
         services[svc] = insts
-    return Deployment(path, name, router, clock, run_dir, services)
+    return Deployment(path, name, router, clock, run_dir, services, robot)
+
+
+def _check_remaps(remaps: Any, where: str) -> None:
+    _expect(remaps, dict, where)
+    for port, source in remaps.items():
+        sources = source if isinstance(source, list) else [source]
+        for s in sources:
+            if not isinstance(s, str) or not 2 <= len(s.split("/")) <= 3 or "" in s.split("/"):
+                raise ConfigError(f"{where}.{port}: expected \"service/instance\" or \"service/instance/port\" "
+                                  f"(or a list of them), got {source!r}")
 
 
 def _type_ok(value: Any, hint: Any) -> bool:

@@ -35,8 +35,7 @@ class CamhubService:
 
     def _publishers(self, name: str) -> tuple:
         if name not in self.pubs:
-            self.pubs[name] = (self.node.publisher(f"xm/camhub/{name}/image"),
-                               self.node.publisher(f"xm/camhub/{name}/info"))
+            self.pubs[name] = (self.node.output("image", name), self.node.output("info", name))
         return self.pubs[name]
 
     async def run(self) -> None:

@@ -42,9 +42,9 @@ class GloveService:
         clock = DeviceClock(node.clock.now, sim=node.clock.mode == "sim")
         self.driver = GloveDriver(params.port, params.baudrate, params.calibration, self._on_frame, node.log,
                                   clock, calibration_seed=seed)
-        self.tactile_pub = node.publisher("tactile")
-        self.raw_pub = node.publisher("raw") if params.publish_raw else None
-        self.imu_pub = node.publisher("imu") if params.publish_imu else None
+        self.tactile_pub = node.output("tactile")
+        self.raw_pub = node.output("raw") if params.publish_raw else None
+        self.imu_pub = node.output("imu") if params.publish_imu else None
         node.queryable("register", self.cmd_register)
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats)}
 

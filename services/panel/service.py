@@ -11,6 +11,7 @@ import asyncio
 import json
 import socket
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,13 +22,10 @@ import viser
 from services.panel import view
 from shared import msgs
 from shared.geometry import wxyz
-from shared.keys import CAMERAS, GLOVES, robot_state_key
+from shared.keys import CAMERAS, GLOVES
 from shared.kinematics import RobotModel, URDFError, load_robot
-from shared.runtime import EndpointError, Node, latest
+from shared.runtime import EndpointError, Node
 
-SCENE_KEY = "xm/recon/main/scene"
-PLAN_KEY = "xm/policy/main/plan"
-SESSION_KEY = "xm/world/sim/session"
 RECORDER = "xm/recorder/main/@cmd"
 FRAME_SIZE = 0.8  # the aluminium frame around the table, metres (services/world/model.py)
 FRAME_HEIGHT = 0.8
@@ -50,7 +48,6 @@ class PanelService:
         self.node = node
         self.p = params
         check_port(params.host, params.port)
-        self.state_key = robot_state_key(params.robot)  # the deployment's robot, whatever its model
         self.robot: RobotModel | None = None
         self.robot_problem = ""
         try:
@@ -59,7 +56,6 @@ class PanelService:
             self.robot_problem = str(exc)
             node.log.warning("no robot model, drawing joint markers: %s", exc)
         self.latest: dict[str, Any] = {}
-        self.images: dict[str, Any] = {}
         self.camera_choice = params.camera if params.camera in CAMERAS else CAMERAS[0]
         self.frames_drawn = 0
         self._last_images = 0.0
@@ -71,11 +67,10 @@ class PanelService:
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        for key in (self.state_key, SCENE_KEY, PLAN_KEY, SESSION_KEY):
-            node.subscribe(key, self._keep, latest(1))
-        node.subscribe("xm/glove/*/tactile", self._keep, latest(len(GLOVES)))
-        node.subscribe("xm/camhub/*/info", self._keep, latest(len(CAMERAS)))
-        node.subscribe("xm/camhub/*/image", self._keep_image, latest(len(CAMERAS)))
+        for port in ("state", "scene", "plan", "session"):  # state: robot/<model>/state (ports.py)
+            node.input(port, self._keeper(port))
+        for port in ("tactile", "info", "image"):  # one message per hand / camera
+            node.input(port, self._keeper(port, by_source=True))
         node.health_extra = self._health_extra
 
     @property
@@ -86,11 +81,12 @@ class PanelService:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums)}
 
-    def _keep(self, msg: Any, key: str) -> None:
-        self.latest[key] = msg
-
-    def _keep_image(self, msg: Any, key: str) -> None:
-        self.images[key.split("/")[2]] = msg
+    def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
+        """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
+        when ``by_source``: ``latest["tactile/left"]``, ``latest["info/cam0"]``."""
+        def keep(msg: Any, key: str) -> None:
+            self.latest[f"{port}/{key.split('/')[2]}" if by_source else port] = msg
+        return keep
 
     # --- layout -------------------------------------------------------------------------
     def _build_scene(self) -> None:
@@ -183,14 +179,14 @@ class PanelService:
         return self.latest.pop(key, None)
 
     def _draw(self, now: float) -> None:
-        self._draw_robot(self._pop(self.state_key))
-        self._draw_scene(self._pop(SCENE_KEY))
-        self._draw_plan(self._pop(PLAN_KEY))
+        self._draw_robot(self._pop("state"))
+        self._draw_scene(self._pop("scene"))
+        self._draw_plan(self._pop("plan"))
         for cam in CAMERAS:
-            info = self._pop(f"xm/camhub/{cam}/info")
+            info = self._pop(f"info/{cam}")
             if info is not None:
                 self._draw_frustum(cam, info)
-        session = self._pop(SESSION_KEY)
+        session = self._pop("session")
         if session is not None:
             self.session_md.content = view.session_text(session, msgs.stamp_seconds(session.header.stamp))
         if now - self._last_images >= 1.0 / self.p.tactile_hz:
@@ -260,11 +256,11 @@ class PanelService:
 
     def _draw_images(self) -> None:
         for hand in GLOVES:
-            msg = self._pop(f"xm/glove/{hand}/tactile")
+            msg = self._pop(f"tactile/{hand}")
             if msg is not None:
                 self.tactile_images[hand].image = view.tactile_image(msg.pressure, msg.mask, int(msg.rows),
                                                                      int(msg.cols), scale=8)
-        image = self.images.pop(self.camera_choice, None)
+        image = self._pop(f"image/{self.camera_choice}")
         if image is not None:
             bgr = cv2.imdecode(np.frombuffer(bytes(image.data), np.uint8), cv2.IMREAD_COLOR)
             if bgr is None:

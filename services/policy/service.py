@@ -20,7 +20,7 @@ from services.policy.naive import NaiveReplay
 from services.world.teacher import generate_demo
 from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
-from shared.runtime import Node, latest
+from shared.runtime import Node
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
 MAX_CATCH_UP = 25  # policy steps run for ticks the clock skipped (0.5 s at 50 Hz); a longer stall is not caught up
@@ -60,9 +60,9 @@ class PolicyService:
         self.scene = None
         self.fresh_scene = False
         self.episode: tuple[int, float] | None = None  # (demo index, start time)
-        self.pub = node.publisher("xm/policy/main/plan")
-        node.subscribe("xm/recon/main/scene", self.on_scene, latest(1))
-        node.subscribe("xm/world/sim/session", self.on_session, latest(1))
+        self.pub = node.output("plan")
+        node.input("scene", self.on_scene)
+        node.input("session", self.on_session)
 
     def _load_runner(self, path: Path):
         from services.policy.ours import PolicyError

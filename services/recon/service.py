@@ -14,8 +14,7 @@ from services.recon.scene import split_points, tactile_matrix
 from services.recon.triangulation import triangulate
 from shared import msgs
 from shared.demo import TACTILE_REGIONS
-from shared.keys import CAMERAS
-from shared.runtime import Node, latest
+from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
 
@@ -36,12 +35,11 @@ class ReconService:
         self.cameras: dict[str, CameraModel] = {}
         self.truth: collections.deque = collections.deque(maxlen=64)  # (stamp, msg)
         self.tactile: dict[str, tuple[float, np.ndarray]] = {}
-        self.scene_pub = node.publisher("xm/recon/main/scene")
-        node.subscribe("xm/camhub/*/info", self.on_info, latest(len(CAMERAS)))
-        node.subscribe("xm/world/sim/truth", self.on_truth, latest(64))
-        node.subscribe("xm/glove/*/tactile", self.on_tactile, latest(4))
-        # The first camera's image marks a triggered frame set.
-        node.subscribe(f"xm/camhub/{CAMERAS[0]}/image", self.on_frame, latest(1))
+        self.scene_pub = node.output("scene")
+        node.input("info", self.on_info)
+        node.input("truth", self.on_truth)
+        node.input("tactile", self.on_tactile)
+        node.input("frame", self.on_frame)  # the first camera's image marks a triggered frame set
 
     def on_info(self, msg, key: str) -> None:
         self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height)

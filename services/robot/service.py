@@ -15,7 +15,7 @@ from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
-from shared.runtime import Node, latest
+from shared.runtime import Node
 
 
 def command_modes(joint_names: list[str], finger_mode: str = "position") -> np.ndarray:
@@ -59,10 +59,10 @@ class RobotService:
         if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
             node.log.warning("robot instance %r runs model %r: its state goes to %s, not %s", node.instance,
                              params.robot, node.key("state"), robot_state_key(params.robot))
-        self.state_pub = node.publisher(node.key("state"))
+        self.state_pub = node.output("state")
         self.rejections: dict[str, int] = {}
         self.target: np.ndarray | None = None
-        node.subscribe("xm/trajopt/main/trajectory", self.on_trajectory, latest(1))
+        node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state}

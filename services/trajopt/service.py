@@ -12,9 +12,8 @@ from services.trajopt.hand_prior import has_hand, teacher_prior
 from services.trajopt.mapping import goals_for_horizon, plan_arrays
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from shared import msgs
-from shared.keys import robot_state_key
 from shared.kinematics import load_robot
-from shared.runtime import Node, latest
+from shared.runtime import Node
 
 
 class TrajoptService:
@@ -52,9 +51,9 @@ class TrajoptService:
         self.t_current = 0.0  # time of its first knot
         self.last_result = None
         self.last_rejection: dict | None = None  # the latest rejected solve, kept after later successes
-        self.pub = node.publisher("xm/trajopt/main/trajectory")
-        node.subscribe("xm/policy/main/plan", self.on_plan, latest(1))
-        node.subscribe(robot_state_key(params.robot), self.on_state, latest(1))
+        self.pub = node.output("trajectory")
+        node.input("plan", self.on_plan)
+        node.input("state", self.on_state)  # the robot's state: robot/<params.robot>/state by default
         node.health_extra = self._health
 
     def on_plan(self, msg) -> None:

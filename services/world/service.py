@@ -47,9 +47,9 @@ class WorldService:
         self.gloves = [GloveDevice(port, hand, seed=i, rate_hz=params.glove_rate_hz)  # seed i: its calibration
                        for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
         self.board = BoardDevice(params.robot_port, self.sim.joint_names) if params.robot_port else None
-        self.clock_pub = node.publisher("xm/clock")
-        self.truth_pub = node.publisher("xm/world/sim/truth")
-        self.session_pub = node.publisher("xm/world/sim/session")
+        self.clock_pub = node.output("clock")
+        self.truth_pub = node.output("truth")
+        self.session_pub = node.output("session")
         self._snapshot_q = node.session.declare_queryable(SNAPSHOT_KEY, self._on_snapshot)
         self._last_session: tuple | None = None
         self._due = {"clock": 0.0, "truth": 0.0, "session": 0.0}

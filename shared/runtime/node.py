@@ -18,31 +18,20 @@ import os
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
 from shared import keys as keyreg
 from shared import msgs
+from shared.ports import QueuePolicy, fifo, latest
 from shared.runtime.clock import Clock
 from shared.runtime.logs import fields
+from shared.wiring import Binding
+
+__all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
 
 RATE_WINDOW_S = 5.0
-
-
-@dataclass(frozen=True)
-class QueuePolicy:
-    kind: str  # "latest" or "fifo"
-    depth: int
-
-
-def latest(depth: int = 1) -> QueuePolicy:
-    return QueuePolicy("latest", depth)
-
-
-def fifo(depth: int = 100_000) -> QueuePolicy:
-    return QueuePolicy("fifo", depth)
 
 
 class RateMeter:
@@ -195,9 +184,10 @@ class Node:
     """One service instance: typed pub/sub, queryables, liveliness, health and the clock."""
 
     def __init__(self, service: str, instance: str, session: zenoh.Session, clock_mode: str = "wall",
-                 log: logging.Logger | None = None) -> None:
+                 log: logging.Logger | None = None, ports: Binding | None = None) -> None:
         self.service = service
         self.instance = instance
+        self.ports = ports  # the instance's declared ports resolved to keys (shared/wiring.py)
         self.session = session
         self.loop = asyncio.get_running_loop()
         self.log = log or logging.getLogger("xm")
@@ -240,7 +230,7 @@ class Node:
         key = topic_or_key if topic_or_key.startswith("xm/") else self.key(topic_or_key)
         msgtype = msgtype or keyreg.msgtype_of(key)
         if msgtype is None:
-            raise ValueError(f"key {key} is not in shared/keys.py; register it or pass msgtype")
+            raise ValueError(f"key {key} is declared by no services/*/ports.py; declare it or pass msgtype")
         return Publisher(self, key, msgtype)
 
     def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
@@ -249,6 +239,23 @@ class Node:
         sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1))
         self._closers.append(sub.close)
         return sub
+
+    def input(self, port: str, handler: Callable[..., Any]) -> list[Subscription]:
+        """Subscribe declared input ``port`` (services/<name>/ports.py) with its type and queue policy."""
+        bound = self._binding().input(port)
+        return [self.subscribe(expr, handler, bound.queue, bound.msgtype) for expr in bound.key_exprs]
+
+    def output(self, port: str, each: str = "") -> Publisher:
+        """Publisher of declared output ``port``; ``each`` picks one key of a fanned-out port (a camera)."""
+        bound = self._binding().output(port)
+        if each not in bound.keys:
+            raise KeyError(f"output {port!r} has no key for {each!r} (it has: {', '.join(bound.keys)})")
+        return self.publisher(bound.keys[each], bound.msgtype)
+
+    def _binding(self) -> Binding:
+        if self.ports is None:
+            raise RuntimeError(f"{self.service}/{self.instance}: node has no port binding (shared/wiring.bind)")
+        return self.ports
 
     def queryable(self, name: str, handler: Callable[[dict], Any], raw_key: bool = False) -> None:
         """``xm/<service>/<instance>/<name>``; JSON in (may be empty), JSON out. Handler may be async."""

@@ -2,11 +2,12 @@
 
 A service module provides a class with a nested ``Params`` dataclass and::
 
-    def __init__(self, node: Node, params: Params): ...   # declare pubs/subs here
+    def __init__(self, node: Node, params: Params): ...   # node.input / node.output: its declared ports
     async def run(self) -> None: ...                        # optional main loop (default: serve forever)
     async def close(self) -> None: ...                      # optional: release devices
 
-and its ``__main__.py`` calls ``service_main("glove", GloveService)``.
+its ``ports.py`` declares ``PORTS`` (shared/ports.py), and its ``__main__.py`` calls
+``service_main("glove", GloveService)``.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ import signal
 import sys
 from typing import Any
 
-from shared.config import ConfigError, load_deployment, parse_params
+from shared.config import ConfigError, load_deployment
 from shared.runtime.logs import setup_logging
 from shared.runtime.node import Node
 from shared.runtime.zsession import EndpointError, open_client
+from shared.wiring import bind
 
 
 def parse_args(service: str, argv: list[str] | None) -> argparse.Namespace:
@@ -34,11 +36,11 @@ def parse_args(service: str, argv: list[str] | None) -> argparse.Namespace:
 async def run_node(service: str, cls: type, deployment_path: str, instance: str,
                    stop: asyncio.Event | None = None) -> None:
     deployment = load_deployment(deployment_path)
-    params = parse_params(cls.Params, deployment.params(service, instance),
-                          f"{deployment.path}: services.{service}.{instance}")
+    params = deployment.service_params(cls.Params, service, instance)
+    ports = bind(deployment, service, instance)
     log = setup_logging(f"{service}/{instance}")
     session = open_client(deployment.router)
-    node = Node(service, instance, session, deployment.clock, log)
+    node = Node(service, instance, session, deployment.clock, log, ports)
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

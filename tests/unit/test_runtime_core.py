@@ -49,7 +49,8 @@ def test_sim_deployment_loads_and_covers_every_publishing_service():
 
 
 def test_hand_arm_deployment_names_one_robot_everywhere():
-    """deploy/hand_arm.toml: world, trajopt, robot and panel all run the hand-arm model, the robot
+    """deploy/hand_arm.toml: world, trajopt, robot and panel all run the hand-arm model (the
+    deployment's `robot`, the default of their `robot` parameter), the robot
     service's instance carries the model's name (so its state key is the one trajopt and panel read),
     and every parameter is one the services know."""
     from services.panel.service import PanelService
@@ -58,13 +59,13 @@ def test_hand_arm_deployment_names_one_robot_everywhere():
     from services.world.service import WorldService
 
     dep = load_deployment("deploy/hand_arm.toml")
+    assert dep.robot == "hand_arm"
     assert {spec.service for spec in keys.REGISTRY} <= set(dep.services)
     classes = {"world": WorldService, "trajopt": TrajoptService, "robot": RobotService, "panel": PanelService}
     robots = {}
     for service, cls in classes.items():
         (instance,) = dep.services[service]
-        params = parse_params(cls.Params, dep.params(service, instance), f"{service}.{instance}")
-        robots[service] = params.robot
+        robots[service] = dep.service_params(cls.Params, service, instance).robot
     assert set(robots.values()) == {"hand_arm"} and list(dep.services["robot"]) == ["hand_arm"]
     assert keys.robot_state_key("hand_arm") == "xm/robot/hand_arm/state"
     assert keys.msgtype_of(keys.robot_state_key("hand_arm")) == "sensor_msgs/msg/JointState"
@@ -77,7 +78,7 @@ def test_bad_deployments_name_file_key_and_type(tmp_path):
     with pytest.raises(ConfigError, match=r"bad.toml: deployment.name: expected str, got int"):
         load_deployment(bad)
     bad.write_text('[deployment]\n[services.teleporter.main]\n')
-    with pytest.raises(ConfigError, match="unknown service.*known: world"):
+    with pytest.raises(ConfigError, match="unknown service.*known: camhub, glove.*world"):
         load_deployment(bad)
     bad.write_text('[deployment\n')
     with pytest.raises(ConfigError, match="not valid TOML"):

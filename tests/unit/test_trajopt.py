@@ -241,10 +241,10 @@ class _Node:
         self.stats, self.log, self.health_extra = Stats(), logging.getLogger("test"), None
         self.status, self.message, self.published = "starting", "", []
 
-    def publisher(self, key: str):
+    def output(self, port: str):
         return type("Pub", (), {"put": lambda _self, msg: self.published.append(msg)})()
 
-    def subscribe(self, *args) -> None:
+    def input(self, *args) -> None:
         pass
 
     def set_status(self, status: str, message: str = "") -> None:

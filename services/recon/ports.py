@@ -1,0 +1,20 @@
+"""recon: keypoints of hands and objects from the cameras, the simulator's truth and touch."""
+
+from shared.ports import CAMERAS, GLOVES, Input, Output, Ports, latest
+
+PORTS = Ports(
+    service="recon",
+    doc="scene reconstruction",
+    inputs=(
+        Input("info", "camhub/main/info", "sensor_msgs/msg/CameraInfo", latest(len(CAMERAS)),
+              "camera models"),
+        Input("frame", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(1),
+              "the first camera's image marks a triggered frame set", only=CAMERAS[0]),
+        Input("truth", "world/sim/truth", "xm_msgs/msg/GroundTruth", latest(64),
+              "the simulated detector projects it"),
+        Input("tactile", "glove/*/tactile", "xm_msgs/msg/Tactile", latest(2 * len(GLOVES)), "contact"),
+    ),
+    outputs=(
+        Output("scene", "xm_msgs/msg/Scene", 5.0, "reconstructed keypoints"),
+    ),
+)
