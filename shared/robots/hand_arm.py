@@ -6,11 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from shared.robots.description import RobotDescription
-from shared.robots.make_hand_arm_urdf import ARM, FINGERS
 
-ARM_JOINTS = tuple(a[0] for a in ARM)
-# URDF document order: per finger (thumb first) its joints j0 (thumb opposition only), j1, j2, j3
-FINGER_JOINTS = tuple(f"{f}_j{k}" for f in FINGERS for k in range(4) if k or f == "thumb")
+# URDF document order of the moving joints (make_hand_arm_urdf.py writes them so): the arm, then per
+# finger (thumb first) its joints j0 (thumb opposition only), j1, j2, j3
+ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+FINGER_JOINTS = tuple(f"{f}_j{k}" for f in ("thumb", "index", "middle", "ring") for k in range(4) if k or f == "thumb")
 JOINTS = ARM_JOINTS + FINGER_JOINTS
 POINT_MAP = {"right/0": "wrist_point", "right/4": "thumb_tip", "right/8": "index_tip", "right/12": "middle_tip",
              "right/16": "ring_tip"}

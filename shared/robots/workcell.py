@@ -6,8 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from shared.robots.description import DerivedPoint, GraspRoles, RobotDescription
-from shared.robots.make_workcell_urdf import GRIP_AXIS, JOINTS
 
+# URDF document order of the moving joints (make_workcell_urdf.py writes them so)
+JOINTS = ("left_x", "left_y", "left_z", "left_wrist", "left_finger_a", "left_finger_b",
+          "right_x", "right_y", "right_z", "right_wrist")
+GRIP_AXIS = 0.03  # m, pads' midpoint -> left_grip_axis, in the URDF and in the derived plan point alike
 # The gripper executes the left hand's thumb and index tips, the finger the right index tip (thesis 7.6).
 POINT_MAP = {"left/4": "left_tip_a", "left/8": "left_tip_b", "right/8": "right_tip"}
 # A derived point pins the gripper's yaw: its two pads are only 4-5 mm apart.
@@ -26,7 +29,7 @@ SIM_DYNAMICS = {j: (2.0 if j.endswith(("_x", "_y", "_z")) else 0.05, 0.01) for j
 DESCRIPTION = RobotDescription(
     name="workcell",
     urdf=Path(__file__).parent / "workcell.urdf",
-    joints=tuple(JOINTS),
+    joints=JOINTS,
     board_channels={j: i for i, j in enumerate(JOINTS)},
     point_map=POINT_MAP,
     execution_point_map={**POINT_MAP, GRIP_POINT.name: "left_grip_axis"},
