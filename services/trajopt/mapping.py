@@ -34,7 +34,9 @@ def with_derived_point(plan: PlanArrays, name: str) -> PlanArrays:
     moved its offset along a -> b, level). The workcell's ``left/grip_axis`` is the goal of its
     ``left_grip_axis`` frame: it gives the gripper's yaw a lever; the fingertips alone are 5 mm
     apart. Unchanged when the plan lacks either source point or already has the point."""
-    spec = derived_points()[name]
+    spec = derived_points().get(name)
+    if spec is None:
+        raise ValueError(f"no robot description derives the plan point {name!r} (known: {sorted(derived_points())})")
     names = plan.names
     if name in names or spec.a not in names or spec.b not in names:
         return plan

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from services.trajopt.mapping import PlanArrays, with_derived_point
 from services.trajopt.optimizer import default_pairs, default_point_map
 from shared.kinematics import URDFError, load_robot, parse_urdf
 from shared.robots.registry import DEFAULT_ROBOT, REGISTRY, UnknownRobotError, describe
@@ -113,3 +114,14 @@ def test_malformed_xml_and_missing_meshes_raise_urdf_errors(tmp_path):
                    '<child link="b"/><origin xyz="0 nan 0"/></joint></robot>')
     with pytest.raises(URDFError, match="not finite"):
         parse_urdf(nan)
+
+
+def test_derived_points_come_from_the_descriptions():
+    plan = PlanArrays(0.0, 0.1, ["right/4", "right/8"], np.zeros((1, 2, 3)), np.ones((1, 2), bool))
+    with pytest.raises(ValueError, match="no robot description derives the plan point 'right/grip_axis'"):
+        with_derived_point(plan, "right/grip_axis")
+    plan = PlanArrays(0.0, 0.1, ["left/4", "left/8"], np.array([[[0, 0, 0.01], [0.0, 0.005, 0.01]]]),
+                      np.ones((1, 2), bool))
+    out = with_derived_point(plan, "left/grip_axis")
+    offset = describe(DEFAULT_ROBOT).derived_points[0].offset
+    np.testing.assert_allclose(out.positions[0, -1], [0.0, 0.0025 + offset, 0.01])
