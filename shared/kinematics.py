@@ -1,5 +1,6 @@
-"""Robot models from URDF (pure): joints and limits, collision shapes per link, keypoint frames, and
-forward kinematics in numpy and as CasADi expressions (for the trajectory optimizer).
+"""Robot models from URDF (pure; files read by yourdfpy and trimesh): joints and limits, collision
+shapes per link, keypoint frames, and forward kinematics in numpy and as CasADi expressions (for
+the trajectory optimizer).
 
 Joint vectors ``q`` are in ``RobotModel.joint_names`` order: every moving joint in URDF document
 order, mimic joints included (the order of JointState). Forward kinematics ignores the q entry of
@@ -8,13 +9,16 @@ a mimic joint and uses ``multiplier * q[master] + offset`` instead, as the hardw
 
 from __future__ import annotations
 
-import struct
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
+import trimesh
+import yourdfpy
+
+from shared.robots.registry import UnknownRobotError, describe
 
 ROBOTS_DIR = Path(__file__).parent / "robots"
 MOVING = ("revolute", "continuous", "prismatic")
@@ -198,50 +202,26 @@ def _rotation_ca(axis: np.ndarray, qi):
     return ca.DM.eye(3) + ca.sin(qi) * K + (1 - ca.cos(qi)) * ca.mtimes(K, K)
 
 
-def rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
-    """URDF fixed-axis roll, pitch, yaw: R = Rz(y) Ry(p) Rx(r)."""
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
-
-
-def _floats(text: str | None, n: int, what: str) -> np.ndarray:
-    try:
-        v = np.array([float(x) for x in (text or "").split()])
-    except ValueError:
-        raise URDFError(f"{what}: {text!r} is not a list of numbers") from None
-    if v.shape != (n,) or not np.isfinite(v).all():
-        raise URDFError(f"{what}: expected {n} finite numbers, got {text!r}")
+def _finite(v, what: str) -> np.ndarray:
+    v = np.asarray(v, float)
+    if not np.isfinite(v).all():
+        raise URDFError(f"{what}: not finite: {v.tolist()}")
     return v
 
 
-def _origin(el: ET.Element | None, what: str) -> np.ndarray:
-    T = np.eye(4)
-    if el is not None:
-        T[:3, 3] = _floats(el.get("xyz", "0 0 0"), 3, f"{what} origin xyz")
-        T[:3, :3] = rpy_matrix(*_floats(el.get("rpy", "0 0 0"), 3, f"{what} origin rpy"))
-    return T
-
-
-def _limit(el: ET.Element | None, key: str, default: float) -> float:
-    return float(el.get(key, default)) if el is not None else default
+def _limit(value: float | None, default: float) -> float:
+    return float(value) if value is not None else default
 
 
 def load_mesh_vertices(path: Path) -> np.ndarray:
-    """Vertices (N,3) of a binary/ASCII STL or an OBJ file."""
-    data = path.read_bytes()
-    if path.suffix.lower() == ".obj":
-        pts = [line.split()[1:4] for line in data.decode().splitlines() if line.startswith("v ")]
-        return np.array(pts, float)
-    if data[:5].lower() == b"solid" and b"facet" in data[:300]:
-        pts = [line.split()[1:4] for line in data.decode().splitlines() if line.strip().startswith("vertex")]
-        return np.unique(np.array(pts, float), axis=0)
-    count = struct.unpack_from("<I", data, 80)[0]
-    if len(data) < 84 + 50 * count:
-        raise URDFError(f"{path}: truncated binary STL")
-    raw = np.frombuffer(data, dtype=np.dtype([("n", "<3f4"), ("v", "<9f4"), ("a", "<u2")]), count=count, offset=84)
-    return np.unique(raw["v"].reshape(-1, 3).astype(float), axis=0)
+    """Unique vertices (N,3) of a mesh file (STL, OBJ, ... whatever trimesh reads), sorted."""
+    try:
+        mesh = trimesh.load(str(path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises a variety of types for unreadable files
+        raise URDFError(f"{path}: unreadable mesh ({exc})") from None
+    if len(mesh.vertices) == 0:
+        raise URDFError(f"{path}: mesh without vertices")
+    return np.unique(np.asarray(mesh.vertices, float), axis=0)
 
 
 def _resolve_mesh(filename: str, base: Path) -> Path:
@@ -253,72 +233,77 @@ def _resolve_mesh(filename: str, base: Path) -> Path:
     return path if path.is_absolute() else base / path
 
 
-def _shape(link: str, col: ET.Element, base: Path) -> Shape | None:
-    geom = col.find("geometry")
-    if geom is None or len(geom) == 0:
-        raise URDFError(f"link {link}: collision without geometry")
-    g = geom[0]
-    origin = _origin(col.find("origin"), f"link {link} collision")
-    what = f"link {link} {g.tag}"
-    if g.tag == "box":
-        return Shape(link, "box", origin, _floats(g.get("size"), 3, what))
-    if g.tag == "cylinder":
-        return Shape(link, "cylinder", origin, np.array([float(g.get("radius")), float(g.get("length"))]))
-    if g.tag == "sphere":
-        return Shape(link, "sphere", origin, np.array([float(g.get("radius"))]))
-    if g.tag == "mesh":
-        path = _resolve_mesh(g.get("filename", ""), base)
+def _shape(link: str, col: yourdfpy.Collision, base: Path) -> Shape:
+    g = col.geometry
+    origin = _finite(col.origin if col.origin is not None else np.eye(4), f"link {link} collision origin")
+    if g.box is not None:
+        return Shape(link, "box", origin, _finite(g.box.size, f"link {link} box size"))
+    if g.cylinder is not None:
+        return Shape(link, "cylinder", origin, _finite([g.cylinder.radius, g.cylinder.length], f"link {link} cylinder"))
+    if g.sphere is not None:
+        return Shape(link, "sphere", origin, _finite([g.sphere.radius], f"link {link} sphere"))
+    if g.mesh is not None:
+        path = _resolve_mesh(g.mesh.filename or "", base)
         if not path.exists():
-            raise URDFError(f"{what}: mesh file {path} not found")
-        scale = _floats(g.get("scale", "1 1 1"), 3, f"{what} scale")
+            raise URDFError(f"link {link} mesh: mesh file {path} not found")
+        scale = _finite(np.broadcast_to(1.0 if g.mesh.scale is None else g.mesh.scale, (3,)), f"link {link} mesh scale")
         vertices = load_mesh_vertices(path) * scale
         return Shape(link, "mesh", origin, np.ptp(vertices, axis=0), path, vertices)
-    raise URDFError(f"{what}: unsupported collision geometry")
+    raise URDFError(f"link {link}: unsupported collision geometry")
+
+
+def _joint(j: yourdfpy.Joint) -> Joint:
+    if j.type not in MOVING + ("fixed",):
+        raise URDFError(f"joint {j.name}: type {j.type!r} is not supported")
+    if not j.parent or not j.child:
+        raise URDFError(f"joint {j.name}: parent or child missing")
+    axis = _finite(j.axis, f"joint {j.name} axis")
+    if j.type in MOVING and np.linalg.norm(axis) < 1e-9:
+        raise URDFError(f"joint {j.name}: zero axis")
+    lim, mim = j.limit, j.mimic
+    lower = _limit(lim.lower if lim else None, -np.inf)
+    upper = _limit(lim.upper if lim else None, np.inf)
+    if j.type == "continuous" or (j.type == "revolute" and lim is None):
+        lower, upper = -np.inf, np.inf
+    if lower > upper:
+        raise URDFError(f"joint {j.name}: lower limit {lower} above upper {upper}")
+    return Joint(
+        name=j.name, kind=j.type, parent=j.parent, child=j.child,
+        origin=_finite(j.origin if j.origin is not None else np.eye(4), f"joint {j.name} origin"),
+        axis=axis / max(np.linalg.norm(axis), 1e-12), lower=lower, upper=upper,
+        velocity=_limit(lim.velocity if lim else None, np.inf), effort=_limit(lim.effort if lim else None, np.inf),
+        mimic=mim.joint if mim is not None else None,
+        multiplier=float(mim.multiplier) if mim is not None else 1.0,
+        offset=float(mim.offset) if mim is not None else 0.0)
 
 
 def parse_urdf(path: str | Path) -> RobotModel:
+    """The model of a URDF file (read by yourdfpy; meshes by trimesh). Raises URDFError, naming the
+    element, for anything malformed or unsupported."""
     path = Path(path)
-    try:
-        root = ET.parse(path).getroot()
+    try:  # yourdfpy falls back to a forgiving parser on broken XML: refuse it first
+        ET.parse(path)
     except ET.ParseError as exc:
         raise URDFError(f"{path}: {exc}") from None
-    joints = []
-    for el in root.findall("joint"):
-        name, kind = el.get("name"), el.get("type")
-        if kind not in MOVING + ("fixed",):
-            raise URDFError(f"joint {name}: type {kind!r} is not supported")
-        parent, child = el.find("parent"), el.find("child")
-        if parent is None or child is None:
-            raise URDFError(f"joint {name}: parent or child missing")
-        axis = _floats(el.find("axis").get("xyz"), 3, f"joint {name} axis") if el.find("axis") is not None \
-            else np.array([1.0, 0.0, 0.0])
-        if kind in MOVING and np.linalg.norm(axis) < 1e-9:
-            raise URDFError(f"joint {name}: zero axis")
-        lim, mim = el.find("limit"), el.find("mimic")
-        lower, upper = _limit(lim, "lower", -np.inf), _limit(lim, "upper", np.inf)
-        if kind == "continuous" or (kind == "revolute" and lim is None):
-            lower, upper = -np.inf, np.inf
-        if lower > upper:
-            raise URDFError(f"joint {name}: lower limit {lower} above upper {upper}")
-        joints.append(Joint(
-            name=name, kind=kind, parent=parent.get("link"), child=child.get("link"),
-            origin=_origin(el.find("origin"), f"joint {name}"), axis=axis / max(np.linalg.norm(axis), 1e-12),
-            lower=lower, upper=upper, velocity=_limit(lim, "velocity", np.inf), effort=_limit(lim, "effort", np.inf),
-            mimic=mim.get("joint") if mim is not None else None,
-            multiplier=float(mim.get("multiplier", 1)) if mim is not None else 1.0,
-            offset=float(mim.get("offset", 0)) if mim is not None else 0.0))
-    links = [el.get("name") for el in root.findall("link")]
+    try:
+        robot = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False).robot
+    except ValueError as exc:
+        raise URDFError(f"{path}: a number or number list (origin xyz/rpy, axis xyz, limit, geometry size) "
+                        f"is malformed: {exc}") from None
+    except (KeyError, AttributeError, TypeError, IndexError) as exc:
+        raise URDFError(f"{path}: an element lacks a required attribute or child ({type(exc).__name__}: {exc})") \
+            from None
+    joints = [_joint(j) for j in robot.joints]
+    links = [link.name for link in robot.links]
     children = {j.child for j in joints}
     roots = [n for n in links if n not in children]
     if len(roots) != 1:
         raise URDFError(f"{path}: expected one root link, found {roots}")
-    shapes = []
-    for el in root.findall("link"):
-        for col in el.findall("collision"):
-            shapes.append(_shape(el.get("name"), col, path.parent))
+    shapes = [_shape(link.name, col, path.parent) for link in robot.links for col in link.collisions]
     fixed_children = {j.child for j in joints if j.kind == "fixed"}
-    keypoints = [el.get("name") for el in root.findall("link") if len(el) == 0 and el.get("name") in fixed_children]
-    model = RobotModel(root.get("name", path.stem), joints, shapes, roots[0], links, keypoints)
+    keypoints = [link.name for link in robot.links if link.name in fixed_children and link.inertial is None
+                 and not link.visuals and not link.collisions]
+    model = RobotModel(robot.name, joints, shapes, roots[0], links, keypoints)
     model.tree_order  # noqa: B018 - validates connectivity now, not at the first fk call
     model.coupling  # noqa: B018
     return model
@@ -326,9 +311,15 @@ def parse_urdf(path: str | Path) -> RobotModel:
 
 @cache
 def load_robot(name: str) -> RobotModel:
-    """A model from shared/robots/<name>.urdf (cached: treat it as read-only)."""
-    path = ROBOTS_DIR / f"{name}.urdf"
-    if not path.exists():
-        known = ", ".join(p.stem for p in ROBOTS_DIR.glob("*.urdf"))
-        raise FileNotFoundError(f"no robot model {name!r} (known: {known})")
-    return parse_urdf(path)
+    """The model of a described robot (shared/robots; cached: treat it as read-only). Raises
+    FileNotFoundError for an unknown name, URDFError where the URDF and its description disagree."""
+    try:
+        desc = describe(name)
+    except UnknownRobotError as exc:
+        raise FileNotFoundError(str(exc)) from None
+    model = parse_urdf(desc.urdf)
+    problems = desc.problems(model.joint_names, model.frames(), model.links)
+    if problems:
+        raise URDFError(f"{name}: the description (shared/robots/{name}.py) disagrees with {desc.urdf.name}: "
+                        + "; ".join(problems))
+    return model

@@ -24,6 +24,7 @@ from shared import msgs
 from shared.geometry import wxyz
 from shared.keys import CAMERAS, GLOVES
 from shared.kinematics import RobotModel, URDFError, load_robot
+from shared.robots.registry import DEFAULT_ROBOT
 from shared.runtime import EndpointError, Node
 
 RECORDER = "xm/recorder/main/@cmd"
@@ -40,7 +41,7 @@ class PanelService:
         tactile_hz: float = 5.0  # heatmap and camera thumbnail refresh (images are the heavy part)
         camera: str = "cam0"  # initial thumbnail camera
         health_period_s: float = 2.0
-        robot: str = "workcell"  # shared/robots/<robot>.urdf
+        robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:

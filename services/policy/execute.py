@@ -37,16 +37,20 @@ from services.policy.anchors import ContactAnchors, heading, pinch, pull_onto, p
 from services.policy.simulate import PolicyRunner, SceneObs
 from services.robot.board_sim import BoardSim, axis_params
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
-from services.trajopt.optimizer import WORKCELL_AXES_MAP, TrajectoryOptimizer, TrajoptConfig
+from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from services.world.sim import WorldSim
 from services.world.teacher import KPA_PER_N, Teacher
 from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
+from shared.robots.registry import DEFAULT_ROBOT, describe
 
-GRIPPER_JOINTS = ("left_finger_a", "left_finger_b")
-PRESS_JOINT = "right_z"  # positive effort pushes the finger down
-GRIPPER_Z = "left_z"
+ROBOT = describe(DEFAULT_ROBOT)  # the evaluated robot: its grasp roles say which arm grasps, which presses
+ROLES = ROBOT.grasp
+GRIPPER_JOINTS = ROLES.gripper_joints
+PRESS_JOINT = ROLES.press_joint  # positive effort pushes the finger down
+GRIPPER_Z = ROLES.gripper_lift
+GRIPPER_HAND = ROLES.gripper_points[0].split("/")[0]  # the plan hand whose points the gripper executes
 PRESS_BESIDE_M = 0.08  # a finger goal this close (xy) to the gripper's: the gripper presses instead
 THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
 THUMB_TIP, INDEX_TIP = FINGERTIPS["thumb"], FINGERTIPS["index"]
@@ -77,12 +81,13 @@ LIFT_S = 0.5  # ... then lifted as high as the demonstrations did within this lo
 
 def hand_point_names(grasp_hand: str, flipped: bool = False) -> list[str]:
     """Plan names for the policy's hands (left block, then right) so that the grasping hand maps
-    to the robot's gripper ("left/*") and the pressing hand to its finger ("right/*"); ``flipped``
+    to the robot's gripper (GRIPPER_HAND) and the pressing hand to its finger; ``flipped``
     swaps the grasping thumb and index (see gripper_flipped)."""
-    sides = HAND_NAMES if grasp_hand == "left" else HAND_NAMES[::-1]
+    other = next(h for h in HAND_NAMES if h != GRIPPER_HAND)
+    sides = (GRIPPER_HAND, other) if grasp_hand == HAND_NAMES[0] else (other, GRIPPER_HAND)
     names = [f"{h}/{k}" for h in sides for k in range(KEYPOINTS_PER_HAND)]
     if flipped:  # the gripper's two fingers trade their goals
-        a, b = names.index("left/4"), names.index("left/8")
+        a, b = (names.index(p) for p in ROLES.gripper_points)
         names[a], names[b] = names[b], names[a]
     return names
 
@@ -361,9 +366,9 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     sim.start_demo(demo)
     start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
     sim.set_robot_mode("robot")
-    robot = load_robot("workcell")
-    opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=WORKCELL_AXES_MAP, contact_slots=8,
-                                                   point_weights={"right/8": PRESS_WEIGHT}))
+    robot = load_robot(ROBOT.name)
+    opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=ROBOT.execution_point_map, contact_slots=8,
+                                                   point_weights={ROLES.press_point: PRESS_WEIGHT}))
     board = BoardSim(sim.joint_names)
     runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
     dt = runner.dt if model is None else model.dt
@@ -383,7 +388,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                                objects[names.index("camera/lens")])
     g, p = HAND_NAMES.index(grasp_hand), 1 - HAND_NAMES.index(grasp_hand)
     look_g = look[:, g * KEYPOINTS_PER_HAND:(g + 1) * KEYPOINTS_PER_HAND]
-    wrist = robot.joint_names.index("left_wrist")
+    wrist = robot.joint_names.index(ROLES.gripper_wrist)
     flipped = gripper_flipped(look_g[:, THUMB_TIP], look_g[:, INDEX_TIP], float(sim.joint_state()[0][wrist]),
                               float(robot.upper[wrist]))
     plan_names = hand_point_names(grasp_hand, flipped) + list(names)
@@ -391,12 +396,12 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     gripper_z = sim.joint_names.index(GRIPPER_Z)
     q, _ = sim.joint_state()
     current, t_current = np.repeat(q[None], knots, axis=0), 0.0
-    finger_home = opt.points(q)[opt.point_names.index("right/8")]
+    finger_home = opt.points(q)[opt.point_names.index(ROLES.press_point)]
     n = len(sim.joint_names)
     success, rejected, tracking = False, 0, []
     fingers = [sim.joint_names.index(j) for j in GRIPPER_JOINTS]
-    tips = [opt.point_names.index(p) for p in ("left/4", "left/8")]
-    finger = opt.point_names.index("right/8")
+    tips = [opt.point_names.index(p) for p in ROLES.gripper_points]
+    finger = opt.point_names.index(ROLES.press_point)
     lens = names.index("camera/lens")
     closest, opening, max_kpa, min_gap, policy_closest = np.inf, np.nan, 0.0, np.inf, np.inf
     frame, press_beside = 0, False

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.robot.pneumatic import (
-    PNEUMATIC_JOINT_PREFIXES,
     PneumaticParams,
     TwoStageController,
+    has_pneumatic_drive,
     muscle_pressures,
     pneumatic_params,
 )
@@ -49,13 +49,13 @@ from shared.protocols.robot_board import (
     FeedbackFrame,
     Mode,
 )
+from shared.robots.registry import joints_with
 
 DEFAULT_DT = 0.001
 BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE, PNEUMATIC = (int(m) for m in Mode)  # ints: fast array compares
 
 
-ARM_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")  # hand_arm.urdf
-HAND_FINGERS = PNEUMATIC_JOINT_PREFIXES
+ARM_JOINTS = joints_with("harmonic_joints")  # the hand-arm's arm joints (shared/robots/hand_arm.py)
 
 
 def encoder_lsb(name: str) -> float:
@@ -94,7 +94,7 @@ def axis_params(name: str) -> AxisParams:
             return AxisParams(3000.0, 100.0, 10000.0, 150.0, 300.0, 2000.0, 10.0, 330.0 if name != "elbow" else 150.0,
                               2.0)
         return AxisParams(500.0, 20.0, 2000.0, 20.0, 50.0, 300.0, 2.0, 56.0 if name != "wrist_3" else 28.0, 0.3)
-    if name.startswith(HAND_FINGERS):
+    if has_pneumatic_drive(name):
         return AxisParams(5.0, 0.1, 20.0, 0.2, 0.5, 0.5, 0.05, 2.0, 0.002)
     if "finger" in name:  # the workcell gripper's fingers: light, geared 5:1
         return AxisParams(300.0, 6.0, 0.0, 0.0, 30.0, 20.0, 0.5, 40.0, 0.05)

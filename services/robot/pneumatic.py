@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shared.robots.registry import joints_with
+
 P_MAX = 4.0  # bar
 BIAS = 1.5  # bar
 
@@ -100,8 +102,8 @@ class SingleStageController:
         return np.clip(np.array([u, -u]), -1.0, 1.0)
 
 
-# Joints of the hand-arm's four-finger hand (shared/robots/hand_arm.urdf): these have a muscle pair.
-PNEUMATIC_JOINT_PREFIXES = ("thumb_", "index_", "middle_", "ring_")
+# Joints with a muscle pair: those the robot descriptions list (the hand-arm's fingers, shared/robots).
+PNEUMATIC_JOINTS = joints_with("pneumatic_joints")
 
 
 @dataclass(frozen=True)
@@ -131,7 +133,7 @@ class PneumaticParams:
 
 
 def has_pneumatic_drive(name: str) -> bool:
-    return name.startswith(PNEUMATIC_JOINT_PREFIXES)
+    return name in PNEUMATIC_JOINTS
 
 
 def pneumatic_params(name: str) -> PneumaticParams | None:

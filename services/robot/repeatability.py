@@ -19,6 +19,7 @@ from services.robot.board_sim import BoardSim
 from services.world.sim import WorldSim
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import CommandFrame, Mode
+from shared.robots.registry import DEFAULT_ROBOT
 
 SETTLE_S = 0.6
 
@@ -43,7 +44,7 @@ class Rig:
         self.sim = WorldSim(seed=seed)
         self.sim.set_robot_mode("robot")
         self.board = BoardSim(self.sim.joint_names, seed=seed)
-        self.model = load_robot("workcell")
+        self.model = load_robot(DEFAULT_ROBOT)
         self.names = self.sim.joint_names
         self.seq = 0
 

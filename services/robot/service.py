@@ -15,6 +15,7 @@ from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
+from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 
@@ -40,7 +41,7 @@ class RobotService:
     class Params:
         port: str = ""
         baudrate: int = 3_000_000
-        robot: str = "workcell"
+        robot: str = DEFAULT_ROBOT
         command_rate_hz: float = 250.0
         state_rate_hz: float = 100.0
         # "pneumatic": joints with a muscle pair (the hand-arm's fingers) follow the trajectory in the
@@ -55,7 +56,7 @@ class RobotService:
         self.limits = Limits.from_model(model)
         self.modes = command_modes(self.joint_names, params.finger_mode)
         self.follower = TrajectoryFollower(self.joint_names)
-        self.driver = BoardDriver(params.port, params.baudrate, self.joint_names, node.log)
+        self.driver = BoardDriver(params.port, params.baudrate, describe(params.robot).board_order, node.log)
         if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
             node.log.warning("robot instance %r runs model %r: its state goes to %s, not %s", node.instance,
                              params.robot, node.key("state"), robot_state_key(params.robot))

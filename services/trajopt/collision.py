@@ -25,15 +25,6 @@ import numpy as np
 
 from shared.kinematics import RobotModel, Shape
 
-# Cross-arm link pairs of the workcell that can meet: carriages share the Y rail, slides hang at one
-# height, columns, hands and fingers meet when both arms work near the middle.
-WORKCELL_PAIRS = [
-    ("left_carriage", "right_carriage"), ("left_slide", "right_slide"), ("left_column", "right_column"),
-    ("left_column", "right_hand"), ("left_hand", "right_column"), ("left_hand", "right_hand"),
-    ("left_finger_a", "right_finger"), ("left_finger_b", "right_finger"), ("left_hand", "right_finger"),
-    ("left_finger_a", "right_hand"), ("left_finger_b", "right_hand"),
-]
-
 
 def coal_geometry(shape: Shape):
     """The coal collision object of a URDF shape (meshes as their convex hull)."""

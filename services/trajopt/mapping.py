@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared import msgs
-from shared.robots.make_workcell_urdf import GRIP_AXIS
+from shared.robots.registry import derived_points
 
 
 @dataclass
@@ -29,30 +29,40 @@ def plan_arrays(msg) -> PlanArrays:
     return PlanArrays(msgs.stamp_seconds(msg.header.stamp), float(msg.dt), names, pos.reshape(steps, points, 3), mask)
 
 
-def with_grip_axis(plan: PlanArrays, hand: str = "left") -> PlanArrays:
-    """Adds the derived point ``<hand>/grip_axis`` (pinch midpoint + GRIP_AXIS along thumb -> index,
-    level), the goal of the workcell's ``left_grip_axis``:
-    it gives the gripper's yaw a lever; the fingertips alone are 5 mm apart. Unchanged when the plan
-    lacks either fingertip or already has the point."""
+def with_derived_point(plan: PlanArrays, name: str) -> PlanArrays:
+    """Adds the derived plan point ``name`` (shared/robots: the midpoint of its two source points
+    moved its offset along a -> b, level). The workcell's ``left/grip_axis`` is the goal of its
+    ``left_grip_axis`` frame: it gives the gripper's yaw a lever; the fingertips alone are 5 mm
+    apart. Unchanged when the plan lacks either source point or already has the point."""
+    spec = derived_points().get(name)
+    if spec is None:
+        raise ValueError(f"no robot description derives the plan point {name!r} (known: {sorted(derived_points())})")
     names = plan.names
-    thumb, index, axis = f"{hand}/4", f"{hand}/8", f"{hand}/grip_axis"
-    if axis in names or thumb not in names or index not in names:
+    if name in names or spec.a not in names or spec.b not in names:
         return plan
-    a, b = plan.positions[:, names.index(thumb)], plan.positions[:, names.index(index)]
+    a, b = plan.positions[:, names.index(spec.a)], plan.positions[:, names.index(spec.b)]
     d = (b - a) * [1.0, 1.0, 0.0]
     norm = np.linalg.norm(d, axis=-1, keepdims=True)
-    ok = plan.mask[:, names.index(thumb)] & plan.mask[:, names.index(index)] & (norm[:, 0] > 1e-4)
-    point = 0.5 * (a + b) + GRIP_AXIS * d / np.maximum(norm, 1e-9)
-    return PlanArrays(plan.stamp, plan.dt, names + [axis], np.concatenate([plan.positions, point[:, None]], axis=1),
+    ok = plan.mask[:, names.index(spec.a)] & plan.mask[:, names.index(spec.b)] & (norm[:, 0] > 1e-4)
+    point = 0.5 * (a + b) + spec.offset * d / np.maximum(norm, 1e-9)
+    return PlanArrays(plan.stamp, plan.dt, names + [name], np.concatenate([plan.positions, point[:, None]], axis=1),
                       np.concatenate([plan.mask, ok[:, None]], axis=1))
+
+
+def with_grip_axis(plan: PlanArrays, hand: str = "left") -> PlanArrays:
+    """``with_derived_point`` for ``<hand>/grip_axis``."""
+    return with_derived_point(plan, f"{hand}/grip_axis")
 
 
 def goals_for_horizon(plan: PlanArrays, wanted: list[str], t0: float, dt: float, knots: int) -> tuple[np.ndarray,
                                                                                                      np.ndarray]:
     """Goals (knots, len(wanted), 3) at times t0 + k*dt, interpolated in the plan; mask False where
-    the plan lacks a point, masks it, or the time lies outside the plan. Derived points (the
-    gripper's grip axis) are added from the fingertips first."""
-    plan = with_grip_axis(plan)
+    the plan lacks a point, masks it, or the time lies outside the plan. Wanted derived points (the
+    gripper's grip axis) are added from their source points first."""
+    derived = derived_points()
+    for name in wanted:
+        if name in derived:
+            plan = with_derived_point(plan, name)
     goals = np.zeros((knots, len(wanted), 3))
     mask = np.zeros((knots, len(wanted)), bool)
     index = {n: i for i, n in enumerate(plan.names)}

@@ -23,16 +23,10 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from services.trajopt.collision import WORKCELL_PAIRS, CollisionModel
+from services.trajopt.collision import CollisionModel
 from shared.kinematics import RobotModel
+from shared.robots.registry import REGISTRY
 
-# Plan keypoint (hand/index of the 21-point hand) -> robot frame. The gripper executes the left
-# hand's thumb and index tips, the single finger the right index tip (thesis 7.6).
-WORKCELL_MAP = {"left/4": "left_tip_a", "left/8": "left_tip_b", "right/8": "right_tip"}
-# With the gripper's yaw pinned by a derived point (mapping.with_grip_axis): robot execution
-WORKCELL_AXES_MAP = dict(WORKCELL_MAP, **{"left/grip_axis": "left_grip_axis"})
-HAND_ARM_MAP = {"right/0": "wrist_point", "right/4": "thumb_tip", "right/8": "index_tip", "right/12": "middle_tip",
-                "right/16": "ring_tip"}
 TABLE = ((0.0, 0.0, -1.0), 0.0)  # N . p <= P - r  <=>  z >= r
 OCP_SOLVERS = ("hpipm", "fatrop")  # QP solvers that need (and exploit) the stage-wise layout
 
@@ -45,7 +39,7 @@ class TrajoptInputError(ValueError):
 class TrajoptConfig:
     knots: int = 20
     fixed_knots: int = 2
-    point_map: dict[str, str] | None = None  # plan point -> robot frame; None: the model's default
+    point_map: dict[str, str] | None = None  # plan point -> robot frame; None: the description's point_map
     point_weights: dict[str, float] = field(default_factory=dict)  # plan point -> weight (default 1)
     trust_region: float = 0.1  # rad or m per SQP iteration (7.18)
     max_iterations: int = 2  # per control cycle; the next cycle continues from this one (warm start)
@@ -56,7 +50,7 @@ class TrajoptConfig:
     smooth_weight: float = 1e-3  # weight of squared accelerations * dt^2 (keeps H well conditioned)
     planes: list[tuple[tuple[float, float, float], float]] = field(default_factory=lambda: [TABLE])  # (7.20)
     sphere_radii: dict[str, float] | None = None  # keypoint frame -> sphere radius; None: 5 mm on every keypoint
-    collision_pairs: list[tuple[str, str]] | None = None  # link pairs (7.21); None: the model's default
+    collision_pairs: list[tuple[str, str]] | None = None  # link pairs (7.21); None: the description's
     margin: float = 0.005  # minimum distance between shapes of a pair
     near: float = 0.02  # covering-sphere gap under which GJK/EPA computes the exact separation
     contact_slots: int = 4  # separating-plane rows per knot, given to the closest shape pairs
@@ -82,12 +76,16 @@ class TrajoptResult:
 
 
 def default_point_map(model: RobotModel) -> dict[str, str]:
-    return dict(HAND_ARM_MAP if model.name == "hand_arm" else WORKCELL_MAP)
+    """The described robot's point map (shared/robots); empty for a model without a description."""
+    desc = REGISTRY.get(model.name)
+    return dict(desc.point_map) if desc else {}
 
 
 def default_pairs(model: RobotModel) -> list[tuple[str, str]]:
+    """The described robot's collision pairs whose links this model has."""
+    desc = REGISTRY.get(model.name)
     links = set(model.links)
-    return [p for p in WORKCELL_PAIRS if p[0] in links and p[1] in links]
+    return [p for p in (desc.collision_pairs if desc else ()) if p[0] in links and p[1] in links]
 
 
 def qp_options(name: str) -> dict:

@@ -8,24 +8,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.trajopt.hand_prior import has_hand, teacher_prior
+from services.trajopt.hand_prior import teacher_prior
 from services.trajopt.mapping import goals_for_horizon, plan_arrays
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from shared import msgs
+from shared.demo import HAND_NAMES
 from shared.kinematics import load_robot
+from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 
 class TrajoptService:
     @dataclass
     class Params:
-        robot: str = "workcell"
+        robot: str = DEFAULT_ROBOT
         rate_hz: float = 10.0
         knots: int = 20
         horizon_s: float = 1.0
         fixed_knots: int = 2
         max_iterations: int = 2  # as deployed: the next cycle continues from this one (warm start)
-        # 7.22 hand-pose regulariser, for models with finger joints (hand_arm): prior from the scripted
+        # 7.22 hand-pose regulariser, for robots whose description maps finger joints: prior from the scripted
         # teacher's finger flexion over `prior_demos` demonstrations of `prior_task`.
         pose_weight: float = 1e-6
         prior_task: str = "assembly"
@@ -35,9 +37,11 @@ class TrajoptService:
         self.node = node
         self.p = params
         self.model = load_robot(params.robot)
+        desc = describe(params.robot)
         mean, std = {}, {}
-        if has_hand(self.model) and params.pose_weight > 0:
-            mean, std = teacher_prior(params.prior_task, params.prior_demos)
+        if desc.finger_flexion and params.pose_weight > 0:
+            mean, std = teacher_prior(desc.finger_flexion, params.prior_task, params.prior_demos,
+                                      HAND_NAMES.index(desc.finger_hand))
             node.log.info("hand-pose prior (7.22) over %d joints from %d %s demonstrations, weight %g", len(mean),
                           params.prior_demos, params.prior_task, params.pose_weight)
         self.pose_prior = bool(mean)

@@ -1,9 +1,10 @@
 """The MuJoCo model of the simulated workcell, built with MjSpec from the robot's URDF.
 
-Table top at z=0, the robot from shared/robots/<robot>.urdf (the deployment picks it: the gantry
-``workcell`` by default, or the 6-DoF arm with a four-finger hand ``hand_arm``) with a motor per
-actuated joint (the control-board simulator computes the efforts; MuJoCo's URDF importer turns each
-``<mimic>`` into a joint equality, so coupled joints have no motor), task objects as free bodies, the
+Table top at z=0, the robot from its description (shared/robots; the deployment picks it: the
+gantry by default, or the 6-DoF arm with a four-finger hand) with the description's joint dynamics
+and a motor per listed joint, limited to its URDF effort (the control-board simulator computes the
+efforts; MuJoCo's URDF importer turns each ``<mimic>`` into a joint equality, so coupled joints have
+no motor), task objects as free bodies, the
 teacher's hand keypoints as mocap spheres (visual only), and 7 cameras on the top of an 80 cm cube
 frame.
 """
@@ -16,7 +17,8 @@ import mujoco
 import numpy as np
 
 from shared.geometry import look_at
-from shared.kinematics import ROBOTS_DIR, load_robot
+from shared.kinematics import load_robot
+from shared.robots.registry import DEFAULT_ROBOT, describe
 
 FRAME_SIZE = 0.8
 CAMERA_HEIGHT = 0.8
@@ -65,22 +67,10 @@ def camera_specs(width: int = 320, height: int = 240) -> list[CameraSpec]:
     return specs
 
 
-# Joint dynamics of the hand-arm: (damping N m s/rad, armature kg m^2). Armature is the motor's
-# reflected inertia (rotor inertia x gear ratio^2: about 1 kg m^2 behind a UR10's 101:1 shoulder
-# drives), which is also what keeps the board's PD loops stable at the 2 ms physics step.
-HAND_ARM_DYNAMICS = {"shoulder": (1.0, 1.0), "elbow": (1.0, 1.0), "wrist": (0.5, 0.2), "finger": (0.01, 0.001)}
-# Start pose (rad) of robots whose zero pose is not a sensible one: the hand-arm stands over the
-# table's right half with its fingers straight (the arm's zero pose points straight up).
-ROBOT_HOME = {"hand_arm": {"shoulder_pan": 0.33, "shoulder_lift": -0.71, "elbow": 2.6, "wrist_1": 0.34,
-                           "wrist_2": -2.13, "wrist_3": -0.4}}
-ROBOTS = ("workcell", "hand_arm")
-
-
 def build_model(task: str = "assembly", width: int = 320, height: int = 240,
-                robot: str = "workcell") -> mujoco.MjModel:
-    if robot not in ROBOTS:
-        raise ValueError(f"robot must be one of {ROBOTS}, got {robot!r}")
-    spec = mujoco.MjSpec.from_file(str(ROBOTS_DIR / f"{robot}.urdf"))
+                robot: str = DEFAULT_ROBOT) -> mujoco.MjModel:
+    desc = describe(robot)  # UnknownRobotError (a ValueError) names the known robots
+    spec = mujoco.MjSpec.from_file(str(desc.urdf))
     spec.option.timestep = PHYSICS_DT
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps that do not creep
     spec.option.impratio = 10.0
@@ -99,10 +89,7 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         for y in (-0.4, 0.4):
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
                            rgba=[0.3, 0.3, 0.3, 1], contype=0, conaffinity=0)
-    if robot == "workcell":
-        _workcell_drives(spec)
-    else:
-        _hand_arm_drives(spec)
+    _drives(spec, robot)
     for name, geoms in OBJECTS[task].items():
         body = world.add_body(name=name, pos=[0, 0, 0])
         body.add_freejoint(name=f"{name}_free")
@@ -127,25 +114,15 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
     return spec.compile()
 
 
-def _workcell_drives(spec: mujoco.MjSpec) -> None:
-    for joint in spec.joints:  # damping and friction of belts and carriages
-        joint.damping = [2.0 if joint.name.endswith(("_x", "_y", "_z")) else 0.05, 0, 0]
-        joint.armature = 0.01
-    for name in ("left_y", "left_x", "left_z", "left_wrist", "left_finger_a", "right_y", "right_x", "right_z",
-                 "right_wrist"):
-        effort = 5.0 if name.endswith("wrist") else (40.0 if "finger" in name else 200.0)
-        spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT, ctrlrange=[-effort, effort],
-                          ctrllimited=True, gear=[1, 0, 0, 0, 0, 0])
-
-
-def _hand_arm_drives(spec: mujoco.MjSpec) -> None:
-    """A motor per independent joint, limited to the URDF effort; mimic joints follow by equality."""
-    robot = load_robot("hand_arm")
+def _drives(spec: mujoco.MjSpec, robot: str) -> None:
+    """Joint damping and armature from the description, and a motor per listed joint limited to the
+    URDF effort (mimic joints follow their masters by equality)."""
+    desc, model = describe(robot), load_robot(robot)
+    effort = {j.name: j.effort for j in model.moving}
     for joint in spec.joints:
-        group = next((g for g in ("shoulder", "elbow", "wrist") if joint.name.startswith(g)), "finger")
-        damping, armature = HAND_ARM_DYNAMICS[group]
+        damping, armature = desc.sim_dynamics[joint.name]
         joint.damping = [damping, 0, 0]
         joint.armature = armature
-    for j in robot.actuated:
-        spec.add_actuator(name=j.name, target=j.name, trntype=mujoco.mjtTrn.mjTRN_JOINT,
-                          ctrlrange=[-j.effort, j.effort], ctrllimited=True, gear=[1, 0, 0, 0, 0, 0])
+    for name in desc.sim_motors:
+        spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT,
+                          ctrlrange=[-effort[name], effort[name]], ctrllimited=True, gear=[1, 0, 0, 0, 0, 0])

@@ -19,6 +19,7 @@ os.environ.setdefault("LP_NUM_THREADS", "1")  # llvmpipe: one thread; its extra 
 import mujoco  # noqa: E402  (MUJOCO_GL must be set first)
 
 from services.world.model import build_model, camera_specs  # noqa: E402
+from shared.robots.registry import DEFAULT_ROBOT  # noqa: E402
 
 
 @dataclass
@@ -28,7 +29,7 @@ class Snapshot:
     qpos: np.ndarray
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
-    robot: str = "workcell"
+    robot: str = DEFAULT_ROBOT
 
     def to_json(self) -> str:
         return json.dumps({"task": self.task, "robot": self.robot, "time": self.time, "qpos": self.qpos.tolist(),
@@ -38,17 +39,17 @@ class Snapshot:
     def from_json(cls, text: str | bytes) -> Snapshot:
         d = json.loads(text)
         return cls(d["task"], float(d["time"]), np.array(d["qpos"]), np.array(d["mocap_pos"]),
-                   np.array(d["mocap_quat"]), d.get("robot", "workcell"))
+                   np.array(d["mocap_quat"]), d.get("robot", DEFAULT_ROBOT))
 
 
-def snapshot(task: str, data: mujoco.MjData, robot: str = "workcell") -> Snapshot:
+def snapshot(task: str, data: mujoco.MjData, robot: str = DEFAULT_ROBOT) -> Snapshot:
     return Snapshot(task, float(data.time), data.qpos.copy(), data.mocap_pos.copy(), data.mocap_quat.copy(), robot)
 
 
 class SceneRenderer:
     """All cameras of the rig for one task and robot; create and use it on one thread."""
 
-    def __init__(self, task: str, width: int = 320, height: int = 240, robot: str = "workcell") -> None:
+    def __init__(self, task: str, width: int = 320, height: int = 240, robot: str = DEFAULT_ROBOT) -> None:
         self.task = task
         self.robot = robot
         self.model = build_model(task, width, height, robot)

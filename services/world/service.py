@@ -19,6 +19,7 @@ from services.world.render import snapshot
 from services.world.sim import WorldSim
 from shared import msgs
 from shared.demo import HAND_NAMES
+from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 SNAPSHOT_KEY = "xm/world/sim/@snapshot"
@@ -28,7 +29,7 @@ class WorldService:
     @dataclass
     class Params:
         task: str = "assembly"
-        robot: str = "workcell"  # shared/robots/<robot>.urdf: "workcell" (gantry) or "hand_arm"
+        robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
         seed: int = 0
         realtime_factor: float = 1.0
         glove_ports: tuple[str, ...] = ()
@@ -46,7 +47,7 @@ class WorldService:
         self.substeps = max(1, round(params.tick_s / self.physics_dt))
         self.gloves = [GloveDevice(port, hand, seed=i, rate_hz=params.glove_rate_hz)  # seed i: its calibration
                        for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
-        self.board = BoardDevice(params.robot_port, self.sim.joint_names) if params.robot_port else None
+        self.board = BoardDevice(params.robot_port, describe(params.robot).board_order) if params.robot_port else None
         self.clock_pub = node.output("clock")
         self.truth_pub = node.output("truth")
         self.session_pub = node.output("session")

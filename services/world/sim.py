@@ -10,10 +10,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from services.world.model import LATCH, PHYSICS_DT, ROBOT_HOME, build_model, camera_specs
+from services.world.model import LATCH, PHYSICS_DT, build_model, camera_specs
 from services.world.teacher import OBJECT_POINTS, Teacher, occlusion
 from shared.demo import HAND_NAMES, TACTILE_REGIONS
 from shared.kinematics import load_robot
+from shared.robots.registry import DEFAULT_ROBOT, describe
 
 PAUSE_BETWEEN_DEMOS_S = 1.0
 TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 500 Hz
@@ -23,7 +24,7 @@ SEAT_FORCE_N = 2.0  # module-on-board normal force that snaps an aligned connect
 
 class WorldSim:
     def __init__(self, task: str = "assembly", seed: int = 0, width: int = 320, height: int = 240,
-                 robot: str = "workcell") -> None:
+                 robot: str = DEFAULT_ROBOT) -> None:
         self.task = task
         self.base_seed = seed
         self.width, self.height = width, height
@@ -35,7 +36,7 @@ class WorldSim:
         self.joint_names = self.robot.joint_names
         m = self.model
         self._qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in self.joint_names])
-        home = ROBOT_HOME.get(robot, {})
+        home = describe(robot).home
         self._home = self.robot.couple(np.array([home.get(n, 0.0) for n in self.joint_names])) if home else None
         self._dadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in self.joint_names])
         self._act = {m.actuator(i).name: i for i in range(m.nu)}

@@ -19,6 +19,7 @@ from enum import IntEnum
 import numpy as np
 
 from shared.protocols.framing import FrameDecoder, frame
+from shared.robots.registry import DEFAULT_ROBOT, describe
 
 VERSION = 2
 TYPE_COMMAND = 0x20
@@ -27,9 +28,8 @@ TYPE_CONFIG = 0x22
 MAX_JOINTS = 32
 DEFAULT_WATCHDOG_US = 10_000
 
-# The workcell gantry's joints, in wire order (left_finger_b mirrors left_finger_a mechanically).
-JOINTS = ["left_x", "left_y", "left_z", "left_wrist", "left_finger_a", "left_finger_b",
-          "right_x", "right_y", "right_z", "right_wrist"]
+# The default robot's joints in board-channel order (shared/robots): the test vectors' layout.
+JOINTS = describe(DEFAULT_ROBOT).board_order
 
 
 class Mode(IntEnum):

@@ -23,10 +23,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from shared.robots.urdf_writer import HEADER, MATERIALS, frustum, joint, link, point, write_stl
+from shared.robots.workcell import GRIP_AXIS
 
 HERE = Path(__file__).parent
-JOINTS = ["left_x", "left_y", "left_z", "left_wrist", "left_finger_a", "left_finger_b",
-          "right_x", "right_y", "right_z", "right_wrist"]
 FRAME_SIZE = 0.8
 FRAME_HEIGHT = 0.7
 RAIL_Z = 0.66  # carriage centre on the shared Y rail
@@ -36,7 +35,6 @@ COLUMN = 0.25  # column length: Z column top -> wrist joint
 TIP = 0.08  # wrist joint -> fingertips
 Z_TRAVEL = 0.259  # finger ends down to 1 mm above the table
 PAD_HEIGHT = 0.003  # finger end -> pad centre (the gripper keypoints)
-GRIP_AXIS = 0.03  # pads' midpoint -> left_grip_axis (trajopt's mapping derives its goal likewise)
 Y_HOME = {"left": 0.15, "right": -0.15}
 Y_RANGE = {"left": (-0.12, 0.35), "right": (-0.35, 0.12)}  # world y of the carriage (shared rail)
 X_RANGE = (-0.3, 0.3)
@@ -55,7 +53,8 @@ def write_meshes() -> None:
 
 
 def arm(side: str) -> str:
-    """One arm in JOINTS order (x before y in the document; the chain is base -> y -> x -> z -> wrist)."""
+    """One arm in the description's joint order (workcell.JOINTS: x before y in the document; the chain
+    is base -> y -> x -> z -> wrist)."""
     lo_y, hi_y = (v - Y_HOME[side] for v in Y_RANGE[side])
     out = joint(f"{side}_x", "prismatic", f"{side}_carriage", f"{side}_slide", f"0 0 {-X_DROP}", "1 0 0",
                 *X_RANGE, **LINEAR)

@@ -1,12 +1,15 @@
 """Small helpers the URDF generators share: links with solid-body inertia, joints, keypoint frames,
-and a binary STL writer for convex meshes (kept as code so every dimension lives in one place)."""
+and convex meshes written by trimesh (kept as code so every dimension lives in one place).
+
+The URDF text is written here, not by yourdfpy: its writer (0.0.60) drops ``<mimic>`` and the
+``<mujoco>`` compiler element that both models need."""
 
 from __future__ import annotations
 
-import struct
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 HEADER = '<?xml version="1.0"?>\n<robot name="{name}">\n'
 MATERIALS = ('  <material name="alu"><color rgba="0.72 0.73 0.76 1"/></material>\n'
@@ -94,20 +97,11 @@ def frustum(bottom: tuple[float, float], top: tuple[float, float], height: float
 
 def write_stl(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
     """Binary STL (what MuJoCo, coal and most URDF viewers read)."""
-    data = bytearray(b"crossmodal convex mesh".ljust(80, b" "))
-    data += struct.pack("<I", len(triangles))
-    for tri in triangles:
-        a, b, c = vertices[tri]
-        n = np.cross(b - a, c - a)
-        n = n / max(np.linalg.norm(n), 1e-12)
-        data += struct.pack("<12fH", *n, *a, *b, *c, 0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(bytes(data))
+    trimesh.Trimesh(vertices, triangles, process=False).export(str(path), file_type="stl")
 
 
 def read_stl(path: Path) -> np.ndarray:
-    """Unique vertices (N,3) of a binary STL."""
-    data = Path(path).read_bytes()
-    count = struct.unpack_from("<I", data, 80)[0]
-    pts = np.array([struct.unpack_from("<12f", data, 84 + 50 * i)[3:] for i in range(count)]).reshape(-1, 3)
-    return np.unique(np.round(pts, 7), axis=0)
+    """Unique vertices (N,3) of an STL file."""
+    mesh = trimesh.load(str(path), force="mesh", process=False)
+    return np.unique(np.round(np.asarray(mesh.vertices, float), 7), axis=0)

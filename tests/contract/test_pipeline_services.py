@@ -13,6 +13,7 @@ from services.world.model import camera_specs
 from shared import msgs
 from shared.geometry import projection
 from shared.kinematics import load_robot
+from shared.robots.registry import describe
 from tests.conftest import ServiceProcess, query_json, wait_for, write_deployment
 
 pytestmark = pytest.mark.slow
@@ -176,15 +177,15 @@ def test_trajopt_runs_the_hand_arm_from_its_own_state_key_with_the_hand_pose_pri
     """robot = "hand_arm": trajopt reads xm/robot/hand_arm/state (not the gantry's key), tracks the
     right hand's wrist and fingertips of a plan with coupled finger joints, and says that the 7.22
     prior is on."""
-    from services.trajopt.optimizer import HAND_ARM_MAP
-    from services.world.model import ROBOT_HOME
+    hand_arm = describe("hand_arm")
+    HAND_ARM_MAP = hand_arm.point_map
 
     endpoint, session = router
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"trajopt": {"main": {"robot": "hand_arm"}}})
     trajopt = ServiceProcess("trajopt", dep, "main", tmp_path / "trajopt.log")
     model = load_robot("hand_arm")
     names = model.joint_names
-    q0 = model.couple(np.array([ROBOT_HOME["hand_arm"].get(n, 0.0) for n in names]))
+    q0 = model.couple(np.array([hand_arm.home.get(n, 0.0) for n in names]))
     target = q0.copy()
     target[names.index("elbow")] -= 0.15
     for finger in ("index", "middle", "ring"):
