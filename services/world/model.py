@@ -4,8 +4,8 @@ Table top at z=0, the robot from shared/robots/<robot>.urdf (the deployment pick
 ``workcell`` by default, or the 6-DoF arm with a four-finger hand ``hand_arm``) with a motor per
 actuated joint (the control-board simulator computes the efforts; MuJoCo's URDF importer turns each
 ``<mimic>`` into a joint equality, so coupled joints have no motor), task objects as free bodies, the
-teacher's hand keypoints as mocap spheres (visual only), and 7 cameras on the top of an 80 cm cube
-frame.
+teacher's hand keypoints as mocap bodies (services/world/render.py draws the hands and the room), and
+7 cameras on the top of an 80 cm cube frame.
 """
 
 from __future__ import annotations
@@ -114,6 +114,8 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         spec.add_equality(name=LATCH, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
                           name1="camera", name2="board", active=0,
                           solref=[2 * PHYSICS_DT, 1.0])  # as stiff as the step allows
+    # The teacher's hand keypoints: mocap bodies carrying the pose only (the URDF compiler discards
+    # visual-only geoms such as these spheres); services/world/render.py draws the hands.
     for h, hand in enumerate(("left", "right")):
         rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
         for k in range(21):
