@@ -50,7 +50,7 @@ class Box:
 # The room around the table as the cameras see it: the floor 75 cm below the table top and the
 # rig's four aluminium posts (80 cm cube, thesis 5.4). The physics model has neither.
 FLOOR_DEPTH = 0.75
-ROOM = (Box(np.array([0.0, 0.0, -FLOOR_DEPTH - 0.01]), np.array([4.0, 4.0, 0.01]), (0.38, 0.36, 0.33, 1.0)),
+ROOM = (Box(np.array([0.0, 0.0, -FLOOR_DEPTH - 0.01]), np.array([4.0, 4.0, 0.01]), (0.22, 0.21, 0.2, 1.0)),
         *(Box(np.array([x, y, 0.4]), np.array([0.012, 0.012, 0.4]), (0.62, 0.63, 0.65, 1.0))
           for x in (-0.4, 0.4) for y in (-0.4, 0.4)))
 
@@ -89,11 +89,11 @@ def session_lighting(seed: int, demo: int) -> Lighting:
     rng = session_rng(seed, demo, 2)
     azimuth, tilt = rng.uniform(0, 2 * np.pi), rng.uniform(0.0, 0.6)
     direction = np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), -np.cos(tilt)])
-    level = rng.uniform(0.55, 0.95)
+    level = rng.uniform(0.45, 0.8)
     warmth = rng.uniform(-0.08, 0.08)  # + warm, - cool
     diffuse = level * np.array([1 + warmth, 1.0, 1 - warmth])
     return Lighting(pos=-1.5 * direction, dir=direction, diffuse=np.clip(diffuse, 0, 1),
-                    ambient=np.full(3, rng.uniform(0.12, 0.3)), headlight=float(rng.uniform(0.1, 0.3)))
+                    ambient=np.full(3, rng.uniform(0.1, 0.22)), headlight=float(rng.uniform(0.05, 0.2)))
 
 
 def _rgba(rgb: np.ndarray, shade: float = 1.0) -> tuple[float, float, float, float]:

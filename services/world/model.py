@@ -94,7 +94,7 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
     world = spec.worldbody
     world.add_light(pos=[0, 0, 1.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8], castshadow=False)
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[FRAME_SIZE / 2, FRAME_SIZE / 2, 0.01],
-                   rgba=[0.85, 0.85, 0.8, 1], contype=1, conaffinity=3)
+                   rgba=[0.7, 0.67, 0.6, 1], contype=1, conaffinity=3)  # light laminate
     for x in (-0.4, 0.4):  # frame posts and top beams: visual only
         for y in (-0.4, 0.4):
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
