@@ -23,8 +23,7 @@ FOREARM_RADIUS = 0.025
 FOREARM_RISE = 0.5  # the forearm's slope is this fraction of the hand's: teachers reach in from the side
 # Phalanx shading: proximal, middle, distal relative to the hand's base colour; neighbouring segments
 # of one finger differ so a detector (and a reader) can tell them apart.
-PHALANX_SHADE = (0.88, 1.0, 1.12)
-JOINT_SHADE = 0.72  # the creases at the joints are darker
+PHALANX_SHADE = (0.8, 1.0, 1.15)
 
 SKIN_TONES = np.array([[0.96, 0.80, 0.69], [0.91, 0.71, 0.58], [0.80, 0.60, 0.45], [0.63, 0.45, 0.32],
                        [0.45, 0.31, 0.22]])
@@ -103,7 +102,7 @@ def _rgba(rgb: np.ndarray, shade: float = 1.0) -> tuple[float, float, float, flo
 
 def hand_capsules(keypoints: np.ndarray, base_rgb: np.ndarray, sleeve_rgb: np.ndarray | None = None) -> list[Capsule]:
     """Capsules that draw one hand from its (21,3) keypoints: palm, three phalanges per finger in
-    alternating shades, darker knuckles, and a forearm (sleeve) behind the wrist.
+    alternating shades, and a forearm (sleeve) behind the wrist.
 
     A hand parked away from the cell (all keypoints below the table) draws nothing."""
     k = np.asarray(keypoints, float)
@@ -116,7 +115,6 @@ def hand_capsules(keypoints: np.ndarray, base_rgb: np.ndarray, sleeve_rgb: np.nd
         for s in range(3):
             a, b = base + s, base + s + 1
             out.append(Capsule(k[a], k[b], radius, _rgba(base_rgb, PHALANX_SHADE[s])))
-            out.append(Capsule(k[a], k[a], radius * 1.05, _rgba(base_rgb, JOINT_SHADE)))  # knuckle (a sphere)
             radius *= TAPER
     if sleeve_rgb is not None:
         back = k[0] - k[9]  # forearm continues the line from the middle finger's base through the wrist

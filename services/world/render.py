@@ -105,9 +105,9 @@ class SceneRenderer:
                                      for h in HAND_NAMES])
         self._session: tuple[int, int] | None = None
         self._look = session_look(0, 0)
-        # Coarse tessellation: llvmpipe's cost is the hands' ~80 capsules per view, and 12 slices
+        # Coarse tessellation: llvmpipe's cost is the hands' ~50 capsules per view, and 8 slices
         # still draw them round at 640x480.
-        self.model.vis.quality.numslices, self.model.vis.quality.numstacks = 12, 6
+        self.model.vis.quality.numslices, self.model.vis.quality.numstacks = 8, 4
         try:
             self._gl = _gl_context(max(width, 640), max(height, 480))
             self._gl.make_current()
@@ -170,8 +170,13 @@ class SceneRenderer:
         for i, (spec, cam_id) in enumerate(zip(self.cameras, self._cam_ids, strict=True)):
             window = (windows[i] if windows is not None else None) or (0, 0, self.width, self.height)
             camera.fixedcamid = cam_id
-            mujoco.mjv_updateScene(self.model, d, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-            self._add_decor(capsules)
+            if i == 0:  # the geometry is the same for every camera: build it once per frame set
+                mujoco.mjv_updateScene(self.model, d, self._option, None, camera, mujoco.mjtCatBit.mjCAT_ALL,
+                                       self._scene)
+                self._add_decor(capsules)
+            else:
+                mujoco.mjv_updateCamera(self.model, d, camera, self._scene)
+                mujoco.mjv_makeLights(self.model, d, self._scene)  # the headlight sits at the camera
             center, half, bottom, top = gl_frustum(spec.K, window, self._near)
             for glcam in self._scene.camera:
                 glcam.frustum_near = self._near
