@@ -127,3 +127,14 @@ def test_video_files_play_in_order_and_end_without_loop(tmp_path):
     assert np.allclose(greens, [0, 40, 80, 120], atol=6), greens  # JPEG in the AVI: close, not exact
     with pytest.raises(RigError, match="end of recording"):
         rig.trigger({}, 5.0)
+
+
+def test_a_video_device_that_does_not_exist_is_missing_not_fatal(tmp_path):
+    from services.camhub.driver import V4L2Source
+
+    rig = DeviceRig(["cam0", "cam1"], [V4L2Source(str(tmp_path / "video99"), W, H, 10.0),
+                                       FileSource(image_folders(tmp_path, cams=1)[0], W, H)], W, H)
+    failures = rig.open_all(0.0)
+    assert len(failures) == 1 and "cannot open video device" in str(failures[0])
+    fs = rig.trigger({}, 0.0)
+    assert fs.missing == ["cam0"] and [f.name for f in fs.frames] == ["cam1"]
