@@ -107,6 +107,9 @@ class V4L2Source:
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self._size[1])
         if self._fps > 0:
             cap.set(cv2.CAP_PROP_FPS, self._fps)
+        # A device that stays present but stops streaming must not stall the other cameras for
+        # OpenCV's default 10 s select() timeout: give up after a few frame periods.
+        cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, max(200.0, 3000.0 / self._fps) if self._fps > 0 else 1000.0)
         got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         if got != self._size:
             cap.release()
