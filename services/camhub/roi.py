@@ -114,9 +114,11 @@ def rig_windows(cameras: list[CameraGeometry], points: np.ndarray | None, scene_
 
 
 def tracked_points(hand_keypoints: np.ndarray, hand_mask: np.ndarray) -> np.ndarray:
-    """The observed hand keypoints (N,3) of a Scene's flat fields."""
+    """The observed hand keypoints (N,3) of a Scene's flat fields (an empty mask: all observed)."""
     pts = np.asarray(hand_keypoints, float).reshape(-1, 3)
     mask = np.asarray(hand_mask, bool).ravel()
+    if mask.size == 0:
+        mask = np.ones(len(pts), bool)
     if mask.size != len(pts):
         raise ValueError(f"hand_mask has {mask.size} entries for {len(pts)} keypoints")
     keep = mask & np.all(np.isfinite(pts), axis=1)

@@ -86,6 +86,7 @@ def test_tracked_points_keeps_the_observed_finite_keypoints_and_rejects_a_bad_ma
     assert len(roi.tracked_points(pts.ravel(), mask)) == 21
     mask[5] = 1
     assert len(roi.tracked_points(pts.ravel(), mask)) == 21  # NaN point dropped though marked observed
+    assert len(roi.tracked_points(pts.ravel(), [])) == 41, "empty mask: every finite keypoint"
     with pytest.raises(ValueError, match="hand_mask"):
         roi.tracked_points(pts.ravel(), np.ones(5))
 
