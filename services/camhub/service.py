@@ -1,4 +1,9 @@
-"""camhub node: trigger the rig at a set rate, publish JPEG images and CameraInfo per camera."""
+"""camhub node: trigger the rig at a set rate, publish JPEG images and CameraInfo per camera.
+
+The deployment picks the source (``sim``, ``v4l2``, ``files``) and names the calibration file the
+CameraInfo comes from; each trigger carries per-camera readout windows that follow the hands of
+the last reconstructed scene (services/camhub/roi.py).
+"""
 
 from __future__ import annotations
 
@@ -8,54 +13,147 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.camhub.camera_info import encode_jpeg
-from services.camhub.driver import RigError, SimRig
-from shared import msgs
-from shared.geometry import projection
+from services.camhub.camera_info import camera_info, encode_jpeg, from_calibration
+from services.camhub.driver import DeviceRig, FileSource, FrameSet, RigError, SimRig, SizeMismatchError, V4L2Source
+from services.camhub.roi import CameraGeometry, RoiParams, full_frame, rig_windows, tracked_points
+from services.world.model import camera_specs
+from shared import calibration, msgs
+from shared.config import ConfigError
+from shared.keys import CAMERAS
 from shared.runtime import Node
+
+SOURCES = ("sim", "v4l2", "files")
 
 
 class CamhubService:
     @dataclass
     class Params:
-        source: str = "sim"
+        source: str = "sim"  # "sim" (rendered by the world), "v4l2" (devices), "files" (recorded session)
         rate_hz: float = 10.0
         jpeg_quality: int = 80
-        width: int = 320
+        width: int = 320  # every camera's full image; the calibration must be at this size
         height: int = 240
+        calibration: str = ""  # rig calibration file (`xm calibrate`); sim without one: the world's true cameras
+        cameras: tuple[str, ...] = ()  # camera names in rig order; default cam0..cam6
+        devices: tuple[str, ...] = ()  # v4l2: one device per camera (/dev/v4l/by-id/..., /dev/video2, or 2)
+        fps: float = 0.0  # v4l2: frame rate asked of the devices; 0 = rate_hz
+        files: tuple[str, ...] = ()  # files: one video file or image folder per camera
+        loop: bool = True  # files: start over at the end
+        roi: bool = True  # read out windows around the tracked hands; false: full frames always
+        roi_margin_m: float = 0.08
+        roi_min_px: int = 64
+        roi_max_age_s: float = 0.5
+        roi_reacquire_every: int = 10
 
     def __init__(self, node: Node, params: Params) -> None:
-        if params.source != "sim":
-            raise ValueError(f"camhub source {params.source!r}: only 'sim' is wired in this build")
         self.node = node
         self.params = params
-        self.rig = SimRig(node.session, params.width, params.height)
+        self.names = list(params.cameras) or list(CAMERAS)
+        self.cameras, self.intrinsics = self._geometry(params)
+        self.roi_params = RoiParams(params.roi_margin_m, params.roi_min_px, params.roi_max_age_s,
+                                    params.roi_reacquire_every)
+        self.rig = self._rig(params)
         self.worker = ThreadPoolExecutor(1, thread_name_prefix="rig")  # the rig's GL context lives on this thread
-        self.pubs: dict[str, tuple] = {}
+        self.pubs = {name: (node.output("image", name), node.output("info", name))
+                     for name in self.names}
+        self.hands: tuple[float, np.ndarray] | None = None  # (stamp, tracked keypoints) of the last scene
+        self.windows = {c.name: full_frame(c.width, c.height) for c in self.cameras}
+        self.tracking = False
+        self.triggers = 0
+        node.input("scene", self.on_scene)
+        node.health_extra = self._health
 
-    def _publishers(self, name: str) -> tuple:
-        if name not in self.pubs:
-            self.pubs[name] = (self.node.output("image", name), self.node.output("info", name))
-        return self.pubs[name]
-
-    async def run(self) -> None:
-        async for _ in self.node.clock.ticks(self.params.rate_hz):
+    # --- configuration ------------------------------------------------------------------
+    def _geometry(self, p: Params) -> tuple[list[CameraGeometry], str]:
+        if p.source not in SOURCES:
+            raise ConfigError(f"camhub source {p.source!r}: expected one of {', '.join(SOURCES)}")
+        if p.calibration:
             try:
-                stamp, frames = await self.node.loop.run_in_executor(self.worker, self.rig.trigger)
+                rig = calibration.load(p.calibration)
+                rig.check_rig({n: (p.width, p.height) for n in self.names}, p.calibration)
+            except calibration.CalibrationError as exc:
+                raise ConfigError(f"camhub: {exc}") from exc
+            return from_calibration(rig, self.names), f"calibration {p.calibration}"
+        if p.source != "sim":
+            raise ConfigError(f"camhub source {p.source!r} needs calibration = \"path\" (a rig calibration file "
+                              "written by `xm calibrate`)")
+        truth = {c.name: c for c in camera_specs(p.width, p.height)}
+        unknown = [n for n in self.names if n not in truth]
+        if unknown:
+            raise ConfigError(f"camhub: the simulated rig has no camera(s) {', '.join(unknown)} "
+                              f"(it has {', '.join(truth)})")
+        return ([CameraGeometry(n, p.width, p.height, truth[n].K, np.zeros(5), truth[n].world_T_cam)
+                 for n in self.names], "the world's true cameras (no calibration file given)")
+
+    def _rig(self, p: Params) -> SimRig | DeviceRig:
+        if p.source == "sim":
+            return SimRig(self.node.session, self.names, p.width, p.height)
+        paths, what = (p.devices, "devices") if p.source == "v4l2" else (p.files, "files")
+        if len(paths) != len(self.names):
+            raise ConfigError(f"camhub source {p.source!r}: {len(paths)} {what} for {len(self.names)} cameras "
+                              f"({', '.join(self.names)}); give one per camera, in that order")
+        if p.source == "v4l2":
+            sources = [V4L2Source(d, p.width, p.height, p.fps or p.rate_hz) for d in paths]
+        else:
+            sources = [FileSource(f, p.width, p.height, p.loop) for f in paths]
+        rig = DeviceRig(self.names, sources, p.width, p.height)
+        failures = rig.open_all(self.node.clock.now())
+        wrong = [str(f) for f in failures if isinstance(f, SizeMismatchError)]
+        if wrong:
+            rig.close()
+            raise ConfigError("camhub: " + "; ".join(wrong))
+        if failures:
+            self.node.set_status("degraded", "; ".join(str(f) for f in failures))
+        return rig
+
+    # --- inputs -------------------------------------------------------------------------
+    def on_scene(self, msg) -> None:
+        try:
+            points = tracked_points(msg.hand_keypoints, msg.hand_mask)
+        except ValueError as exc:
+            self.node.stats.count("bad_scene")
+            self.node.log.warning("scene ignored: %s", exc)
+            return
+        self.hands = (msgs.stamp_seconds(msg.header.stamp), points)
+
+    def _next_windows(self, now: float) -> None:
+        if not self.params.roi:
+            return
+        stamp, points = self.hands if self.hands is not None else (-np.inf, None)
+        self.windows, self.tracking = rig_windows(self.cameras, points, now - stamp, self.triggers, self.roi_params)
+
+    # --- main loop ----------------------------------------------------------------------
+    async def run(self) -> None:
+        by_name = {c.name: c for c in self.cameras}
+        async for _ in self.node.clock.ticks(self.params.rate_hz):
+            now = self.node.clock.now()
+            self._next_windows(now)
+            self.triggers += 1
+            try:
+                frames: FrameSet = await self.node.loop.run_in_executor(self.worker, self.rig.trigger,
+                                                                        self.windows, now)
             except RigError as exc:
                 self.node.stats.count("trigger_failed")
                 self.node.set_status("degraded", str(exc))
                 await asyncio.sleep(0.5)
                 continue
-            self.node.set_status("ok")
-            encoded = await self.node.loop.run_in_executor(self.worker, encode_all, frames, self.params.jpeg_quality)
-            for frame, jpeg in zip(frames, encoded, strict=True):
-                image_pub, info_pub = self._publishers(frame.name)
-                header = msgs.header(stamp, frame.name)
+            if frames.missing:
+                self.node.stats.count("camera_missing", n=len(frames.missing))
+                self.node.set_status("degraded", "missing: " + ", ".join(frames.missing) + " (reopening)")
+            else:
+                self.node.set_status("ok")
+            encoded = await self.node.loop.run_in_executor(self.worker, encode_all, frames.frames,
+                                                           self.params.jpeg_quality)
+            for frame, jpeg in zip(frames.frames, encoded, strict=True):
+                image_pub, info_pub = self.pubs[frame.name]
+                header = msgs.header(frames.stamp, frame.name)
                 image_pub.put(msgs.make("sensor_msgs/msg/CompressedImage", header=header, format="jpeg",
                                         data=np.frombuffer(jpeg, np.uint8)))
-                info_pub.put(camera_info(header, frame))
+                info_pub.put(camera_info(header, by_name[frame.name], frame.roi))
 
+    def _health(self) -> dict:
+        return {"source": self.params.source, "intrinsics": self.intrinsics, "tracking": self.tracking,
+                "roi": {n: list(r) for n, r in self.windows.items()}, "cameras": self.rig.health()}
 
     async def close(self) -> None:
         await self.node.loop.run_in_executor(self.worker, self.rig.close)
@@ -64,13 +162,3 @@ class CamhubService:
 
 def encode_all(frames: list, quality: int) -> list[bytes]:
     return [encode_jpeg(f.image, quality) for f in frames]
-
-
-def camera_info(header, frame) -> object:
-    h, w = frame.image.shape[:2]
-    return msgs.make(
-        "sensor_msgs/msg/CameraInfo", header=header, height=h, width=w, distortion_model="plumb_bob",
-        d=np.zeros(5), k=frame.K.ravel().astype(float), r=np.eye(3).ravel(),
-        p=projection(frame.K, frame.world_T_cam).ravel().astype(float), binning_x=0, binning_y=0,
-        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
-                      do_rectify=False))

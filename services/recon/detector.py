@@ -1,9 +1,10 @@
 """SIMULATED 2-D keypoint detector: the stand-in for the vision network of thesis 5.6.
 
 It projects simulator truth into each camera, adds pixel noise and drops observations that are
-outside the image, behind the camera, or randomly occluded. This is the one place outside
-evaluation that reads ground truth, and only because no trained detector ships with this build;
-a real detector replaces this class and sees only images.
+outside the frame's readout window (CameraInfo.roi; pixels stay full-image coordinates), behind
+the camera, or randomly occluded. This is the one place outside evaluation that reads ground
+truth, and only because no trained detector ships with this build; a real detector replaces this
+class and sees only images.
 """
 
 from __future__ import annotations
@@ -18,6 +19,15 @@ class CameraModel:
     P: np.ndarray  # (3,4)
     width: int
     height: int
+    roi: tuple[int, int, int, int] | None = None  # window of the full image the frame shows (None: all of it)
+
+
+def readout_window(info: object) -> tuple[int, int, int, int]:
+    """``(x, y, w, h)`` a CameraInfo's image shows of the full image; an all-zero roi means all of it."""
+    r = info.roi
+    if r.width == 0 or r.height == 0:
+        return 0, 0, int(info.width), int(info.height)
+    return int(r.x_offset), int(r.y_offset), int(r.width), int(r.height)
 
 
 class SimulatedDetector:
@@ -38,7 +48,8 @@ class SimulatedDetector:
             z = proj[:, 2]
             pix = proj[:, :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[:, None]
             pix = pix + self.rng.normal(0.0, self.pixel_noise, pix.shape)
-            inside = (z > 0) & (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height)
+            x0, y0, w, h = cam.roi or (0, 0, cam.width, cam.height)  # only what the readout window shows
+            inside = (z > 0) & (pix[:, 0] >= x0) & (pix[:, 0] < x0 + w) & (pix[:, 1] >= y0) & (pix[:, 1] < y0 + h)
             kept = self.rng.random(N) >= self.dropout
             seen[c] = inside & kept & np.isfinite(pix).all(axis=1)
             uv[c] = pix

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.glove.layout import region_means
-from services.recon.detector import CameraModel, SimulatedDetector
+from services.recon.detector import CameraModel, SimulatedDetector, readout_window
 from services.recon.scene import split_points, tactile_matrix
 from services.recon.triangulation import triangulate
 from shared import msgs
@@ -42,7 +42,8 @@ class ReconService:
         node.input("frame", self.on_frame)  # the first camera's image marks a triggered frame set
 
     def on_info(self, msg, key: str) -> None:
-        self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height)
+        self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height,
+                                                      readout_window(msg))
 
     def on_truth(self, msg) -> None:
         self.truth.append((msgs.stamp_seconds(msg.header.stamp), msg))

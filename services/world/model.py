@@ -5,8 +5,8 @@ gantry by default, or the 6-DoF arm with a four-finger hand) with the descriptio
 and a motor per listed joint, limited to its URDF effort (the control-board simulator computes the
 efforts; MuJoCo's URDF importer turns each ``<mimic>`` into a joint equality, so coupled joints have
 no motor), task objects as free bodies, the
-teacher's hand keypoints as mocap spheres (visual only), and 7 cameras on the top of an 80 cm cube
-frame.
+teacher's hand keypoints as mocap bodies (services/world/render.py draws the hands and the room),
+and 7 cameras on the top of an 80 cm cube frame.
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
     world = spec.worldbody
     world.add_light(pos=[0, 0, 1.5], dir=[0, 0, -1], diffuse=[0.8, 0.8, 0.8], castshadow=False)
     world.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[FRAME_SIZE / 2, FRAME_SIZE / 2, 0.01],
-                   rgba=[0.85, 0.85, 0.8, 1], contype=1, conaffinity=3)
+                   rgba=[0.7, 0.67, 0.6, 1], contype=1, conaffinity=3)  # light laminate
     for x in (-0.4, 0.4):  # frame posts and top beams: visual only
         for y in (-0.4, 0.4):
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
@@ -101,6 +101,8 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         spec.add_equality(name=LATCH, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
                           name1="camera", name2="board", active=0,
                           solref=[2 * PHYSICS_DT, 1.0])  # as stiff as the step allows
+    # The teacher's hand keypoints: mocap bodies carrying the pose only (the URDF compiler discards
+    # visual-only geoms such as these spheres); services/world/render.py draws the hands.
     for h, hand in enumerate(("left", "right")):
         rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
         for k in range(21):

@@ -82,7 +82,10 @@ class WorldService:
 
     def _answer_snapshot(self, query) -> None:
         try:
-            query.reply(SNAPSHOT_KEY, snapshot(self.sim.task, self.sim.data, self.sim.robot_name).to_json())
+            sim = self.sim
+            snap = snapshot(sim.task, sim.data, sim.robot_name, sim.base_seed, sim.demo,
+                            sim.teacher.tactile_hand if sim.robot_mode == "teacher" else "")
+            query.reply(SNAPSHOT_KEY, snap.to_json())
         finally:
             query.drop()
 
