@@ -29,6 +29,15 @@ def free_endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
 
 
+def _toml_value(value: object) -> str:
+    """A TOML value: tables inline (``inputs = { truth = [] }``), everything else as JSON, which TOML shares."""
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return json.dumps(value)
+
+
 def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict]],
                      clock: str = "wall") -> Path:
     """A deployment TOML with one table per instance; run_dir is ``<path's folder>/run``."""
@@ -37,7 +46,7 @@ def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict
     for svc, instances in services.items():
         for inst, params in instances.items():
             lines.append(f"[services.{svc}.{inst}]")
-            lines += [f"{k} = {json.dumps(v)}" for k, v in params.items()]
+            lines += [f"{k} = {_toml_value(v)}" for k, v in params.items()]
             lines.append("")
     path.write_text("\n".join(lines))
     return path

@@ -42,17 +42,20 @@ def test_a_renamed_instance_connects_through_the_deployments_remap(tmp_path):
     broken = tmp_path / "broken.toml"
     broken.write_text(renamed)
     _, problems = edges(load_deployment(broken))
-    assert sorted(p.split(" ")[0] for p in problems) == ["panel/main.scene", "policy/main.scene"]
+    assert sorted(p.split(" ")[0] for p in problems) == ["camhub/main.scene", "panel/main.scene",
+                                                             "policy/main.scene"]
 
     fixed = tmp_path / "fixed.toml"
     remapped = renamed.replace("[services.policy.main]", '[services.policy.main]\ninputs = { scene = "recon/left" }')
+    remapped = remapped.replace("[services.camhub.main]", '[services.camhub.main]\ninputs = { scene = "recon/left" }')
     fixed.write_text(remapped.replace("[services.panel.main]",
                                       '[services.panel.main]\ninputs = { scene = "recon/left/scene" }'))
     dep = load_deployment(fixed)
     graph, problems = edges(dep)
     assert not problems
     assert {(e.producer, e.consumer) for e in graph if e.input == "scene"} == {("recon/left", "policy/main"),
-                                                                               ("recon/left", "panel/main")}
+                                                                               ("recon/left", "panel/main"),
+                                                                               ("recon/left", "camhub/main")}
     assert bind(dep, "policy", "main").input("scene").key_exprs == ("xm/recon/left/scene",)
     assert "inputs" not in dep.params("policy", "main")  # a remap, not a service parameter
 
