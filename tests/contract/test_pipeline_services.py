@@ -9,7 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from learning.ours import train
+from learning.presets import preset
 from services.world.model import camera_specs
+from services.world.teacher import generate_demo
 from shared import msgs
 from shared.geometry import projection
 from shared.kinematics import load_robot
@@ -242,14 +245,10 @@ def _scene_msg(demo, k: int, now: float, hide: int | None = None):
 def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(router, tmp_path):
     """method = "learned": horizons of the network (hands and objects) at the plan rate; a missing
     checkpoint degrades to the naive baseline and says so."""
-    from services.policy.ours import Ours, preset
-    from services.world.teacher import generate_demo
-
     endpoint, session = router
     demos = [generate_demo("assembly", s, index=i) for i, s in enumerate((11, 12))]
-    model = Ours(preset("no_tactile", steps=20, hidden=(64, 64), batch=32, eval_every=10_000))
-    model.fit(demos, progress=False)
-    model.save(str(tmp_path / "policy.pt"))
+    train(preset("no_tactile", steps=20, hidden=(64, 64), batch=32, eval_every=10_000), demos, None, tmp_path,
+          progress=False)
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {
         "main": {"method": "learned", "checkpoint": str(tmp_path / "policy.pt"), "rate_hz": 5.0},
         "other": {"method": "learned", "checkpoint": str(tmp_path / "missing.pt")}}})
