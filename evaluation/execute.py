@@ -199,7 +199,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                    horizon_dt: float | None = None, catch_m: float | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
-    ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
+    ``model``: a trained Policy, or None for the teacher's own hands (TeacherReplay).
     ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
     shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
     ``feedback``: the robot's own points are observed as the policy's hands (7.6.8: the robot's

@@ -122,7 +122,7 @@ def _dense_relu(x: np.ndarray, wt: np.ndarray, b: np.ndarray, relu: bool) -> np.
 
 @numba.njit(cache=True)
 def _solve_sym3(S: np.ndarray, b0: float, b1: float, b2: float) -> np.ndarray:
-    """consistency._solve_sym3, the same arithmetic."""
+    """evaluation.reference._solve_sym3, the same arithmetic."""
     s00, s01, s02, s11, s12, s22 = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
     k = (s00 + s11 + s22) * (1.0 + 2e-9) + 1e-12
     a, d, f, u, x, y = k - s00, k - s11, k - s22, -s01, -s02, -s12
@@ -138,7 +138,7 @@ def _solve_sym3(S: np.ndarray, b0: float, b1: float, b2: float) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.ndarray) -> np.ndarray:
-    """consistency.follow_bodies: untrusted points move rigidly with their body's trusted ones."""
+    """evaluation.reference.follow_bodies: untrusted points move rigidly with their body's trusted ones."""
     out = v.copy()
     for b in range(body.max() + 1):
         idx = np.flatnonzero(body == b)
@@ -155,7 +155,7 @@ def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.n
         c /= n
         vc /= n
         w = np.zeros(3)
-        if n >= 2:  # consistency.rigid_fit: S = r^T r, C = r^T (v - vc)
+        if n >= 2:  # evaluation.reference.rigid_fit: S = r^T r, C = r^T (v - vc)
             S = np.zeros((3, 3))
             C = np.zeros((3, 3))
             for i in seen:
@@ -177,7 +177,7 @@ def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.n
 def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, hidden_b, hidden_shape, head_t, head_b,
              plus, minus, scale, mean_lin, m_a, m_b, lin_rows, mask_rows, mean_small, parts, pool, pinch, body,
              flags, dH_gain, w_prior, vmax, max_tactile, tactile_scale, vel_scale, pos_out, tact_out, mem_out):
-    """Ours._step ``steps`` times (folded forward pass + consistency solve), writing each step's
+    """The policy step ``steps`` times (folded forward pass + consistency solve), writing each step's
     positions, tactile and memory; ``mask`` is updated in place. Returns the status."""
     masks, follow, dynamics, tactile, memory = flags[0], flags[1], flags[2], flags[3], flags[4]
     P = pos0.shape[0]
@@ -190,7 +190,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
     x = np.zeros(w1t.shape[0], np.float32)
     z = np.zeros(n_pos + 1)
     for s in range(steps):
-        # --- the folded forward pass (folded.FoldedNet.__call__) ---
+        # --- the folded forward pass (the first layer folded by folded.FoldedNet) ---
         flat = pos.reshape(-1)
         for i in range(n_pos):
             x[i] = flat[i]
@@ -226,7 +226,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
         for i in range(out.size):
             if not np.isfinite(out[i]):
                 return NET_NAN
-        # --- the consistency solve (Ours._step) ---
+        # --- the consistency solve (evaluation.reference.reference_step) ---
         v = out[parts[0, 0]:parts[0, 1]].reshape(P, 3) / vel_scale
         v = np.minimum(np.maximum(v, -vmax), vmax)
         trusted = np.ones(P, np.bool_)

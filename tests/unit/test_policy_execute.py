@@ -8,6 +8,7 @@ import json
 import numpy as np
 import torch
 
+import evaluation.evaluate as ev
 import evaluation.execute as ex
 from evaluation.evaluate import main as eval_main
 from evaluation.execute import (
@@ -114,7 +115,7 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
         return ex.ExecutionResult(seed, demo, "left", "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0, 5.0,
                                   demo == 3)
 
-    monkeypatch.setattr(ex, "execute_layout", fake)
+    monkeypatch.setattr(ev, "execute_layout", fake)  # where `xm eval --execute` calls it
     demos = assembly_protocol(0)
     model = Ours(preset("single_state", hidden=(16,), steps=1, batch=8, eval_every=10 ** 6))
     model.fit(demos[:1], progress=False)
