@@ -126,7 +126,12 @@ class PolicyService:
         async for t in self.node.clock.ticks(self.p.rate_hz):
             if self.scene is None:
                 continue
-            obs = SceneObs.from_msg(self.scene)
+            try:
+                obs = SceneObs.from_msg(self.scene)
+            except ValueError as exc:  # wrong sizes: counted and skipped
+                self.node.stats.count("bad_scene")
+                self.node.log.warning("scene unusable: %s", exc)
+                continue
             if self.naive is None:  # hold: the observed hands, unobserved points marked so in the plan's mask
                 seen = np.asarray(obs.hand_mask, bool).reshape(-1) & np.isfinite(obs.hands).all(-1).reshape(-1)
                 held = np.where(seen[:, None], obs.hands.reshape(-1, 3), 0.0)
