@@ -5,7 +5,8 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEPLOYMENT ?= deploy/sim.toml
 # The network the policy service serves: trained here on first use (about 10 min on 2 cores, progress bar),
-# from the world's scripted teacher; nothing is downloaded.
+# from the world's scripted teacher; nothing is downloaded. Its training demonstrations go beside it
+# (runs/policy/demos/): what the naive fallback replays.
 POLICY_PRESET ?= no_tactile
 POLICY := runs/policy/policy.pt
 
@@ -33,7 +34,8 @@ run: $(STAMP) $(POLICY)
 
 policy: $(POLICY)
 
-$(POLICY): $(STAMP)
+# trained again when the checkpoint's configs change (a checkpoint of other configs does not load)
+$(POLICY): $(STAMP) services/policy/config.py
 	$(BIN)/xm train --teacher 0 --preset $(POLICY_PRESET) --out $(dir $(POLICY))
 
 test: $(STAMP)

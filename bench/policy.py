@@ -1,8 +1,9 @@
 """Policy benchmarks P4 (policy step and 1 s horizon) and P5 (training time to the best rollout).
 
 P4: one policy step with the consistency solve, and a 1 s horizon rollout at the policy's sample
-period and at the trajectory optimizer's knots, against the plain forward pass measured in the
-same run. P5: training wall time to the best validation rollout. Writes .bench/policy.json.
+period and at the trajectory optimizer's knots, through the compiled loop the node runs, against
+the torch reference step (evaluation/reference.py) measured in the same run. P5: training wall
+time to the best validation rollout. Writes .bench/policy.json.
 Timing is reported, never asserted.
 
     .venv/bin/python bench/policy.py            # P4 on a briefly trained model, P5 with the preset
@@ -22,11 +23,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.policy.dataset import split_demos  # noqa: E402
-from services.policy.network import preset  # noqa: E402
-from services.policy.ours import Ours  # noqa: E402
-from services.policy.simulate import PolicyRunner, SceneObs  # noqa: E402
-from services.policy.train import train  # noqa: E402
+from evaluation.reference import network_outputs, reference_roll, reference_step  # noqa: E402
+from learning.dataset import split_demos  # noqa: E402
+from learning.ours import train  # noqa: E402
+from learning.presets import preset  # noqa: E402
+from services.policy.model import Policy  # noqa: E402
+from services.policy.runner import PolicyRunner, SceneObs  # noqa: E402
 from services.world.teacher import assembly_protocol  # noqa: E402
 from shared.demo import Demo  # noqa: E402
 
@@ -44,46 +46,32 @@ def median_ms(fn, n: int) -> float:
     return float(np.median(times) * 1e3)
 
 
-def p4(model: Ours, d: Demo) -> dict:
-    """One policy step and a 1 s horizon, folded (folded.py) and plain, in this process; one thread,
+def p4(model: Policy, d: Demo) -> dict:
+    """One policy step and a 1 s horizon through the compiled loop (the node's one inference path),
+    against the same on the torch network (evaluation/reference.py) in this process; one thread,
     as the service runs it. The state is one from inside the task, not the rest pose."""
     torch.set_num_threads(1)
     model.net.eval()
-    solver = model.solver()
     state = model.initial_state(d)
     for _ in range(50):
-        state = model.step(state, solver)
+        state = model.step(state)
     scene = SceneObs(d.hands[0].astype(float), d.hand_mask[0], d.objects[0].astype(float), d.object_mask[0],
                      d.tactile[0], d.tactile_mask[0])
     steps_1s = int(round(1.0 / model.dt))
     report = {"P4_masked_points_in_state": int((~state["mask"]).sum()), "P4_horizon_steps": steps_1s,
               "P4_horizon_knots": KNOTS_1S}
-    for label, fold in (("", True), ("_plain", False)):
-        model.fold_inference = fold
-        report[f"P4_step_ms_p50{label}"] = median_ms(lambda: model.step(state, solver), 300)
-        if fold:  # the same folded step in Python and numpy: what one compiled step replaces
-            model.compile_inference = False
-            report["P4_step_ms_p50_uncompiled"] = median_ms(lambda: model.step(state, solver), 300)
-            model.compile_inference = True
-        report[f"P4_forward_only_ms_p50{label}"] = median_ms(lambda: model.network_outputs(state), 300)
-        runner = PolicyRunner(model)
-        runner.step(scene)
-        report[f"P4_horizon_1s_ms_p50{label}"] = median_ms(lambda r=runner: r.horizon(None, steps_1s), 20)
-        if fold:  # the same folded steps one by one in Python: what the compiled loop replaces
-            model.compile_inference = False
-            report["P4_horizon_1s_ms_p50_step_loop"] = median_ms(lambda r=runner: r.horizon(None, steps_1s), 20)
-            model.compile_inference = True
-        # as the cell rolls it out: at the trajectory optimizer's 20 knots (7.16's keyframes)
-        report[f"P4_horizon_1s_knots_ms_p50{label}"] = median_ms(
-            lambda r=runner: r.horizon(None, KNOTS_1S, 1.0 / KNOTS_1S), 20)
-    model.fold_inference = True
-    loop_ms = report["P4_horizon_1s_ms_p50_step_loop"]
-    report["P4_horizon_1s_speedup_vs_step_loop"] = loop_ms / report["P4_horizon_1s_ms_p50"]
-    report["P4_step_speedup_vs_uncompiled"] = report["P4_step_ms_p50_uncompiled"] / report["P4_step_ms_p50"]
-    for key in ("P4_step_ms_p50", "P4_forward_only_ms_p50", "P4_horizon_1s_ms_p50", "P4_horizon_1s_knots_ms_p50"):
-        report[key.replace("_ms_p50", "_speedup_vs_plain")] = report[f"{key}_plain"] / report[key]
-    v = model.network_outputs(state)["vel"].reshape(-1, 3) / 5.0
-    report["P4_integral_only_solve_ms_p50"] = median_ms(lambda: solver.positions(state["pos"], v, None), 300)
+    report["P4_step_ms_p50"] = median_ms(lambda: model.step(state), 300)
+    report["P4_step_ms_p50_reference"] = median_ms(lambda: reference_step(model, state), 100)
+    report["P4_forward_only_ms_p50_reference"] = median_ms(lambda: network_outputs(model, state), 100)
+    runner = PolicyRunner(model)
+    runner.step(scene)
+    report["P4_horizon_1s_ms_p50"] = median_ms(lambda: runner.horizon(None, steps_1s), 20)
+    report["P4_horizon_1s_ms_p50_reference"] = median_ms(lambda: reference_roll(model, runner.state, steps_1s), 5)
+    # as the cell rolls it out: at the trajectory optimizer's 20 knots (7.16's keyframes)
+    report["P4_horizon_1s_knots_ms_p50"] = median_ms(lambda: runner.horizon(None, KNOTS_1S, 1.0 / KNOTS_1S), 20)
+    report["P4_step_speedup_vs_reference"] = report["P4_step_ms_p50_reference"] / report["P4_step_ms_p50"]
+    report["P4_horizon_1s_speedup_vs_reference"] = (report["P4_horizon_1s_ms_p50_reference"]
+                                                    / report["P4_horizon_1s_ms_p50"])
     return report
 
 
@@ -113,7 +101,7 @@ def main() -> int:
     tr, va = split_demos(demos)
     report: dict = {}
     if args.checkpoint:
-        model = Ours.load(args.checkpoint)
+        model = Policy.load(args.checkpoint)
     else:  # P5: training to the best validation rollout (2 threads, the budget of the brief)
         torch.set_num_threads(2)
         cfg = preset(args.preset)
@@ -122,13 +110,13 @@ def main() -> int:
         t0 = time.perf_counter()
         res = train(cfg, tr, va, args.keep, progress=False)
         total = time.perf_counter() - t0
-        model = res.method
+        model = res.method.policy
         report |= {"P5_train_seconds_to_best": res.seconds_to_best, "P5_train_seconds_total": total,
-                   "P5_best_step": res.best_step, "P5_steps": cfg.steps,
+                   "P5_best_step": res.best_step, "P5_steps": cfg.train.steps,
                    "P5_best_rollout_hand_m": min(e["hand"] for e in res.evals),
                    "P5_best_rollout_object_m": min(e["object"] for e in res.evals)}
     report |= p4(model, va[0])
-    report |= {"preset": model.cfg.name, "threads": {"P4": 1, "P5": 2}, "quick": args.quick,
+    report |= {"preset": model.name, "threads": {"P4": 1, "P5": 2}, "quick": args.quick,
                "checkpoint": args.checkpoint, "cpu": cpu_model()}
     out_path = Path(args.out)
     out_path.parent.mkdir(parents=True, exist_ok=True)

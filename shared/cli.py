@@ -12,9 +12,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
     "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
     "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
-    "train": ("services.policy.train:main", "train the policy from recordings or teacher demos"),
-    "simulate": ("services.policy.simulate:main", "neural simulation of a trained policy"),
-    "eval": ("services.policy.evaluate:main", "Table 7.1 evaluation against the baselines"),
+    "train": ("learning.cli:train_main", "train the policy from recordings or teacher demos"),
+    "simulate": ("learning.cli:simulate_main", "neural simulation of a trained policy"),
+    "eval": ("evaluation.evaluate:main", "Table 7.1 evaluation against the baselines"),
     "glove": ("services.glove.cli:main", "glove tools: calibrate, register"),
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
 }

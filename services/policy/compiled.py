@@ -1,18 +1,15 @@
 """The policy's recursive rollout compiled with numba (P4): a whole horizon, or one step, in one call.
 
-The step in Python (``Ours._step``) spends about half of its time in Python and numpy call
-overhead around the folded network's products (docs/policy.md, Session 18), so a 1 s horizon of
-50 sequential steps cannot get near 10 ms that way, and since Session 22 ``Ours.step`` itself runs
-here as a horizon of one. Here the same step (folded forward pass, 7.2.5 mask handling, 7.15
-dynamics reconciliation, the integral of 7.5, 7.9-7.10 memory, tactile feedback) runs as one
-compiled loop. Dense layers are written as sums of weight rows over the nonzero inputs: after a
-ReLU most inputs are zero, so most rows are never read, and each row read is a contiguous
-vectorized update.
+This is the one inference path of the served policy: each step runs the folded forward pass
+(folded.py), the 7.2.5 mask handling, the 7.15 dynamics reconciliation, the integral of 7.5, the
+7.9-7.10 memory solve and the tactile feedback in one compiled loop. A step of the same in Python
+and numpy spent about half of its time in call overhead around the folded network's products, so
+a 1 s horizon of 50 sequential steps could not get near 10 ms that way. Dense layers are written
+as sums of weight rows over the nonzero inputs: after a ReLU most inputs are zero, so most rows
+are never read, and each row read is a contiguous vectorized update.
 
-It covers the configurations the presets use; ``supports`` says which. The rest (turned copies,
-canonical frame, rigid objects, pair constraints with weight, velocity or phase inputs, side
-models, the recurrent branch) keep the Python step. ``test_compiled_rollout_equals_the_step_loop``
-checks both give the same rollout.
+``evaluation/reference.py`` is the same step on the torch network (the reference this loop is
+tested against: tests/unit/test_policy_inference.py).
 """
 
 from __future__ import annotations
@@ -26,18 +23,12 @@ from services.policy.network import TACTILE_SCALE, VEL_SCALE
 OK, NET_NAN, POS_NAN = 0, 1, 2
 
 
-def supports(model) -> bool:
-    """Whether ``model`` (an ``Ours``) can roll out through the compiled loop."""
-    c = model.cfg
-    return (model.folded() is not None and c.turns <= 1 and not c.canonical_frame and not c.rigid_objects
-            and not (c.pair_outputs and c.w_pair > 0) and not c.velocity_input and not c.phase_input)
-
-
 class CompiledRollout:
     """Arrays of one folded network and config, laid out for ``_rollout``; rebuilt with the folded net."""
 
     def __init__(self, model, fold: FoldedNet, max_tactile: float) -> None:
-        cfg, P = model.cfg, fold.P
+        """``model``: the ``model.Policy`` whose network ``fold`` was folded from."""
+        cfg, inf, P = model.cfg, model.inference, fold.P
         self.fold, self.P = fold, P
         self.w1t = np.ascontiguousarray(fold.W1.T)  # (inputs, hidden): one row per input
         self.b1 = fold.b1
@@ -51,8 +42,7 @@ class CompiledRollout:
         self.lin = (fold.plus.astype(np.int64), fold.minus.astype(np.int64), fold.scale.astype(np.float64),
                     fold.mean_lin.astype(np.float64), fold.m_a.astype(np.int64)[:n_lin],
                     fold.m_b.astype(np.int64)[:n_lin], fold.G_lin_rows)
-        mask_rows = [r[-1] for r in fold.point_rows]
-        self.mask_rows = np.ascontiguousarray(np.stack(mask_rows))
+        self.mask_rows = fold.mask_rows
         self.mean_small = fold.mean_small.astype(np.float32)
 
         def part(key: str) -> tuple[int, int]:
@@ -61,19 +51,19 @@ class CompiledRollout:
 
         self.parts = np.array([part(k) for k in ("vel", "J", "mask", "tactile", "H", "dH")], np.int64)
         if cfg.dynamics:
-            pool = model.body_pooled(np.eye(model.K)) if cfg.body_dynamics else np.eye(model.K)
+            pool = model.pool_matrix() if cfg.body_dynamics else np.eye(model.K)
         else:
             pool = np.zeros((model.K, model.K))
         self.pool = np.ascontiguousarray(pool, dtype=np.float64)
         self.pinch = np.asarray(model.net.layout.pinch, np.int64)
         self.body = np.asarray(model.body, np.int64)
-        self.flags = np.array([cfg.masks, cfg.masks and cfg.follow_unobserved, cfg.dynamics, cfg.tactile,
+        self.flags = np.array([cfg.masks, cfg.masks and inf.follow_unobserved, cfg.dynamics, cfg.tactile,
                                cfg.memory], np.bool_)
         if cfg.memory:
             self.dH_gain = (model.net.dH_std / model.net.H_std).numpy().astype(np.float64)
         else:
             self.dH_gain = np.zeros(0)
-        self.w_prior, self.vmax, self.max_tactile = float(cfg.w_memory_prior), float(cfg.max_speed), max_tactile
+        self.w_prior, self.vmax, self.max_tactile = float(inf.w_memory_prior), float(inf.max_speed), max_tactile
 
     def __call__(self, state: dict, steps: int, dt: float, w_dyn: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -132,7 +122,7 @@ def _dense_relu(x: np.ndarray, wt: np.ndarray, b: np.ndarray, relu: bool) -> np.
 
 @numba.njit(cache=True)
 def _solve_sym3(S: np.ndarray, b0: float, b1: float, b2: float) -> np.ndarray:
-    """consistency._solve_sym3, the same arithmetic."""
+    """evaluation.reference._solve_sym3, the same arithmetic."""
     s00, s01, s02, s11, s12, s22 = S[0, 0], S[0, 1], S[0, 2], S[1, 1], S[1, 2], S[2, 2]
     k = (s00 + s11 + s22) * (1.0 + 2e-9) + 1e-12
     a, d, f, u, x, y = k - s00, k - s11, k - s22, -s01, -s02, -s12
@@ -148,7 +138,7 @@ def _solve_sym3(S: np.ndarray, b0: float, b1: float, b2: float) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.ndarray) -> np.ndarray:
-    """consistency.follow_bodies: untrusted points move rigidly with their body's trusted ones."""
+    """evaluation.reference.follow_bodies: untrusted points move rigidly with their body's trusted ones."""
     out = v.copy()
     for b in range(body.max() + 1):
         idx = np.flatnonzero(body == b)
@@ -165,7 +155,7 @@ def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.n
         c /= n
         vc /= n
         w = np.zeros(3)
-        if n >= 2:  # consistency.rigid_fit: S = r^T r, C = r^T (v - vc)
+        if n >= 2:  # evaluation.reference.rigid_fit: S = r^T r, C = r^T (v - vc)
             S = np.zeros((3, 3))
             C = np.zeros((3, 3))
             for i in seen:
@@ -187,7 +177,7 @@ def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.n
 def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, hidden_b, hidden_shape, head_t, head_b,
              plus, minus, scale, mean_lin, m_a, m_b, lin_rows, mask_rows, mean_small, parts, pool, pinch, body,
              flags, dH_gain, w_prior, vmax, max_tactile, tactile_scale, vel_scale, pos_out, tact_out, mem_out):
-    """Ours._step ``steps`` times (folded forward pass + consistency solve), writing each step's
+    """The policy step ``steps`` times (folded forward pass + consistency solve), writing each step's
     positions, tactile and memory; ``mask`` is updated in place. Returns the status."""
     masks, follow, dynamics, tactile, memory = flags[0], flags[1], flags[2], flags[3], flags[4]
     P = pos0.shape[0]
@@ -200,7 +190,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
     x = np.zeros(w1t.shape[0], np.float32)
     z = np.zeros(n_pos + 1)
     for s in range(steps):
-        # --- the folded forward pass (folded.FoldedNet.__call__) ---
+        # --- the folded forward pass (the first layer folded by folded.FoldedNet) ---
         flat = pos.reshape(-1)
         for i in range(n_pos):
             x[i] = flat[i]
@@ -236,7 +226,7 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
         for i in range(out.size):
             if not np.isfinite(out[i]):
                 return NET_NAN
-        # --- the consistency solve (Ours._step) ---
+        # --- the consistency solve (evaluation.reference.reference_step) ---
         v = out[parts[0, 0]:parts[0, 1]].reshape(P, 3) / vel_scale
         v = np.minimum(np.maximum(v, -vmax), vmax)
         trusted = np.ones(P, np.bool_)

@@ -4,9 +4,11 @@
 `xm train`, stepped at its own sample rate (observed points replace predicted ones as scenes
 arrive; between scenes it runs on its own predictions, the interactive neural simulation of
 7.6.1) and rolled out over the horizon for every plan. ``method = "naive"``: the thesis's baseline
-(10), the nearest training demonstration replayed time-aligned. A missing or unloadable
-checkpoint falls back to naive and says so in @health; a NaN output is counted and never
-published.
+(10), the nearest training demonstration replayed time-aligned; its demonstrations are the ones
+`xm train` saves beside the checkpoint (``demos``: a folder of Demo .npz files). A missing or
+unloadable checkpoint falls back to naive and says so in @health; without demonstrations to replay
+the fallback holds: it publishes the observed hands standing still over the horizon, and says so.
+A NaN output is counted and never published.
 """
 
 from __future__ import annotations
@@ -15,11 +17,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from services.policy.compiled import warm
+from services.policy.flat_state import HAND_DIMS, BaselineError
+from services.policy.model import PolicyError
 from services.policy.naive import NaiveReplay
-from services.world.teacher import generate_demo
+from services.policy.runner import PolicyInputError, PolicyRunner, SceneObs
 from shared import msgs
-from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, Demo
 from shared.runtime import Node
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
@@ -43,8 +49,7 @@ class PolicyService:
         rate_hz: float = 10.0  # plans per second
         horizon_s: float = 1.0
         plan_dt: float = 0.1  # naive: sample spacing of the plan (learned: the network's own dt)
-        task: str = "assembly"
-        train_seeds: tuple[int, ...] = (9000, 9001, 9002)  # teacher demos the naive replay draws from
+        demos: str = ""  # naive: folder of Demo .npz files to replay ("": the checkpoint's folder's demos/)
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.method not in ("naive", "learned"):
@@ -52,11 +57,15 @@ class PolicyService:
         self.node = node
         self.p = params
         self.runner = None
+        self.fallback: list[str] = []  # why the node serves less than it was asked to (@health)
         if params.method == "learned":
             self.runner = self._load_runner(Path(params.checkpoint))
-        self.naive = NaiveReplay()
+        self.naive: NaiveReplay | None = None
         if self.runner is None:
-            self.naive.fit([generate_demo(params.task, s, index=i) for i, s in enumerate(params.train_seeds)])
+            self.naive = self._load_naive(Path(params.demos) if params.demos else
+                                          Path(params.checkpoint).parent / "demos")
+        if self.fallback:
+            node.set_status("degraded", "; ".join(self.fallback))
         self.scene = None
         self.fresh_scene = False
         self.episode: tuple[int, float] | None = None  # (demo index, start time)
@@ -64,30 +73,35 @@ class PolicyService:
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
 
-    def _load_runner(self, path: Path):
-        from services.policy.ours import PolicyError
-        from services.policy.simulate import PolicyRunner
-
+    def _load_runner(self, path: Path) -> PolicyRunner | None:
         if not path.exists():
-            self.node.set_status("degraded", f"no policy checkpoint at {path}: serving the naive baseline; "
-                                 f"train one with `make policy`")
+            self.fallback.append(f"no policy checkpoint at {path}: serving the naive baseline; train one with "
+                                 f"`make policy`")
             return None
         try:
-            import torch
-
-            from services.policy.compiled import warm
-
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
             warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
             return PolicyRunner.from_checkpoint(path)
         except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            self.node.set_status("degraded", f"policy checkpoint {path} unusable ({exc}): serving the naive "
-                                 f"baseline")
+            self.fallback.append(f"policy checkpoint {path} unusable ({exc}): serving the naive baseline")
+            return None
+
+    def _load_naive(self, folder: Path) -> NaiveReplay | None:
+        """The naive replay over the demonstrations in ``folder``; None (hold) where there are none."""
+        files = sorted(folder.glob("*.npz")) if folder.is_dir() else []
+        try:
+            naive = NaiveReplay()
+            naive.fit([Demo.load(f) for f in files])
+            return naive
+        except (BaselineError, OSError, KeyError, ValueError) as exc:
+            self.fallback.append(f"no demonstrations to replay in {folder} ({exc}): holding the observed hands")
             return None
 
     @property
     def method_name(self) -> str:
-        return f"learned:{self.runner.model.cfg.name}" if self.runner is not None else "naive"
+        if self.runner is not None:
+            return f"learned:{self.runner.model.name}"
+        return "naive" if self.naive is not None else "hold"
 
     def on_scene(self, msg) -> None:
         self.scene = msg
@@ -96,7 +110,8 @@ class PolicyService:
     def on_session(self, msg) -> None:
         if self.episode is None or self.episode[0] != msg.demo:
             self.episode = (msg.demo, msgs.stamp_seconds(msg.header.stamp))
-            self.naive.chosen = None
+            if self.naive is not None:
+                self.naive.chosen = None
             if self.runner is not None:
                 self.runner.reset()
 
@@ -109,18 +124,34 @@ class PolicyService:
     async def _run_naive(self) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
-            if self.scene is None or self.episode is None:
+            if self.scene is None:
                 continue
-            if self.naive.chosen is None:
-                objects = np.asarray(self.scene.object_keypoints, float).reshape(-1, 3)
-                self.naive.start(objects, np.asarray(self.scene.object_mask, bool))
-            hands, _ = self.naive.plan(t - self.episode[1], steps, self.p.plan_dt)
-            self._publish(t, hands.reshape(steps, -1, 3), HAND_POINT_NAMES, self.p.plan_dt)
+            try:
+                obs = SceneObs.from_msg(self.scene)
+            except ValueError as exc:  # wrong sizes: counted and skipped
+                self.node.stats.count("bad_scene")
+                self.node.log.warning("scene unusable: %s", exc)
+                continue
+            if self.naive is None:  # hold: the observed hands, unobserved points marked so in the plan's mask
+                seen = np.asarray(obs.hand_mask, bool).reshape(-1) & np.isfinite(obs.hands).all(-1).reshape(-1)
+                held = np.where(seen[:, None], obs.hands.reshape(-1, 3), 0.0)
+                self._publish(t, np.repeat(held[None], steps, axis=0), HAND_POINT_NAMES, self.p.plan_dt,
+                              np.repeat(seen[None], steps, axis=0))
+                continue
+            if self.episode is None:
+                continue
+            hands = np.where(obs.hand_mask[..., None], obs.hands, np.nan).reshape(1, -1)
+            objects = np.where(obs.object_mask[:, None], obs.objects, np.nan).reshape(1, -1)
+            try:
+                flat = self.naive.plan(np.concatenate([hands, objects], axis=1), t - self.episode[1], steps,
+                                       self.p.plan_dt)
+            except BaselineError as exc:  # a scene of another object list than the demonstrations'
+                self.node.stats.count("bad_scene")
+                self.node.log.warning("scene unusable for the naive replay: %s", exc)
+                continue
+            self._publish(t, flat[:, :HAND_DIMS].reshape(steps, -1, 3), HAND_POINT_NAMES, self.p.plan_dt)
 
     async def _run_learned(self) -> None:
-        from services.policy.ours import PolicyError
-        from services.policy.simulate import PolicyInputError, SceneObs
-
         runner = self.runner
         dt = runner.model.dt
         plan_every = 1.0 / self.p.rate_hz - 0.5 * dt  # sim seconds between plans (ticks may be skipped)
@@ -151,7 +182,10 @@ class PolicyService:
                 self.node.stats.count("nan_plan")  # never let NaN reach trajopt
                 runner.reset()
 
-    def _publish(self, t: float, points: np.ndarray, names: list[str], dt: float) -> None:
+    def _publish(self, t: float, points: np.ndarray, names: list[str], dt: float,
+                 mask: np.ndarray | None = None) -> None:
+        """A Plan of ``points`` (steps, N, 3); ``mask`` (steps, N) marks the points that carry a goal
+        (default all)."""
         if not np.isfinite(points).all():
             self.node.stats.count("nan_plan")
             return
@@ -159,7 +193,8 @@ class PolicyService:
         self.pub.put(msgs.make(
             "xm_msgs/msg/Plan", header=msgs.header(t, "world"), policy=self.method_name, dt=dt, steps=steps,
             point_names=names, positions=points.astype(np.float32).ravel(),
-            mask=np.ones(points.shape[:2], np.uint8).ravel(), efforts=self._efforts()))
+            mask=(np.ones(points.shape[:2]) if mask is None else mask).astype(np.uint8).ravel(),
+            efforts=self._efforts()))
 
     def _efforts(self) -> np.ndarray:
         """Predicted tactile per horizon step, hand and region (7.2.10), kPa; empty without tactile."""

@@ -9,7 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from learning.ours import train
+from learning.presets import preset
 from services.world.model import camera_specs
+from services.world.teacher import generate_demo
 from shared import msgs
 from shared.geometry import projection
 from shared.kinematics import load_robot
@@ -243,14 +246,10 @@ def _scene_msg(demo, k: int, now: float, hide: int | None = None):
 def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(router, tmp_path):
     """method = "learned": horizons of the network (hands and objects) at the plan rate; a missing
     checkpoint degrades to the naive baseline and says so."""
-    from services.policy.ours import Ours, preset
-    from services.world.teacher import generate_demo
-
     endpoint, session = router
     demos = [generate_demo("assembly", s, index=i) for i, s in enumerate((11, 12))]
-    model = Ours(preset("no_tactile", steps=20, hidden=(64, 64), batch=32, eval_every=10_000))
-    model.fit(demos, progress=False)
-    model.save(str(tmp_path / "policy.pt"))
+    train(preset("no_tactile", steps=20, hidden=(64, 64), batch=32, eval_every=10_000), demos, None, tmp_path,
+          progress=False)
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {
         "main": {"method": "learned", "checkpoint": str(tmp_path / "policy.pt"), "rate_hz": 5.0},
         "other": {"method": "learned", "checkpoint": str(tmp_path / "missing.pt")}}})
@@ -280,6 +279,47 @@ def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(rou
     finally:
         learned.stop()
         fallback.stop()
+
+
+def test_the_naive_fallback_replays_the_training_demonstrations_or_holds_the_hands(router, tmp_path):
+    """method = "naive": the demonstrations `xm train` saved beside the checkpoint, replayed from
+    the episode start; with none to replay the node holds the observed hands and says so."""
+    endpoint, session = router
+    demos = [generate_demo("assembly", s, index=i) for i, s in enumerate((11, 12))]
+    (tmp_path / "demos").mkdir()
+    for i, d in enumerate(demos):
+        d.save(tmp_path / "demos" / f"demo_{i}.npz")
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {
+        "main": {"method": "naive", "checkpoint": str(tmp_path / "policy.pt"), "rate_hz": 5.0},
+        "hold": {"method": "naive", "demos": str(tmp_path / "none"), "rate_hz": 5.0}}})
+    naive = ServiceProcess("policy", dep, "main", tmp_path / "naive.log")
+    hold = ServiceProcess("policy", dep, "hold", tmp_path / "hold.log")
+    try:
+        plans, _a = collect(session, "xm/policy/main/plan", "xm_msgs/msg/Plan")
+        assert wait_for(lambda: query_json(session, "xm/policy/hold/@health"), 60), hold.output()
+        assert wait_for(lambda: query_json(session, "xm/policy/main/@health"), 60), naive.output()
+        session.put("xm/world/sim/session", msgs.serialize(msgs.make(
+            "xm_msgs/msg/Session", header=msgs.header(time.time()), task="assembly", demo=0, phase="reach",
+            tactile_hand="left", seed_layout="{}")))
+        deadline = time.time() + 20
+        while time.time() < deadline and not ({"naive", "hold"} <= {p.policy for p in plans}):
+            session.put("xm/recon/main/scene", _scene_msg(demos[1], 0, time.time(), hide=8))
+            time.sleep(0.1)
+        replay = [p for p in plans if p.policy == "naive"]
+        held = [p for p in plans if p.policy == "hold"]
+        assert replay and held, (naive.output(), hold.output())
+        pos = np.asarray(replay[0].positions).reshape(replay[0].steps, 42, 3)
+        assert np.abs(pos[0] - demos[1].hands[0].reshape(42, 3)).max() < 0.05  # the nearest start: demo 1
+        assert np.abs(pos[-1] - pos[0]).max() > 1e-3  # ... replayed: its hands move over the horizon
+        still = np.asarray(held[0].positions).reshape(held[0].steps, 42, 3)
+        seen = np.asarray(held[0].mask).reshape(held[0].steps, 42).astype(bool)
+        np.testing.assert_allclose(still[-1][seen[-1]], demos[1].hands[0].reshape(42, 3)[seen[-1]], atol=1e-6)
+        assert not seen[:, 8].any() and seen[:, 7].all()  # the hidden point carries no goal
+        health = query_json(session, "xm/policy/hold/@health")[0]
+        assert health["status"] == "degraded" and "holding the observed hands" in health["message"]
+    finally:
+        naive.stop()
+        hold.stop()
 
 
 def test_recorder_records_on_command_and_skips_unregistered_keys(router, tmp_path):

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from services.policy.baselines import BASELINES, make
-from services.policy.baselines.common import BaselineError, flat_state, interpolate_occluded, raw_state
-from services.policy.baselines.diffusion import DiffusionConfig, DiffusionPolicy, cosine_alpha_bar
-from services.policy.baselines.mlp import StateMLP, window_averages
-from services.policy.baselines.naive import NaiveReplay
-from services.policy.baselines.synthetic import synthetic_demo, synthetic_protocol
+from evaluation.baselines import BASELINES, make
+from evaluation.baselines.diffusion import DiffusionConfig, DiffusionPolicy, cosine_alpha_bar
+from evaluation.baselines.mlp import StateMLP, window_averages
+from services.policy.flat_state import BaselineError, flat_state, interpolate_occluded, raw_state
+from services.policy.naive import NaiveReplay
+from tests.unit.policy_demos import synthetic_demo, synthetic_protocol
 
 torch.set_num_threads(1)
 
@@ -199,7 +199,7 @@ def test_clean_chunk_prediction_learns_where_noise_prediction_stalls(demos):
 def test_unet_passes_every_action_value_through():
     # 8 x 6 action values against a 4 x 8 bottleneck (horizon/2 x first width): with the
     # full-resolution skip (8 x 8) the noise prediction can depend on every input value
-    from services.policy.baselines.diffusion_nets import ConditionalUnet1D
+    from evaluation.baselines.diffusion_nets import ConditionalUnet1D
 
     torch.manual_seed(0)
     net = ConditionalUnet1D(action_dim=6, cond_dim=6, down_dims=(8, 16), kernel=3, groups=4, step_embed=8)

@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.policy.baselines.synthetic import synthetic_demo
-from services.policy.metrics import aligned, closest_point_distance, trajectory_scores
+from learning.metrics import aligned, closest_point_distance, trajectory_scores
+from tests.unit.policy_demos import synthetic_demo
 
 
 def test_symmetric_closest_point_by_hand():

@@ -1,5 +1,5 @@
 """Contact anchors: mined from the training demonstrations, and what they do to the goals the
-robot executes (services/policy/anchors.py, execute.anchored_horizon)."""
+robot executes (evaluation/anchors.py: mined, and applied by anchored_horizon)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-import services.policy.execute as ex
-from services.policy.anchors import AnchorError, mine_anchors, pinch, pull_onto, pull_weights
+import evaluation.anchors as an
+import evaluation.execute as ex
+from evaluation.anchors import AnchorError, mine_anchors, pinch, pull_onto, pull_weights
 from services.world.teacher import assembly_protocol
 
 
@@ -66,12 +67,12 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
     names = demos[0].object_names
     objects = demos[3].objects[0].astype(float)
     lens = objects[names.index("camera/lens")]
-    state = ex.AnchorState(names.index("camera/lens"), names.index("camera/connector"),
+    state = an.AnchorState(names.index("camera/lens"), names.index("camera/connector"),
                            names.index("board/connector"), [names.index(f"board/{p}") for p in
                                                             ("c0", "c1", "c2", "c3", "connector")])
     pinches = lens + np.array([[0.3, 0.0, 0.2], [0.0, 0.015, 0.01], [0.0, 0.0, 0.012]])
     over = lens + [0.0, 0.0, 0.02]  # the gripper's pads right over the lens
-    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, over, 0.0, False)
+    out = an.anchored_horizon(_horizon(pinches), 0, a, objects, state, over, 0.0, False)
     got = pinch(out[:, :21])
     np.testing.assert_allclose(got[0], pinches[0])  # the policy is still far away: its goal stands
     np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)  # close by: on the lens exactly
@@ -84,15 +85,15 @@ def test_reaching_pulls_the_pinch_onto_the_observed_grasp_point(demos):
     assert np.sin(turned) == pytest.approx(0.0, abs=1e-9)
     # a horizon that arrives and then turns away: it stays on the lens (the gripper lags the plan)
     away = lens + np.array([[0.3, 0.0, 0.2], [0.0, 0.0, 0.01], [0.2, 0.1, 0.1]])
-    got = pinch(ex.anchored_horizon(_horizon(away), 0, a, objects, state, over, 0.0, False)[:, :21])
+    got = pinch(an.anchored_horizon(_horizon(away), 0, a, objects, state, over, 0.0, False)[:, :21])
     np.testing.assert_allclose(got[0], away[0])
     np.testing.assert_allclose(got[1:], [lens, lens], atol=1e-12)
     # the pads still 3 cm off to the side: the gripper comes in over the lens, not low from the side
     beside = lens + [0.03, 0.0, 0.005]
-    got = pinch(ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)[:, :21])
-    np.testing.assert_allclose(got[1:], [lens + [0, 0, ex.APPROACH_CLEARANCE_M]] * 2, atol=1e-12)
+    got = pinch(an.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)[:, :21])
+    np.testing.assert_allclose(got[1:], [lens + [0, 0, an.APPROACH_CLEARANCE_M]] * 2, atol=1e-12)
     state.closing = True  # closing the gripper: every sample dwells on the lens
-    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)
+    out = an.anchored_horizon(_horizon(pinches), 0, a, objects, state, beside, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(lens[None], 3, 0), atol=1e-12)
 
 
@@ -107,9 +108,9 @@ def test_holding_turns_and_docks_the_module_onto_its_target(demos):
     pads = target + [0.0, 0.04, 0.03]
     objects[idx["camera/lens"]] = pads
     objects[idx["camera/connector"]] = pads - [0.0, 0.036, 0.0]
-    state = ex.AnchorState(idx["camera/lens"], idx["camera/connector"], idx["board/connector"], board, held=True)
+    state = an.AnchorState(idx["camera/lens"], idx["camera/connector"], idx["board/connector"], board, held=True)
     pinches = np.repeat(pads[None], 4, 0)  # the policy wants to stay where it is
-    out = ex.anchored_horizon(_horizon(pinches), 0, a, objects, state, pads, 0.0, False)
+    out = an.anchored_horizon(_horizon(pinches), 0, a, objects, state, pads, 0.0, False)
     # the gripper turns by the difference between the module's heading and the wanted one
     wanted = np.arctan2(*(objects[board].mean(axis=0) - target)[[1, 0]]) + a.mate_yaw
     held = np.arctan2(*(objects[idx["camera/lens"]] - objects[idx["camera/connector"]])[[1, 0]])
@@ -121,20 +122,20 @@ def test_holding_turns_and_docks_the_module_onto_its_target(demos):
     np.testing.assert_allclose(pinch(out[:, :21])[:, :2],
                                np.repeat((pads + target - objects[idx["camera/connector"]])[None, :2], 4, 0),
                                atol=1e-9)
-    hover = ex.DOCK_CLEARANCE_M  # still 4 cm off sideways: it comes in just above the target's height
+    hover = an.DOCK_CLEARANCE_M  # still 4 cm off sideways: it comes in just above the target's height
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2],
                                pads[2] + target[2] + hover - objects[idx["camera/connector"]][2])
     state.mated = True  # pressed home: the pads stay where they pressed, the policy's lift passes from there
     a = dataclasses.replace(a, lift_m=0.0)  # (without the lift anchor: test_the_lift_anchor_...)
     pressed = pads - [0.0, 0.0, 0.03]
     still_lowering = pinches - [0.0, 0.0, 0.01]  # the policy is still on its way down: no lift yet
-    out = ex.anchored_horizon(_horizon(still_lowering), 0, a, objects, state, pressed, 0.0, False)
+    out = an.anchored_horizon(_horizon(still_lowering), 0, a, objects, state, pressed, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), np.repeat(pressed[None], 4, 0), atol=1e-12)
     lift = pinches + np.linspace(0.0, 0.05, 4)[:, None] * [0.0, 0.0, 1.0]  # up 5 cm from its lowest
-    out = ex.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
+    out = an.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21]), pressed + (lift - still_lowering[0]) * [0, 0, 1], atol=1e-12)
     state.observed_hand = True  # the policy sees its hand at the pads (hand feedback): its own height passes
-    out = ex.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
+    out = an.anchored_horizon(_horizon(lift), 0, a, objects, state, pads, 0.0, False)
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2], lift[:, 2], atol=1e-12)
 
 
@@ -145,23 +146,23 @@ def test_the_lift_anchor_raises_the_mated_module_as_high_as_every_demonstration_
     names = demos[0].object_names
     idx = {n: i for i, n in enumerate(names)}
     objects = demos[3].objects[0].astype(float)
-    state = ex.AnchorState(idx["camera/lens"], idx["camera/connector"], idx["board/connector"],
+    state = an.AnchorState(idx["camera/lens"], idx["camera/connector"], idx["board/connector"],
                            [idx[f"board/{p}"] for p in ("c0", "c1", "c2", "c3", "connector")], observed_hand=True,
                            held=True, docking=True, mated=True)
     pressed = objects[idx["board/connector"]] + [0.0, 0.03, 0.01]
     still = np.repeat(pressed[None], 4, 0)  # the policy, seeing its hand at the pads, does not lift
-    out = ex.anchored_horizon(_horizon(still), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
+    out = an.anchored_horizon(_horizon(still), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
     # at the demonstrations' pace: all of it LIFT_S after the mate
-    rise = a.lift_m * np.minimum(1, np.arange(1, 5) * 0.1 / ex.LIFT_S)
+    rise = a.lift_m * np.minimum(1, np.arange(1, 5) * 0.1 / an.LIFT_S)
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2], pressed[2] + rise, atol=1e-12)
     np.testing.assert_allclose(pinch(out[:, :21])[:, :2], still[:, :2], atol=1e-12)  # straight up
     state.mated_s = 0.2  # later: further up, from the height where it was pressed home
-    out = ex.anchored_horizon(_horizon(still + [0, 0, 0.01]), 0, a, objects, state, pressed + [0, 0, 0.01], 0.0,
+    out = an.anchored_horizon(_horizon(still + [0, 0, 0.01]), 0, a, objects, state, pressed + [0, 0, 0.01], 0.0,
                               False, sample_dt=0.1)
-    rise = a.lift_m * np.minimum(1, (0.2 + np.arange(1, 5) * 0.1) / ex.LIFT_S)
+    rise = a.lift_m * np.minimum(1, (0.2 + np.arange(1, 5) * 0.1) / an.LIFT_S)
     np.testing.assert_allclose(pinch(out[:, :21])[:, 2], pressed[2] + rise, atol=1e-12)
     higher = still + np.linspace(0.02, 0.1, 4)[:, None] * [0.0, 0.0, 1.0]  # the policy's own lift passes
-    out = ex.anchored_horizon(_horizon(higher), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
+    out = an.anchored_horizon(_horizon(higher), 0, a, objects, state, pressed, 0.0, False, sample_dt=0.1)
     assert pinch(out[:, :21])[-1, 2] == pytest.approx(higher[-1, 2], abs=1e-12)
     state.let_go()  # the grip lost the module: the lift is over
     assert state.mated_s == 0.0 and not state.mated and state.mated_at is None

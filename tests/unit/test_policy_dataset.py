@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from services.policy.dataset import DatasetError, demo_arrays, demos_from_mcap, demos_from_messages, step_data
+from learning.dataset import DatasetError, demo_arrays, demos_from_mcap, demos_from_messages, step_data
 
 
 def scene(t: float, nan: bool = False) -> SimpleNamespace:

@@ -8,7 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from services.policy.evaluate import EvaluationError, evaluate, rescore
+from evaluation.evaluate import EvaluationError, evaluate, rescore, rollouts, score, split
+from evaluation.evaluate import main as eval_main
+from learning.cli import train_main
+from learning.ours import Ours
+from learning.presets import preset
+from learning.train import fit_model
+from services.policy.model import Policy
 from services.world.teacher import assembly_protocol
 
 
@@ -54,8 +60,6 @@ def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
 def test_xm_train_teacher_keeps_the_final_weights_unless_told(tmp_path):
     """`xm train --teacher S` keeps the validation layouts unseen (as row (1) of `xm eval`), so the
     robot loop on them is out of sample; --select validation picks on them instead."""
-    from services.policy.train import main as train_main
-
     assert train_main(["--teacher", "0", "--steps", "2", "--out", str(tmp_path / "a")]) == 0
     info = json.loads((tmp_path / "a" / "train.json").read_text())
     assert (info["selection_demos"], info["kept"], info["best_step"]) == (0, "final weights", 2)
@@ -65,12 +69,6 @@ def test_xm_train_teacher_keeps_the_final_weights_unless_told(tmp_path):
 
 def test_selection_keeps_the_best_held_out_checkpoint_and_otherwise_the_last():
     """With held-out demos every scored checkpoint competes; without, only the final one is scored and kept."""
-    from services.policy.evaluate import split
-    from services.policy.network import preset
-    from services.policy.ours import Ours
-    from services.policy.train import fit_model
-    from services.world.teacher import assembly_protocol
-
     train_d, val_d = split(assembly_protocol(0))
     cfg = preset("single_state", steps=6, eval_every=1, eval_from=0.0, hidden=(32, 32), batch=32)
     held = fit_model(Ours(cfg), train_d, val_d[:2], progress=False)
@@ -96,16 +94,13 @@ def test_a_training_draw_changes_the_learned_rows_and_only_them(tmp_path, demos)
 
 
 def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
-    from services.policy.evaluate import main as eval_main
-    from services.policy.train import main as train_main
-
     assert eval_main(["--set", "reservoir_period=1,2", "--out", str(tmp_path)]) == 2
     assert "reservoir_period=1,2" in capsys.readouterr().err
     assert train_main(["--teacher", "0", "--set", "steps=many", "--out", str(tmp_path)]) == 2
     assert "not a int" in capsys.readouterr().err
     # where nothing is trained a change would be silently ignored: refused instead
     for mode in ("--execute", "--rescore"):
-        assert eval_main([mode, "--set", "dropout=0.1", "--out", str(tmp_path)]) == 2
+        assert eval_main([mode, "--set", "max_speed=1.2", "--out", str(tmp_path)]) == 2
         assert "--set changes the training" in capsys.readouterr().err
     assert eval_main(["--execute", "--catch-mm", "-5", "--out", str(tmp_path)]) == 2
     assert "--catch-mm must be 0 or a positive" in capsys.readouterr().err
@@ -113,14 +108,11 @@ def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
 
 def test_xm_eval_keeps_the_net_it_scored(tmp_path, demos):
     """policy_<row>.pt is the very net of the row: reloaded, it scores the same; baselines leave none."""
-    from services.policy.evaluate import rollouts, score, split
-    from services.policy.ours import Ours
-
     rows = evaluate(methods=["single_state", "promp_simple"], out_dir=tmp_path, quick=True, progress=False,
-                    demos=demos, changes={"dropout": 0.1})
-    assert "rows (1)-(3) with dropout=0.1" in (tmp_path / "results.md").read_text()
+                    demos=demos, changes={"max_speed": 1.2})
+    assert "rows (1)-(3) with max_speed=1.2" in (tmp_path / "results.md").read_text()
     assert sorted(p.name for p in tmp_path.glob("policy_*.pt")) == ["policy_single_state.pt"]
     val = split(demos)[1]
-    reloaded = Ours.load(str(tmp_path / "policy_single_state.pt"))
-    assert reloaded.cfg.dropout == 0.1
+    reloaded = Policy.load(str(tmp_path / "policy_single_state.pt"))
+    assert reloaded.inference.max_speed == 1.2
     assert score(rollouts(reloaded, val, False), val) == pytest.approx(rows["single_state"], abs=1e-9)

@@ -8,15 +8,20 @@ import json
 import numpy as np
 import torch
 
-from services.policy.evaluate import main as eval_main
-from services.policy.execute import (
+import evaluation.evaluate as ev
+import evaluation.execute as ex
+from evaluation.evaluate import main as eval_main
+from evaluation.execute import (
+    anchored_press,
     execute_layout,
     grasping_hand,
     gripper_flipped,
     hand_point_names,
     observed_hands,
 )
-from services.policy.ours import Ours, preset
+from learning.ours import Ours
+from learning.presets import preset
+from services.policy.model import Policy
 from services.world.teacher import assembly_protocol
 
 
@@ -25,7 +30,7 @@ def test_policy_drives_the_simulated_robot_through_trajopt_and_the_board(tmp_pat
     demos = assembly_protocol(0)
     model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
     model.fit(demos[:2], progress=False)
-    r = execute_layout(model, seed=0, demo=3, seconds=0.4)
+    r = execute_layout(model.policy, seed=0, demo=3, seconds=0.4)
     assert r.grasp_hand == "right" and r.demo == 3  # the protocol's layout 3: a right-hand grasp
     # 4 plans in 0.4 s; an untrained net may ask for unreachable goals (rejected: the robot holds)
     assert abs(r.seconds - 0.4) < 0.05 and np.isfinite(r.tracking_mm) and r.solves_rejected <= 4
@@ -35,11 +40,9 @@ def test_policy_drives_the_simulated_robot_through_trajopt_and_the_board(tmp_pat
     assert eval_main(["--execute", "--checkpoint", str(tmp_path / "missing.pt"), "--out", str(tmp_path)]) == 2
 
 
-def _spied_tiny_policy(monkeypatch) -> tuple[list, list, Ours]:
+def _spied_tiny_policy(monkeypatch) -> tuple[list, list, Policy]:
     """A briefly trained net, and lists that fill with the hands each policy step observes and
     the hands it returns."""
-    import services.policy.execute as ex
-
     seen, returned = [], []
     step = ex.PolicyRunner.step
 
@@ -53,7 +56,7 @@ def _spied_tiny_policy(monkeypatch) -> tuple[list, list, Ours]:
     torch.set_num_threads(1)
     model = Ours(preset("single_state", hidden=(32, 32), steps=3, batch=16, eval_every=10 ** 6))
     model.fit(assembly_protocol(0)[:2], progress=False)
-    return seen, returned, model
+    return seen, returned, model.policy
 
 
 def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
@@ -105,8 +108,6 @@ def test_hand_feedback_waits_until_the_gripper_has_caught_up_with_the_policys_ha
 
 
 def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
-    import services.policy.execute as ex
-
     calls = []
 
     def fake(model, seed, demo, **kw):  # the loop itself is tested above; here only the report
@@ -114,7 +115,7 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
         return ex.ExecutionResult(seed, demo, "left", "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0, 5.0,
                                   demo == 3)
 
-    monkeypatch.setattr(ex, "execute_layout", fake)
+    monkeypatch.setattr(ev, "execute_layout", fake)  # where `xm eval --execute` calls it
     demos = assembly_protocol(0)
     model = Ours(preset("single_state", hidden=(16,), steps=1, batch=8, eval_every=10 ** 6))
     model.fit(demos[:1], progress=False)
@@ -159,8 +160,6 @@ def test_roles_are_read_from_the_rollout_and_the_gripper_keeps_its_wrist_in_rang
 
 
 def test_a_docking_module_is_pressed_only_once_aligned():
-    from services.policy.execute import anchored_press
-
     # predicted touch presses elsewhere, with hysteresis
     assert anchored_press(False, aligned=False, docking=False, kpa=5.0, demonstrated_kpa=10.0)
     assert not anchored_press(False, aligned=False, docking=False, kpa=0.2, demonstrated_kpa=10.0)

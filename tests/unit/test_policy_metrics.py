@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.policy.metrics import closest_point_distance
+from learning.metrics import closest_point_distance
 
 
 def test_closest_point_distance_by_hand():

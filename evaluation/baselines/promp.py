@@ -14,8 +14,9 @@ the primitive runs for the mean training duration.
 from __future__ import annotations
 
 import numpy as np
+from movement_primitives.promp import ProMP
 
-from services.policy.baselines.common import BaselineError, check_train, flat_state, hold_to, split_state
+from services.policy.flat_state import BaselineError, check_train, flat_state, hold_to, split_state
 from shared.demo import Demo
 
 
@@ -30,8 +31,6 @@ class ProMPBaseline:
         self.promp = None
 
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        from movement_primitives.promp import ProMP
-
         check_train(train)
         one = ProMP(1, n_weights_per_dim=self.weights_per_dim)
         ws = []
@@ -48,8 +47,6 @@ class ProMPBaseline:
         self.steps = int(round(np.mean([d.steps for d in train])))
 
     def _trajectory(self, weight_mean: np.ndarray) -> np.ndarray:
-        from movement_primitives.promp import ProMP
-
         # one dimension at a time: the library's n-D basis would be a dense (dims*w, dims*steps) matrix
         one = ProMP(1, n_weights_per_dim=self.weights_per_dim)
         t = np.linspace(0.0, 1.0, self.steps)

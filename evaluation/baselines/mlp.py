@@ -1,23 +1,24 @@
 """Table 7.1 rows (3) single state and (4) time window.
 
-Both are the thesis's own network without tactile and memory: when services.policy.ours offers
-the presets, they are used (row 4 = the single-state preset with the 16-sample window inputs,
-averaged over 8, 4, 2, 1, 1 samples). ``StateMLP`` is the stand-alone fallback used when that
-module or preset is missing: the same dense 2048-512-512-512 ReLU network mapping the flat
-keypoint state (and its velocity, optionally the window) to keypoint velocities, trained with the
-thesis's exponentially scaled denoising (7.6-7.7) and integrated step by step at inference.
+Row (3) is the thesis's own network without tactile and memory (the ``single_state`` preset of
+learning/presets.py). Row (4) is ``StateMLP``: a dense 2048-512-512-512 ReLU network mapping the
+flat keypoint state, its velocity and window averages of the 16 samples before (over 8, 4, 2, 1, 1
+samples) to keypoint velocities, trained with the thesis's exponentially scaled denoising (7.6-7.7)
+and integrated step by step at inference.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
 import torch
 from torch import nn
+from tqdm import tqdm
 
-from services.policy.baselines.common import BaselineError, check_train, flat_state, split_state
+from learning.ours import Ours
+from learning.presets import PRESETS, Recipe
+from services.policy.flat_state import BaselineError, check_train, flat_state, split_state
 from shared.demo import Demo
 
 WINDOW_SPLITS = (8, 4, 2, 1, 1)  # older -> newer, 16 samples in all
@@ -35,32 +36,21 @@ def window_averages(x: np.ndarray, t: np.ndarray, start: np.ndarray | None = Non
     return np.stack(parts, axis=1)
 
 
-def quick_budget(cfg, quick: bool):
-    """``cfg`` with the tiny --quick training budget (a smoke test), or as it is."""
-    if not quick:
-        return cfg
-    fields = {f.name for f in dataclasses.fields(cfg)}
-    small = {k: v for k, v in {"steps": 5, "hidden": (32, 32), "batch": 32}.items() if k in fields}
-    return dataclasses.replace(cfg, **small)
+def quick_budget(recipe: Recipe, quick: bool) -> Recipe:
+    """``recipe`` with the tiny --quick training budget (a smoke test), or as it is."""
+    return recipe.replace(steps=5, hidden=(32, 32), batch=32) if quick else recipe
 
 
-def make_state_policy(name: str, quick: bool = False, seed: int = 0):
-    """Row (3) or (4): the colleague's Ours preset when available, else ``StateMLP``."""
-    try:
-        from services.policy.ours import PRESETS, Ours
-    except ImportError:
-        PRESETS, Ours = {}, None
-    if Ours is not None and name in PRESETS:
+def make_state_policy(name: str, quick: bool = False, seed: int = 0) -> Ours | StateMLP:
+    """Row (3): the single-state preset of the thesis's own network; row (4): ``StateMLP`` with the
+    time window."""
+    if name in PRESETS:
         return Ours(quick_budget(PRESETS[name], quick))
-    if Ours is not None and name == "time_window" and "single_state" in PRESETS \
-            and "time_window" in {f.name for f in dataclasses.fields(PRESETS["single_state"])}:
-        cfg = dataclasses.replace(PRESETS["single_state"], name="time_window", time_window=True)
-        return Ours(quick_budget(cfg, quick))
     return StateMLP(window=name == "time_window", quick=quick, seed=seed)
 
 
 class StateMLP:
-    """Fallback for rows (3)/(4) when the Ours presets are missing (see module docstring)."""
+    """Row (4) time window (and a single-state variant without the window; see module docstring)."""
 
     def __init__(self, window: bool = False, hidden: tuple[int, ...] = (2048, 512, 512, 512), steps: int = 2000,
                  batch: int = 256, lr: float = 1e-3, noise_exponent: tuple[float, float] = (-3.3, -1.3),
@@ -80,8 +70,6 @@ class StateMLP:
         return np.concatenate(f, axis=1)
 
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        from tqdm import tqdm
-
         check_train(train)
         torch.manual_seed(self.seed)
         rng = np.random.default_rng(self.seed)

@@ -19,9 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from services.policy.baselines.common import BaselineError, check_train, flat_state, split_state
-from services.policy.baselines.diffusion_nets import ConditionalUnet1D, TransformerForDiffusion
+from evaluation.baselines.diffusion_nets import ConditionalUnet1D, TransformerForDiffusion
+from services.policy.flat_state import BaselineError, check_train, flat_state, split_state
 from shared.demo import Demo
 
 
@@ -140,8 +141,6 @@ class DiffusionPolicy:
 
     # --- training -----------------------------------------------------------------------
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        from tqdm import tqdm
-
         cfg = self.cfg
         check_train(train)
         if cfg.prediction not in ("epsilon", "sample"):

@@ -16,7 +16,7 @@ Predicted touch becomes effort (7.2.10): grasping thumb + index pressure shuts t
 pressing index pressure pushes the finger down. ``TeacherReplay`` runs the same loop on the
 teacher's own hands: what the cell achieves with a perfect policy.
 
-Contact anchors (``anchors``, services/policy/anchors.py; ``anchored_horizon``): the contacts every
+Contact anchors (``anchors``, evaluation/anchors.py; ``anchored_horizon``): the contacts every
 training demonstration makes close the last centimetres the policy leaves. Reaching, its pinch is
 pulled onto the observed grasp point and turned square to it; predicted touch then closes the
 gripper there (on/off with hysteresis, at the demonstrated force) and it dwells until the grip
@@ -29,12 +29,20 @@ policy still chooses the hand, the path and the timing of the grasp.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from services.policy.anchors import ContactAnchors, heading, pinch, pull_onto, pull_weights
-from services.policy.simulate import PolicyRunner, SceneObs
+from evaluation.anchors import (
+    MATED_DZ_M,
+    MATED_M,
+    AnchorState,
+    ContactAnchors,
+    anchored_horizon,
+    heading,
+    pinch,
+)
+from services.policy.runner import PolicyRunner, SceneObs
 from services.robot.board_sim import BoardSim, axis_params
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
@@ -61,22 +69,12 @@ FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
 HOLD_M = 0.008  # the gripper holds the module: shut, with the grasp point this close to its pads
 LOST_M = 0.02  # ... and has lost it when the point is this far from them
-GRASP_PULL = (0.03, 0.15)  # contact anchors: pulled fully within 3 cm, not at all beyond 15 cm
-MATE_PULL = (0.10, 0.20)
-APPROACH_CLEARANCE_M = 0.015  # the open gripper stays this high over the grasp point ...
-APPROACH_OVER_M = (0.004, 0.010)  # ... until its pads are within 10 mm of it sideways (down fully within 4 mm)
 # of the demonstrated pressure: predicted touch switches contact on / off (the nets predict 10-25 % of the
 # demonstrated peak at a grasp; at 0.1 a weakly predicted mirrored grasp never closed: docs/policy.md, Session 19)
 TOUCH_ON, TOUCH_OFF = 0.05, 0.025
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
-DOCK_CLEARANCE_M = 0.004
-MATE_DOCK = (0.005, 0.04)  # ... and docked onto the observed target within 4 cm of it (fully within 5 mm)
-# aligned: the mate point within 2 mm of its target sideways, 5 mm in height (the snap-fit latches
-# wherever it is pressed home under the world's 3 mm; at 3 mm a latched pair sagged to 3.1 mm when lifted)
-MATED_M, MATED_DZ_M = 0.002, 0.005
 MATED_PRESS_S = 0.2  # mated: pressed home for 0.2 s while aligned
-LIFT_S = 0.5  # ... then lifted as high as the demonstrations did within this long (the teacher takes 0.4 s)
 
 
 def hand_point_names(grasp_hand: str, flipped: bool = False) -> list[str]:
@@ -186,145 +184,6 @@ class ExecutionResult:
         return dict(self.__dict__)
 
 
-@dataclass
-class AnchorState:
-    """Where the contact anchors stand in one run: reaching, holding the module, mated."""
-
-    grasp_k: int  # object point indices: grasp point, held mate point, its target, the target's object
-    mate_k: int
-    target_k: int
-    target_object: list[int]
-    observed_hand: bool = False  # the policy observes its grasping hand at the gripper (hand feedback)
-    held: bool = False  # the gripper is shut with the grasp point between its pads
-    grasp_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the grasping hand's shift at the hold
-    closing: bool = False  # the gripper is closing on the grasp point
-    grasp_at: np.ndarray | None = None  # the grasp point the pinch is pulled onto
-    across: np.ndarray = field(default_factory=lambda: np.zeros(3))  # the placement shift in force (first sample)
-    docking: bool = False  # the mate point reached its target: docked until mated
-    pressed_s: float = 0.0  # how long the mate has been pressed while aligned
-    mated: bool = False  # pressed home: the policy's own height passes again (its lift)
-    mated_at: np.ndarray | None = None  # the pads when mated (set at the first plan after)
-    mated_pinch_z: float = 0.0  # the policy's lowest pinch height since
-    mated_s: float = 0.0  # how long since pressed home (kept by the caller)
-
-    def let_go(self) -> None:
-        """The grip lost the grasp point: back to reaching."""
-        self.held = self.mated = False
-        self.mated_at, self.mated_s = None, 0.0
-
-
-def _turn_about(points: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """(S, N, 3) points turned about gravity through (S, 3) centres by (S,) angles."""
-    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    d = points - centre[:, None]
-    out = points.copy()
-    out[..., 0] = centre[:, None, 0] + c * d[..., 0] - s * d[..., 1]
-    out[..., 1] = centre[:, None, 1] + s * d[..., 0] + c * d[..., 1]
-    return out
-
-
-def anchored_horizon(horizon: np.ndarray, g: int, anchors: ContactAnchors, objects: np.ndarray,
-                     state: AnchorState, pads: np.ndarray, gripper_heading: float, flipped: bool,
-                     plan_samples: int = 5, sample_dt: float = 0.02) -> np.ndarray:
-    """The policy's horizon (S, P, 3) with its grasping hand ``g`` moved rigidly.
-
-    Reaching: sample by sample, its pinch pulled onto the observed grasp point and its pinch line
-    turned square to the object as demonstrated (all the way while the gripper closes). Holding: by the
-    shift the grasp left; turned about its pinch so the held object takes the demonstrated heading
-    to the target; shifted as a whole so the policy's intended placement (where the held mate
-    point, carried along, comes closest to its observed target) lies over that target; and where
-    it would be over the target, docked: the pads servo the observed mate point onto it and lower
-    it to the target's height. Mated (pressed home while aligned): the sideways docking stays, the
-    policy's own height passes (its lift), but not below the lift anchor: the demonstrations' lift
-    (``anchors.lift_m``) reached LIFT_S after the mate. ``gripper_heading``: the gripper's thumb ->
-    index heading now (robot kinematics); ``flipped``: the policy's index drives the gripper's thumb
-    pad; ``plan_samples``: horizon samples until the next plan (the placement shift eases in over
-    the horizon, and what has been eased in by then stays in force); ``sample_dt``: their spacing."""
-    hand = slice(g * KEYPOINTS_PER_HAND, (g + 1) * KEYPOINTS_PER_HAND)
-    pts = horizon[:, hand]
-    pinches = pinch(pts)
-    if not state.held:
-        out = horizon.copy()
-        if not state.closing or state.grasp_at is None:  # while closing: where it was (the fingers nudge it)
-            state.grasp_at = objects[state.grasp_k] + anchors.grasp_offset
-        grasp = state.grasp_at
-        # once the horizon comes within reach of the grasp point its later samples stay there: before
-        # a grasp the demonstrations never pass the grasp point by (the gripper lags the plan, and a
-        # policy that turns away after its first sample arrived left the gripper short of it)
-        pull = np.ones(len(pinches)) if state.closing else np.maximum.accumulate(
-            pull_weights(np.linalg.norm(grasp - pinches, axis=-1), *GRASP_PULL))
-        shift = pull[:, None] * (grasp - pinches)
-        if not state.closing:  # approached from above: the open gripper descends only once over the
-            # grasp point (coming in low from the side, a pad shoved the module away ahead of it)
-            miss = float(np.linalg.norm((pads - grasp)[:2]))
-            over = np.clip((miss - APPROACH_OVER_M[0]) / (APPROACH_OVER_M[1] - APPROACH_OVER_M[0]), 0.0, 1.0)
-            low = grasp[2] + APPROACH_CLEARANCE_M * over - (pinches[:, 2] + shift[:, 2])
-            shift[:, 2] += pull * np.maximum(low, 0.0)
-        state.grasp_shift = shift[0]
-        # the pinch line turned square to the object as demonstrated (either way round: a parallel pinch)
-        square = heading(objects[state.mate_k] - objects[state.grasp_k]) + anchors.grasp_yaw
-        line = np.arctan2(pts[:, INDEX_TIP, 1] - pts[:, THUMB_TIP, 1], pts[:, INDEX_TIP, 0] - pts[:, THUMB_TIP, 0])
-        turn = pull * np.angle(np.exp(2j * (square - line))) / 2
-        out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
-        return out
-    grasp_k, mate_k, target_k = state.grasp_k, state.mate_k, state.target_k
-    if state.observed_hand:  # the policy's hand already starts where the gripper is
-        state.grasp_shift = np.zeros(3)
-    # heading: the held object keeps its offset to the gripper's; the gripper's at each sample is
-    # the policy's thumb -> index heading, turned so the object's comes out as demonstrated
-    held_heading = heading(objects[grasp_k] - objects[mate_k])
-    wanted = heading(objects[state.target_object].mean(axis=0) - objects[target_k]) + anchors.mate_yaw
-    a, b = (INDEX_TIP, THUMB_TIP) if flipped else (THUMB_TIP, INDEX_TIP)
-    policy_heading = np.arctan2(pts[:, b, 1] - pts[:, a, 1], pts[:, b, 0] - pts[:, a, 0])
-    turn = np.angle(np.exp(1j * (wanted - (held_heading - gripper_heading) - policy_heading)))
-    goals = pinches + state.grasp_shift
-    arm = _turn_about((objects[mate_k] - pads)[None, None], np.zeros((1, 3)), np.array([wanted - held_heading]))[0, 0]
-    mate = goals + arm  # the held mate point at each sample, turned as wanted, if the pads follow the goals
-    target = objects[target_k] + anchors.mate_offset
-    nearest = mate[np.argmin(np.linalg.norm(mate[:, :2] - target[:2], axis=-1))]
-    across = _flat(pull_onto(nearest[None], target, *MATE_PULL)[0])
-    # eased in over the horizon from the one in force: a jump would fling the module out of the grip
-    ease = np.minimum(1.0, np.arange(1, len(horizon) + 1) / len(horizon))[:, None]
-    shift = state.grasp_shift + state.across + ease * (across - state.across)
-    state.across = shift[min(plan_samples, len(shift)) - 1] - state.grasp_shift
-    # docked where the mate point would be over its target: the pads servo the observed mate point
-    # onto it (the policy's sideways motion there is noise at this scale) and lower it
-    docked = pull_weights(np.linalg.norm((mate + across)[:, :2] - target[:2], axis=-1),
-                          *MATE_DOCK)[:, None]
-    # once the observed mate point is over its target it stays docked until pressed home: the
-    # policy's next move (lifting, retreating) would otherwise pull it off before the press
-    state.docking = state.docking or (not state.mated and float(np.linalg.norm(
-        (objects[mate_k] - target)[:2])) < MATE_DOCK[1])
-    if state.docking:
-        docked = np.ones_like(docked)
-    if not state.mated:
-        servo = _flat(pads + target - objects[mate_k])[None] - _flat(pinches)
-        # hovering just above until it is over the target (slid along the board it sticks short)
-        above = DOCK_CLEARANCE_M if np.linalg.norm((objects[mate_k] - target)[:2]) > MATED_M else 0.0
-        servo[:, 2] = target[2] + above - objects[mate_k][2] + pads[2] - pinches[:, 2]
-    else:  # pressed home: the pads stay where they pressed (servoing on would drag the mated pair apart)
-        # and the policy's lift passes: as it is where the policy observes its hand at the pads, else
-        # counted from the pads and from the policy's lowest pinch since (the hold's shift is stale by
-        # now: the policy moved on while the gripper dwelled and docked)
-        if state.mated_at is None:
-            state.mated_at, state.mated_pinch_z = pads.copy(), float(pinches[0, 2])
-        state.mated_pinch_z = min(state.mated_pinch_z, float(pinches[0, 2]))
-        servo = state.mated_at[None] - pinches
-        servo[:, 2] = 0.0 if state.observed_hand else state.mated_at[2] - state.mated_pinch_z
-        # the lift anchor: at least as high as the demonstrations lift what they assembled, at their
-        # pace (the policy's own lift passes where higher)
-        lift = anchors.lift_m * np.clip((state.mated_s + sample_dt * np.arange(1, len(horizon) + 1)) / LIFT_S, 0, 1)
-        servo[:, 2] = np.maximum(servo[:, 2], state.mated_at[2] + lift - pinches[:, 2])
-    shift = (1 - docked) * shift + docked * servo
-    out = horizon.copy()
-    out[:, hand] = _turn_about(pts, pinches, turn) + shift[:, None]
-    return out
-
-
-def _flat(v: np.ndarray) -> np.ndarray:
-    """The horizontal part of (..., 3) vectors."""
-    return np.asarray(v, float) * [1.0, 1.0, 0.0]
-
 
 def anchored_press(was: bool, aligned: bool, docking: bool, kpa: float, demonstrated_kpa: float) -> bool:
     """With contact anchors: the aligned mate presses; elsewhere predicted touch (``kpa``) decides,
@@ -345,14 +204,14 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                    horizon_dt: float | None = None, catch_m: float | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
-    ``model``: a trained Ours, or None for the teacher's own hands (TeacherReplay).
+    ``model``: a trained Policy, or None for the teacher's own hands (TeacherReplay).
     ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
     shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
     ``feedback``: the robot's own points are observed as the policy's hands (7.6.8: the robot's
     end-effector keypoints are detected like the objects'): each step the grasping hand is moved
     rigidly so its pinch lies between the gripper's pads, instead of the policy running on its own
     predicted hands.
-    ``anchors``: contact anchors mined from the training demonstrations (services/policy/anchors.py):
+    ``anchors``: contact anchors mined from the training demonstrations (evaluation/anchors.py):
     the grasping hand's goals are pulled onto the observed grasp point while reaching, and once the
     module is held, onto the placement that brings its mate point to the observed target.
     ``horizon_dt``: the step of the policy's horizon rollouts (default its sample period; the

@@ -5,8 +5,9 @@ validation start state with the demonstrated goal kept."""
 from __future__ import annotations
 
 import numpy as np
+from movement_primitives.dmp import DMP
 
-from services.policy.baselines.common import BaselineError, check_train, flat_state, hold_to, split_state
+from services.policy.flat_state import BaselineError, check_train, flat_state, hold_to, split_state
 from shared.demo import Demo
 
 
@@ -19,8 +20,6 @@ class DMPBaseline:
         self.dmp = None
 
     def fit(self, train: list[Demo], progress: bool = True) -> None:
-        from movement_primitives.dmp import DMP
-
         check_train(train)
         demo = train[min(self.demo_index, len(train) - 1)]
         self.y = flat_state(demo)

@@ -6,7 +6,7 @@ reservoir activations (7.2.8). One training sample is the step t -> t+1 of a dem
 
 Augmentation: left/right mirroring (y -> -y, hands swapped) of every demonstration, hand-swap
 sampling (left-grasping samples with probability 0.6, thesis 7.6.8), rotation about gravity
-(7.2.4: one angle per sample for feed-forward training, one per rollout for recurrent training).
+(7.2.4: one angle per sample).
 
 Recordings: ``demos_from_mcap`` splits the scene stream of an MCAP recording by the session's
 demonstration label; NaN keypoints become masked, gaps end a demonstration, both are reported.
@@ -18,8 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rosbags.highlevel import AnyReader
 
-from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
+from learning.reservoir import Reservoir
+from shared import msgs
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 
 SCENE_KEY = "xm/recon/main/scene"
 SESSION_KEY = "xm/world/sim/session"
@@ -38,37 +41,6 @@ def rotate_z(x: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
     out[..., 0] = c * x[..., 0] - s * x[..., 1]
     out[..., 1] = s * x[..., 0] + c * x[..., 1]
     return out
-
-
-def object_groups(object_names: list[str]) -> np.ndarray:
-    """Body index per object keypoint from names "<object>/<point>" (first seen, first numbered)."""
-    bodies: dict[str, int] = {}
-    return np.array([bodies.setdefault(n.split("/")[0], len(bodies)) for n in object_names], int)
-
-
-# --- canonical frame (7.2.4 without augmentation) ------------------------------------------------
-def reference_object(object_names: list[str], objects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The object whose keypoints spread widest horizontally in ``objects`` (K,3): its keypoint
-    indices and their horizontal offsets from its centroid (the reference shape, yaw 0)."""
-    groups = object_groups(object_names)
-    best, spread = None, -1.0
-    for g in range(groups.max() + 1 if len(groups) else 0):
-        idx = np.flatnonzero(groups == g)
-        xy = objects[idx, :2] - objects[idx, :2].mean(0)
-        if len(idx) >= 2 and (xy ** 2).sum() > spread:
-            best, spread = idx, float((xy ** 2).sum())
-    if best is None or spread < 1e-6:
-        raise DatasetError("no object has two keypoints apart horizontally to define a canonical frame")
-    return np.array(best), objects[best, :2] - objects[best, :2].mean(0)
-
-
-def frame_yaw(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """Yaw (...,) that best turns the reference shape (n,2) onto ``points`` (..., n, 3) about gravity
-    (2-D Procrustes): the angle by which the scene is turned back to the canonical frame."""
-    xy = points[..., :2] - points[..., :2].mean(-2, keepdims=True)
-    dot = (xy * reference).sum((-1, -2))
-    cross = (reference[:, 0] * xy[..., 1] - reference[:, 1] * xy[..., 0]).sum(-1)
-    return np.arctan2(cross, dot)
 
 
 def velocities(x: np.ndarray, dt: float) -> np.ndarray:
@@ -118,7 +90,6 @@ class DemoArrays:
     left: bool  # grasping with the left hand
     dt: float
     name: str
-    goal: np.ndarray | None = None  # (T,2) object body each hand acts on next (goal_bodies), -1 none
 
     @property
     def steps(self) -> int:
@@ -137,41 +108,7 @@ def demo_arrays(demo: Demo) -> DemoArrays:
     return DemoArrays(pos=pos, vel=vel, mask=mask, vmask=vmask, tactile=demo.tactile.astype(np.float64),
                       tmask=demo.tactile_mask.astype(bool), left=demo.meta.get("grasp_hand", "left") == "left",
                       dt=float(demo.dt), name=f"{demo.meta.get('task', '?')}#{demo.meta.get('demo', '?')}"
-                      + (" (mirrored)" if demo.meta.get("mirrored") else ""),
-                      goal=goal_bodies(pos, mask, object_groups(demo.object_names), demo.dt))
-
-
-GOAL_LOOKAHEAD_S = 1.0  # s: what a hand comes to within the next second is what it is heading for
-GOAL_REACH_M = 0.05  # ... if its pinch gets this close to it
-UNMOVED_M = 0.005  # an object whose points all stay this close to where they were first seen is unmoved
-
-
-def goal_bodies(pos: np.ndarray, mask: np.ndarray, bodies: np.ndarray, dt: float) -> np.ndarray:
-    """(T,2): per step and hand, the object body the hand acts on next: of the objects still where
-    they lay at the start, the one its pinch (thumb-index midpoint) comes closest to within the
-    next GOAL_LOOKAHEAD_S, if closer than GOAL_REACH_M; else -1. For the assembly: the module the
-    grasping hand reaches for, then the board it carries the module to; the board for the pressing
-    hand. An object once moved no longer counts (a carried object is no goal)."""
-    T = len(pos)
-    obj, omask = pos[:, 2 * KEYPOINTS_PER_HAND:], mask[:, 2 * KEYPOINTS_PER_HAND:]
-    first = np.array([obj[np.argmax(omask[:, k]), k] for k in range(obj.shape[1])])
-    moved = omask & (np.linalg.norm(obj - first, axis=-1) > UNMOVED_M)
-    n_bodies = int(bodies.max()) + 1 if len(bodies) else 0
-    window = max(1, round(GOAL_LOOKAHEAD_S / dt))
-    goal = np.full((T, 2), -1, int)
-    for h in range(2):
-        pinch = pos[:, [h * KEYPOINTS_PER_HAND + FINGERTIPS[f] for f in ("thumb", "index")]].mean(1)
-        d = np.where(omask, np.linalg.norm(obj - pinch[:, None], axis=-1), np.inf)
-        near = np.full((T, n_bodies), np.inf)  # (T,B): closest approach over the next window
-        for b in range(n_bodies):
-            pts = bodies == b
-            db = np.where(moved[:, pts].any(1), np.inf, d[:, pts].min(1))
-            padded = np.concatenate([db, np.full(window, np.inf)])
-            near[:, b] = np.min([padded[k:k + T] for k in range(window + 1)], axis=0)
-        if n_bodies:
-            best = near.argmin(1)
-            goal[:, h] = np.where(near[np.arange(T), best] < GOAL_REACH_M, best, -1)
-    return goal
+                      + (" (mirrored)" if demo.meta.get("mirrored") else ""))
 
 
 def augmented(demos: list[Demo], mirrored: bool = True) -> list[Demo]:
@@ -210,13 +147,12 @@ class StepData:
     demo_index: np.ndarray  # (N,)
     step_index: np.ndarray  # (N,)
     dt: float
-    goal: np.ndarray | None = None  # (N,2) goal_bodies at t
 
     def __len__(self) -> int:
         return len(self.pos)
 
 
-def step_data(arrays: list[DemoArrays], reservoir=None, left_probability: float = 0.6) -> StepData:
+def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left_probability: float = 0.6) -> StepData:
     """Flatten demonstrations into transitions; ``reservoir`` (reservoir.Reservoir) adds H (7.2.8)."""
     if not arrays:
         raise DatasetError("no demonstrations to learn from")
@@ -228,7 +164,7 @@ def step_data(arrays: list[DemoArrays], reservoir=None, left_probability: float 
             raise DatasetError(f"demonstration {a.name} has {a.steps} steps; at least 3 are needed")
     cols: dict[str, list] = {k: [] for k in ("pos", "vel", "vmask", "mask", "next_pos", "next_vel", "next_vmask",
                                              "next_mask", "tactile", "next_tactile", "tmask", "H", "next_H",
-                                             "left", "demo_index", "step_index", "goal")}
+                                             "left", "demo_index", "step_index")}
     for i, a in enumerate(arrays):
         cols["pos"].append(a.pos[:-1])
         cols["vel"].append(a.vel[:-1])
@@ -248,13 +184,12 @@ def step_data(arrays: list[DemoArrays], reservoir=None, left_probability: float 
         cols["left"].append(np.full(a.steps - 1, a.left))
         cols["demo_index"].append(np.full(a.steps - 1, i))
         cols["step_index"].append(np.arange(a.steps - 1))
-        cols["goal"].append(a.goal[:-1] if a.goal is not None else np.full((a.steps - 1, 2), -1, int))
     cat = {k: np.concatenate(v, axis=1 if k in ("H", "next_H") else 0) if v else None for k, v in cols.items()}
     return StepData(pos=cat["pos"], vel=cat["vel"], vmask=cat["vmask"], mask=cat["mask"], next_pos=cat["next_pos"],
                     next_vel=cat["next_vel"], next_vmask=cat["next_vmask"], next_mask=cat["next_mask"],
                     tactile=cat["tactile"], next_tactile=cat["next_tactile"], tmask=cat["tmask"], H=cat["H"],
                     next_H=cat["next_H"], prob=hand_weights(cat["left"], left_probability),
-                    demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt, goal=cat["goal"])
+                    demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt)
 
 
 def sample_batch(data: StepData, rng: np.random.Generator, n: int, rotate: bool = True) -> dict[str, np.ndarray]:
@@ -273,11 +208,7 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
            "vmask": data.vmask[idx], "mask": data.mask[idx], "next_vmask": data.next_vmask[idx],
            "next_mask": data.next_mask[idx], "tactile": data.tactile[idx], "next_tactile": data.next_tactile[idx],
            "tmask": data.tmask[idx], "angle": angle, "index": idx, "phase": data.step_index[idx] * data.dt}
-    if data.goal is not None:
-        out["goal"] = data.goal[idx]
     if data.H is not None:
-        from services.policy.reservoir import Reservoir
-
         out["H"] = Reservoir.rotated(data.H[:, idx], angle)
         out["next_H"] = Reservoir.rotated(data.next_H[:, idx], angle)
     return out
@@ -291,10 +222,6 @@ def demos_from_mcap(path: str | Path, dt: float = 0.02, max_gap_s: float = 0.5, 
     NaN keypoints are masked, a gap longer than ``max_gap_s`` ends a demonstration, demonstrations
     shorter than ``min_steps`` are dropped; each such event is appended to ``report`` with the
     demonstration and the time. Raises DatasetError when nothing usable is in the file."""
-    from rosbags.highlevel import AnyReader
-
-    from shared import msgs
-
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such recording")

@@ -2,7 +2,7 @@
 
 15 teacher demonstrations (3 train, 12 validation); every method is fitted on the train set and
 rolled out (neural simulation / open loop) from each validation start state; the rollouts are
-scored with the symmetric closest-point distance of services/policy/metrics.py, for hand and
+scored with the symmetric closest-point distance of learning/metrics.py, for hand and
 object keypoints, with and without the validation occlusion masks. Writes results.json,
 results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
 scale), rollout_<method>.png (one example rollout per method) and rollouts_<method>.npz (every
@@ -20,8 +20,18 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
-from services.policy.metrics import SCORE_KEYS, trajectory_scores
+from evaluation.anchors import AnchorError, mine_anchors
+from evaluation.baselines import make
+from evaluation.baselines.mlp import quick_budget
+from evaluation.execute import execute_layout
+from learning.metrics import SCORE_KEYS, trajectory_scores
+from learning.ours import Ours
+from learning.presets import PRESETS, config_changes
+from services.policy.model import Policy, PolicyError
+from services.world.teacher import assembly_protocol
 from shared.demo import Demo
 
 OURS = ("multimodal", "no_tactile")
@@ -40,16 +50,11 @@ class EvaluationError(ValueError):
 
 
 def make_method(name: str, quick: bool = False, seed: int = 0, draw: int = 0, changes: dict | None = None):
-    """A fresh unfitted method by its Table 7.1 name. Rows (1)-(3) are presets of services.policy.ours
-    whose ``PolicyConfig.seed`` is ``draw``, with ``changes`` to their config; the other baselines
+    """A fresh unfitted method by its Table 7.1 name. Rows (1)-(3) are presets of learning/presets.py
+    whose ``TrainConfig.seed`` is ``draw``, with ``changes`` to their recipe; the other baselines
     take ``seed``."""
-    from services.policy.baselines.mlp import quick_budget
-    from services.policy.ours import PRESETS, Ours
-
     if name in PRESETS:
         return Ours(quick_budget(PRESETS[name].replace(seed=draw, **(changes or {})), quick))
-    from services.policy.baselines import make
-
     return make(name, quick=quick, seed=seed)
 
 
@@ -63,8 +68,6 @@ def split(demos: list[Demo]) -> tuple[list[Demo], list[Demo]]:
 
 def rollouts(method, val: list[Demo], progress: bool) -> list[tuple[np.ndarray, np.ndarray]]:
     """One rollout per validation demo, as long as that demo. Batched when the method can."""
-    from tqdm import tqdm
-
     if hasattr(method, "rollout_batch"):
         outs = method.rollout_batch(val, max(d.steps for d in val))
         return [(h[:d.steps], o[:d.steps]) for (h, o), d in zip(outs, val, strict=True)]
@@ -96,10 +99,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
     ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
     noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md).
-    ``changes``: PolicyConfig fields changed in rows (1)-(3) (`xm eval --set`)."""
-    import torch
-    from tqdm import tqdm
-
+    ``changes``: recipe fields changed in rows (1)-(3) (`xm eval --set`)."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise EvaluationError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -109,8 +109,6 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     # (two threads on two cores trained the seed-0 multimodal row to 29.1 mm instead of 20.5: docs/policy.md)
     torch.set_num_threads(1)
     if demos is None:
-        from services.world.teacher import assembly_protocol
-
         demos = assembly_protocol(seed)
     train, val = split(demos)
     out = Path(out_dir)
@@ -135,8 +133,6 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         if hasattr(method, "save"):  # rows (1)-(3): the very net scored, for `xm eval --execute --checkpoint`
             method.save(str(out / f"policy_{name}.pt"))
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
-        if getattr(method, "candidate_scores", None):  # cfg.candidates > 1: every draw, and the one kept
-            timing[name] |= {"candidates": method.candidate_scores, "kept_candidate": method.cfg.candidate}
         results = in_table_order(results)
         plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
         # written after every method so that a long run leaves partial results behind
@@ -177,8 +173,6 @@ def rescore(out_dir: str | Path, seed: int = 0, demos: list[Demo] | None = None)
     if not files:
         raise EvaluationError(f"no rollouts_<method>.npz in {out}: run `xm eval --out {out}` first")
     if demos is None:
-        from services.world.teacher import assembly_protocol
-
         demos = assembly_protocol(seed)
     train, val = split(demos)
     results, quick = {}, False
@@ -230,7 +224,7 @@ def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool 
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # optional heavy dependency, loaded only to draw the plots
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -302,8 +296,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="training draw: the learned methods start from other random numbers (initial weights, "
                         "batches, noise), the demonstrations stay; one training run is one draw (default %(default)s)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="change a PolicyConfig field of rows (1)-(3), e.g. --set reservoir_periods=0.25,8 "
-                        "(repeatable; docs/policy.md lists the fields)")
+                        help="change a recipe field (ModelConfig, TrainConfig or InferenceConfig) of rows (1)-(3), "
+                        "e.g. --set reservoir_periods=0.25,8 (repeatable)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
@@ -343,8 +337,6 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         return execute_main(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    from services.policy.network import config_changes
-
     try:
         changes = config_changes(args.set)
     except ValueError as e:
@@ -365,13 +357,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def execute_main(args: argparse.Namespace) -> int:
     """`xm eval --execute`: success rate of the robot driven by the learned policy."""
-    from tqdm import tqdm
-
-    from services.policy.anchors import AnchorError, mine_anchors
-    from services.policy.execute import execute_layout
-    from services.policy.ours import Ours, PolicyError
-    from services.world.teacher import assembly_protocol
-
     path = Path(args.checkpoint)
     if args.teacher:
         model, path = None, Path("teacher")
@@ -381,12 +366,10 @@ def execute_main(args: argparse.Namespace) -> int:
         return 2
     else:
         try:
-            model = Ours.load(str(path))
+            model = Policy.load(str(path))
         except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
             print(f"error: cannot load {path}: {exc}", file=sys.stderr)
             return 2
-    import torch
-
     torch.set_num_threads(1)
     anchors = None
     if args.anchors:

@@ -1,4 +1,5 @@
-"""State vectors shared by the baselines (pure numpy).
+"""The flat keypoint state of demonstrations, shared by the naive replay (naive.py, which the node
+can serve) and the baselines of evaluation/baselines (pure numpy).
 
 The baselines work on the thesis's low-level representation: observations are the 3-D keypoints
 of both hands and all objects flattened into one vector (hands first), actions are their

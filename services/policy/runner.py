@@ -1,25 +1,22 @@
-"""Neural simulation (recursive rollout, thesis 7.6.1/7.6.8) and the runner the policy service uses;
-`xm simulate` writes a rollout and its plot.
+"""The policy as the node runs it, and the neural simulation (recursive rollout, thesis 7.6.1/7.6.8).
 
-``simulate``: positions fed back as inputs step after step; with ``observed_objects`` the object
-points come from observation instead of the model (the interactive mode of 7.6.1).
 ``PolicyRunner``: holds the latest observed scene, advances the memory each observation, gives the
 next positions (``step``) or a horizon rollout for the trajectory optimizer (``horizon``); never
 returns NaN: it raises ``PolicyInputError`` for unusable observations and ``PolicyError`` when the
 network itself produces NaN. The predicted tactile of the last step is exposed as ``efforts``
 (7.2.10: added to the robot's control efforts).
+``simulate``: positions fed back as inputs step after step; with ``observed_objects`` the object
+points come from observation instead of the model (the interactive mode of 7.6.1).
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from services.policy.ours import Ours, PolicyError
+from services.policy.model import Policy, PolicyError
 from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 
 HAND_POINTS = 2 * KEYPOINTS_PER_HAND
@@ -59,11 +56,9 @@ class SceneObs:
                    tact.reshape(2, -1) if tact.size else None, tmask.reshape(2, -1) if tmask.size else None)
 
 
-def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects: np.ndarray | None = None) -> Rollout:
+def simulate(model: Policy, start_state: Demo | dict, steps: int,
+             observed_objects: np.ndarray | None = None) -> Rollout:
     """Recursive neural simulation for ``steps`` samples (the first is the start state)."""
-    if model.net is None:
-        raise PolicyError("the model is not trained or loaded")
-    model.net.eval()
     state = model.initial_state(start_state) if isinstance(start_state, Demo) else dict(start_state)
     if observed_objects is not None:
         observed_objects = np.asarray(observed_objects, float)
@@ -71,7 +66,6 @@ def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects
             raise PolicyInputError(f"observed_objects must be ({steps},{model.K},3), got {observed_objects.shape}")
         if not np.isfinite(observed_objects[:steps]).all():
             raise PolicyInputError("observed_objects contains NaN")
-    solver = model.solver()
     P = len(state["pos"])
     pos = np.empty((steps, P, 3))
     tact = np.zeros((steps, 2, len(TACTILE_REGIONS)))
@@ -79,7 +73,7 @@ def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects
     pos[0], tact[0] = state["pos"], state["tactile"]
     if "H" in state:
         mem[0] = state["H"]
-    pos[1:], tact[1:], mem[1:] = model.roll(state, steps - 1, solver,
+    pos[1:], tact[1:], mem[1:] = model.roll(state, steps - 1, None,
                                             None if observed_objects is None else observed_objects[1:steps])
     return Rollout(pos[:, :HAND_POINTS].reshape(steps, 2, KEYPOINTS_PER_HAND, 3), pos[:, HAND_POINTS:], tact, mem)
 
@@ -87,12 +81,8 @@ def simulate(model: Ours, start_state: Demo | dict, steps: int, observed_objects
 class PolicyRunner:
     """The policy as the service runs it: observations in, next positions and horizons out."""
 
-    def __init__(self, model: Ours) -> None:
-        if model.net is None:
-            raise PolicyError("the model is not trained or loaded")
+    def __init__(self, model: Policy) -> None:
         self.model = model
-        self.model.net.eval()
-        self.solver = model.solver()
         self.state: dict | None = None
         self.efforts = np.zeros((2, len(TACTILE_REGIONS)))  # predicted tactile, kPa (7.2.10)
         self.horizon_tactile = np.zeros((0, 2, len(TACTILE_REGIONS)))  # of the last horizon()
@@ -100,7 +90,7 @@ class PolicyRunner:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path) -> PolicyRunner:
-        return cls(Ours.load(str(path)))
+        return cls(Policy.load(str(path)))
 
     def reset(self) -> None:
         self.state = None
@@ -122,9 +112,7 @@ class PolicyRunner:
             start = {"pos": pos, "vel": np.zeros_like(pos), "mask": mask if m.cfg.masks else np.ones_like(mask),
                      "tactile": np.zeros((2, len(TACTILE_REGIONS))), "tmask": np.zeros((2, len(TACTILE_REGIONS)), bool)}
             if m.cfg.memory:
-                start["H"] = ((m.net.H0 - m.net.H_mean) / m.net.H_std).numpy().astype(float)
-            if m.cfg.recurrent:
-                start["rec"] = np.zeros(m.cfg.rec_hidden)
+                start["H"] = m.initial_memory()
             self.state = start
         else:
             prev = self.state["pos"]
@@ -146,11 +134,9 @@ class PolicyRunner:
         if scene_obs is None and self.state is None:
             raise PolicyInputError("no scene observed yet")
         state = self.observe(scene_obs) if scene_obs is not None else self.state
-        nxt = self.model.step(state, self.solver)
+        nxt = self.model.step(state)
         self._check(nxt["pos"])
         self.state = dict(state, H=nxt["H"]) if "H" in nxt else state
-        if "rec" in nxt:
-            self.state["rec"] = nxt["rec"]
         self.efforts = nxt["tactile"]
         return nxt["pos"]
 
@@ -162,8 +148,7 @@ class PolicyRunner:
             self.observe(scene_obs)
         if self.state is None:
             raise PolicyInputError("no scene observed yet")
-        solver = self.solver if dt is None or dt == self.solver.dt else self.model.solver(dt)  # ~25 µs
-        out, tactile, _ = self.model.roll(self.state, steps, solver)
+        out, tactile, _ = self.model.roll(self.state, steps, dt)
         self._check(out)
         self.horizon_tactile = tactile
         return out
@@ -172,53 +157,3 @@ class PolicyRunner:
     def _check(x: np.ndarray) -> None:
         if not np.isfinite(x).all():
             raise PolicyError("policy output contains NaN")
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="xm simulate", description="Neural simulation of a trained policy from "
-                                     "the start state of a teacher demonstration; writes rollout.npz and rollout.png.")
-    parser.add_argument("checkpoint", help="policy.pt written by xm train")
-    parser.add_argument("--seed", type=int, default=1234, help="layout seed of the start state")
-    parser.add_argument("--seconds", type=float, default=8.0)
-    parser.add_argument("--out", default="runs/simulate")
-    args = parser.parse_args(argv)
-    if not Path(args.checkpoint).exists():
-        print(f"error: {args.checkpoint} not found (train one with `xm train --teacher 0`)", file=sys.stderr)
-        return 2
-    import torch
-
-    from services.policy.metrics import trajectory_scores
-    from services.world.teacher import generate_demo
-
-    torch.set_num_threads(2)
-    model = Ours.load(args.checkpoint)
-    start = generate_demo("assembly", args.seed)
-    steps = int(round(args.seconds / model.dt))
-    try:
-        roll = simulate(model, start, steps)
-    except (PolicyError, PolicyInputError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out / "rollout.npz", hands=roll.hands, objects=roll.objects, tactile=roll.tactile,
-                        memory=roll.memory, object_names=np.array(start.object_names))
-    scores = trajectory_scores(roll.hands, roll.objects, start)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 6))
-    for h, color in ((0, "tab:red"), (1, "tab:blue")):
-        ax.plot(roll.hands[:, h, 8, 0], roll.hands[:, h, 8, 1], color=color, label=f"{('left', 'right')[h]} index")
-        ax.plot(start.hands[:, h, 8, 0], start.hands[:, h, 8, 1], "--", color=color, alpha=0.5, label="teacher")
-    ax.plot(roll.objects[:, :, 0], roll.objects[:, :, 1], "g.", ms=1)
-    ax.axis("equal")
-    ax.legend(fontsize=7)
-    ax.set_title(f"neural simulation: hand {scores['hand'] * 1e3:.1f} mm, object {scores['object'] * 1e3:.1f} mm")
-    fig.savefig(out / "rollout.png", dpi=110)
-    plt.close(fig)
-    print(f"wrote {out / 'rollout.npz'} and {out / 'rollout.png'}; distance to the teacher: "
-          f"hand {scores['hand'] * 1e3:.1f} mm, object {scores['object'] * 1e3:.1f} mm")
-    return 0

@@ -6,30 +6,26 @@ state MLPs (3, 4). ``make(name, quick)`` builds one by its table name.
 
 from __future__ import annotations
 
+from evaluation.baselines.diffusion import DiffusionConfig, DiffusionPolicy
+from evaluation.baselines.dmp import DMPBaseline
+from evaluation.baselines.mlp import make_state_policy
+from evaluation.baselines.promp import ProMPBaseline
+from services.policy.naive import NaiveReplay
+
 BASELINES = ("single_state", "time_window", "dmp", "promp_conditional", "promp_simple",
              "diffusion_unet", "diffusion_transformer", "naive")
 
 
 def make(name: str, quick: bool = False, seed: int = 0):
     """A fresh, unfitted baseline by its Table 7.1 name; ``quick`` shrinks training to a smoke test."""
-    if name == "naive":
-        from services.policy.baselines.naive import NaiveReplay
-
+    if name == "naive":  # the node's own naive replay (services/policy/naive.py)
         return NaiveReplay()
     if name == "dmp":
-        from services.policy.baselines.dmp import DMPBaseline
-
         return DMPBaseline()
     if name in ("promp_conditional", "promp_simple"):
-        from services.policy.baselines.promp import ProMPBaseline
-
         return ProMPBaseline(conditional=name == "promp_conditional")
     if name in ("diffusion_unet", "diffusion_transformer"):
-        from services.policy.baselines.diffusion import DiffusionConfig, DiffusionPolicy
-
         return DiffusionPolicy(DiffusionConfig.preset(name.split("_")[1], quick=quick, seed=seed))
     if name in ("single_state", "time_window"):
-        from services.policy.baselines.mlp import make_state_policy
-
         return make_state_policy(name, quick=quick, seed=seed)
     raise KeyError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
