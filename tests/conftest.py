@@ -3,6 +3,7 @@ service subprocesses with captured logs, Zenoh queries and subscriptions."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -117,6 +118,32 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, period: float 
             return value
         time.sleep(period)
     return None
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float, what: str | Callable[[], str],
+               period: float = 0.05) -> Any:
+    """The first truthy value of ``predicate()`` within ``timeout`` seconds; otherwise the test fails
+    saying what it waited for (``what``, or ``what()`` for context read only then, like a service log)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
+        time.sleep(period)
+
+
+async def wait_until_async(predicate: Callable[[], Any], timeout: float, what: str, period: float = 0.01) -> Any:
+    """``wait_until`` inside an event loop: other tasks run while it waits."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+        await asyncio.sleep(period)
 
 
 def wait_healthy(session, service: str, instance: str, proc: ServiceProcess | None = None,
