@@ -1,5 +1,6 @@
 """Helpers for tests that run real processes: free ports, temporary deployments, a router,
-service subprocesses with captured logs, Zenoh queries and subscriptions."""
+service subprocesses with captured logs, Zenoh queries and subscriptions, waits on conditions, and
+the host's end of a control board's serial port."""
 
 from __future__ import annotations
 
@@ -16,6 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import serial
+
+from shared.protocols import robot_board as rb
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,30 +124,31 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, period: float 
     return None
 
 
+def _poll(predicate: Callable[[], Any], deadline: float, timeout: float, what: str | Callable[[], str]) -> Any:
+    """``predicate()``; past the deadline a falsy value fails the test, saying what was awaited."""
+    value = predicate()
+    if not value and time.monotonic() >= deadline:
+        pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
+    return value
+
+
 def wait_until(predicate: Callable[[], Any], timeout: float, what: str | Callable[[], str],
                period: float = 0.05) -> Any:
     """The first truthy value of ``predicate()`` within ``timeout`` seconds; otherwise the test fails
     saying what it waited for (``what``, or ``what()`` for context read only then, like a service log)."""
     deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
+    while not (value := _poll(predicate, deadline, timeout, what)):
         time.sleep(period)
+    return value
 
 
-async def wait_until_async(predicate: Callable[[], Any], timeout: float, what: str, period: float = 0.01) -> Any:
+async def wait_until_async(predicate: Callable[[], Any], timeout: float, what: str | Callable[[], str],
+                           period: float = 0.01) -> Any:
     """``wait_until`` inside an event loop: other tasks run while it waits."""
     deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() >= deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}")
+    while not (value := _poll(predicate, deadline, timeout, what)):
         await asyncio.sleep(period)
+    return value
 
 
 def wait_healthy(session, service: str, instance: str, proc: ServiceProcess | None = None,
@@ -182,3 +187,45 @@ def run_xm(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     """``xm <args>`` as a subprocess from the repository root, output captured as text."""
     return subprocess.run([sys.executable, "-m", "shared.cli", *args], cwd=ROOT, capture_output=True,
                           text=True, timeout=timeout)
+
+
+class BoardHost:
+    """The test as the host on a control board's serial port (the world's simulated board): it sends
+    command frames and collects the board's feedback (``feedback``, in arrival order)."""
+
+    COMMAND_PERIOD_S = 0.004  # the robot service's 250 Hz
+
+    def __init__(self, port: Path) -> None:
+        self.port = serial.Serial(str(port), timeout=0)
+        self.decoder = rb.StreamDecoder()
+        self.feedback: list[rb.FeedbackFrame] = []
+
+    def read(self) -> None:
+        self.feedback += [m for m in self.decoder.feed(self.port.read(65536)) if isinstance(m, rb.FeedbackFrame)]
+
+    def stream(self, cmd: rb.CommandFrame | None, until: Callable[[], Any], timeout: float, what: str) -> Any:
+        """Sends ``cmd`` every command period, its sequence counting up (None: silence), reading the
+        feedback, until ``until()`` is true; fails the test after ``timeout`` s."""
+        def step() -> Any:
+            if cmd is not None:
+                self.port.write(rb.encode_command(cmd))
+                cmd.sequence += 1
+            self.read()
+            return until()
+
+        return wait_until(step, timeout, what, period=self.COMMAND_PERIOD_S)
+
+    def brake_trial(self, cmd: rb.CommandFrame, stream_s: float) -> float:
+        """A command stream of ``stream_s`` seconds, then silence: the board time (s) from the last
+        command to the board's first brake report that names it."""
+        t_end = time.monotonic() + stream_s
+        self.stream(cmd, lambda: time.monotonic() > t_end, stream_s + 5, "the end of the command stream")
+        final = cmd.sequence - 1
+        # Matched by sequence: under CPU load the report may already have come during the stream.
+        brake = self.stream(None, lambda: next((m for m in self.feedback if m.watchdog_expired and
+                                                m.last_command_sequence == final), None),
+                            5.0, f"the board's brake report after command {final}")
+        return (brake.timestamp_us - brake.last_command_us) * 1e-6
+
+    def close(self) -> None:
+        self.port.close()
