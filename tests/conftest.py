@@ -5,21 +5,26 @@ the host's end of a control board's serial port."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 import serial
+import zenoh
 
+from shared import keys
 from shared.protocols import robot_board as rb
+from shared.runtime import open_client, open_router
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,8 +56,6 @@ def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict
 @pytest.fixture
 def router():
     """``(endpoint, session)``: a Zenoh router on a free port; the session doubles as the test's client."""
-    from shared.runtime import open_router
-
     endpoint = free_endpoint()
     session = open_router(endpoint)
     yield endpoint, session
@@ -181,6 +184,56 @@ class Collector:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+def query_router(router: str, selector: str, timeout: float = 3.0) -> list[dict]:
+    """Replies to ``selector`` through a fresh client of ``router``; [] while no router is up."""
+    try:
+        session = open_client(router)
+    except zenoh.ZError:
+        return []
+    try:
+        return [json.loads(r.ok.payload.to_bytes()) for r in session.get(selector, timeout=timeout) if r.ok]
+    finally:
+        session.close()
+
+
+@contextlib.contextmanager
+def sim_workcell(tmp: Path, timeout: float = 90.0) -> Iterator[dict]:
+    """The whole simulated workcell (deploy/sim.toml) through ``xm up`` on a free router port, with its
+    run directory, recordings and panel port private to ``tmp``; up once every registered key is being
+    published. Yields ``{"router", "deployment", "tmp", "proc"}``; SIGINT (then SIGKILL) on exit."""
+    text = (ROOT / "deploy/sim.toml").read_text()
+    router = free_endpoint()
+    text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
+    text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
+    # The same cell whether or not this checkout has trained a policy: the naive fallback (the
+    # learned service has its own contract test).
+    text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
+    text = re.sub(r"port = 8080", f"port = {free_port()}", text)
+    text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
+    deployment = tmp / "sim.toml"
+    deployment.write_text(text)
+    log = (tmp / "up.log").open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    registered = {s.key for s in keys.REGISTRY}
+
+    def missing() -> set[str]:
+        reports = query_router(router, "xm/**/@health") if proc.poll() is None else []
+        return registered - {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
+
+    try:
+        wait_until(lambda: not missing(), timeout, lambda: f"the workcell to publish every registered key; missing "
+                   f"{sorted(missing())}; log: {(tmp / 'up.log').read_text()[-3000:]}", period=1.0)
+        yield {"router": router, "deployment": deployment, "tmp": tmp, "proc": proc}
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+        log.close()
 
 
 def run_xm(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
