@@ -52,10 +52,9 @@ def test_glove_publishes_calibrated_pressure_counts_garbage_and_reconnects(route
 
         wait_until(lambda: (send(0), got)[1], 10, lambda: f"the first frame published: {svc.output()}")
         dev.write(b"\x00garbage\xa5\x5a\x01\xff\xff noise")
-        for seq in range(1, 20):
+        for seq in range(1, 20):  # each frame published before the next is sent: the pty never overflows
             send(seq)
-            time.sleep(0.005)  # a device streams at its frame rate; the pty holds only a few frames
-        wait_until(lambda: got[-1].sequence == 19, 10, "the frame after the garbage published")
+            wait_until(lambda seq=seq: got[-1].sequence == seq, 10, f"frame {seq} published")
         assert dev.dropped_bytes == 0 and [m.sequence for m in got if m.sequence] == list(range(1, 20))
         means = region_means(np.asarray(got[-1].pressure).reshape(16, 16))
         np.testing.assert_allclose(means[:2], region_pressure_kpa(forces)[:2], rtol=0.1)
