@@ -262,17 +262,23 @@ def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(rou
     learned = ServiceProcess("policy", dep, "main", tmp_path / "policy.log")
     fallback = ServiceProcess("policy", dep, "other", tmp_path / "other.log")
     try:
-        plans, _a = collect(session, "xm/policy/main/plan", "xm_msgs/msg/Plan")
+        plans, _a = collect(session, "xm/policy/*/plan", "xm_msgs/msg/Plan")  # both instances' plans
+        naive = lambda: [p for p in plans if p.policy == "naive"]  # noqa: E731
         assert wait_for(lambda: query_json(session, "xm/policy/main/@health"), 60), learned.output()
         k = 0
 
         def scene_sent() -> int:
             nonlocal k
-            session.put("xm/recon/main/scene", _scene_msg(demos[0], k, time.time(), hide=8 if k % 2 else None))
+            now = time.time()
+            session.put("xm/world/sim/session", msgs.serialize(msgs.make(  # the naive replay starts an episode
+                "xm_msgs/msg/Session", header=msgs.header(now), task="assembly", demo=0, phase="approach",
+                tactile_hand="left", seed_layout="{}")))
+            session.put("xm/recon/main/scene", _scene_msg(demos[0], k, now, hide=8 if k % 2 else None))
             k += 1
-            return len([p for p in plans if p.policy.startswith("learned")]) >= 3
+            return len([p for p in plans if p.policy.startswith("learned")]) >= 3 and naive()
 
-        wait_until(scene_sent, 20, lambda: f"three plans of the network: {learned.output()}", period=0.1)
+        wait_until(scene_sent, 20, lambda: f"three plans of the network and one of the fallback: {learned.output()}"
+                   f"{fallback.output()}", period=0.1)
         ours = [p for p in plans if p.policy == "learned:no_tactile"]
         assert len(ours) >= 3, [p.policy for p in plans]
         p = ours[-1]
@@ -282,6 +288,8 @@ def test_policy_serves_a_trained_network_and_falls_back_to_naive_without_one(rou
         pos = np.asarray(p.positions).reshape(p.steps, -1, 3)
         assert np.isfinite(pos).all()
         assert np.abs(pos[0, 42:] - demos[0].objects[k - 1]).max() < 0.2  # starts near the observed objects
+        # Without its checkpoint the same service serves the naive baseline: other plans, not the network's.
+        assert naive()[-1].dt == pytest.approx(0.1) and naive()[-1].steps == 11
         health = query_json(session, "xm/policy/other/@health")
         assert health and health[0]["status"] == "degraded" and "missing.pt" in health[0]["message"]
         assert "nan_plan" not in query_json(session, "xm/policy/main/@health")[0]["errors"]
