@@ -1,20 +1,30 @@
 """Helpers for tests that run real processes: free ports, temporary deployments, a router,
-service subprocesses with captured logs, Zenoh queries and subscriptions."""
+service subprocesses with captured logs, Zenoh queries and subscriptions, waits on conditions, and
+the host's end of a control board's serial port."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+import serial
+import zenoh
+
+from shared import keys
+from shared.protocols import robot_board as rb
+from shared.runtime import open_client, open_router
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,8 +65,6 @@ def write_deployment(path: Path, router: str, services: dict[str, dict[str, dict
 @pytest.fixture
 def router():
     """``(endpoint, session)``: a Zenoh router on a free port; the session doubles as the test's client."""
-    from shared.runtime import open_router
-
     endpoint = free_endpoint()
     session = open_router(endpoint)
     yield endpoint, session
@@ -128,6 +136,33 @@ def wait_for(predicate: Callable[[], Any], timeout: float = 20.0, period: float 
     return None
 
 
+def _poll(predicate: Callable[[], Any], deadline: float, timeout: float, what: str | Callable[[], str]) -> Any:
+    """``predicate()``; past the deadline a falsy value fails the test, saying what was awaited."""
+    value = predicate()
+    if not value and time.monotonic() >= deadline:
+        pytest.fail(f"timed out after {timeout} s waiting for {what() if callable(what) else what}")
+    return value
+
+
+def wait_until(predicate: Callable[[], Any], timeout: float, what: str | Callable[[], str],
+               period: float = 0.05) -> Any:
+    """The first truthy value of ``predicate()`` within ``timeout`` seconds; otherwise the test fails
+    saying what it waited for (``what``, or ``what()`` for context read only then, like a service log)."""
+    deadline = time.monotonic() + timeout
+    while not (value := _poll(predicate, deadline, timeout, what)):
+        time.sleep(period)
+    return value
+
+
+async def wait_until_async(predicate: Callable[[], Any], timeout: float, what: str | Callable[[], str],
+                           period: float = 0.01) -> Any:
+    """``wait_until`` inside an event loop: other tasks run while it waits."""
+    deadline = time.monotonic() + timeout
+    while not (value := _poll(predicate, deadline, timeout, what)):
+        await asyncio.sleep(period)
+    return value
+
+
 def wait_healthy(session, service: str, instance: str, proc: ServiceProcess | None = None,
                  timeout: float = 20.0) -> dict:
     """The service's first @health report; fails the test (with its log) when none comes."""
@@ -160,7 +195,99 @@ class Collector:
         self._sub.undeclare()
 
 
+def query_router(router: str, selector: str, timeout: float = 3.0) -> list[dict]:
+    """Replies to ``selector`` through a fresh client of ``router``; [] while no router is up."""
+    try:
+        session = open_client(router)
+    except zenoh.ZError:
+        return []
+    try:
+        return [json.loads(r.ok.payload.to_bytes()) for r in session.get(selector, timeout=timeout) if r.ok]
+    finally:
+        session.close()
+
+
+@contextlib.contextmanager
+def sim_workcell(tmp: Path, timeout: float = 90.0) -> Iterator[dict]:
+    """The whole simulated workcell (deploy/sim.toml) through ``xm up`` on a free router port, with its
+    run directory, recordings and panel port private to ``tmp``; up once every registered key is being
+    published. Yields ``{"router", "deployment", "tmp", "proc"}``; SIGINT (then SIGKILL) on exit."""
+    text = (ROOT / "deploy/sim.toml").read_text()
+    router = free_endpoint()
+    text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
+    text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
+    # The same cell whether or not this checkout has trained a policy: the naive fallback (the
+    # learned service has its own contract test).
+    text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
+    text = re.sub(r"port = 8080", f"port = {free_port()}", text)
+    text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
+    deployment = tmp / "sim.toml"
+    deployment.write_text(text)
+    log = (tmp / "up.log").open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    registered = {s.key for s in keys.REGISTRY}
+
+    def missing() -> set[str]:
+        reports = query_router(router, "xm/**/@health") if proc.poll() is None else []
+        return registered - {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
+
+    try:
+        wait_until(lambda: not missing(), timeout, lambda: f"the workcell to publish every registered key; missing "
+                   f"{sorted(missing())}; log: {(tmp / 'up.log').read_text()[-3000:]}", period=1.0)
+        yield {"router": router, "deployment": deployment, "tmp": tmp, "proc": proc}
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+        log.close()
+
+
 def run_xm(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     """``xm <args>`` as a subprocess from the repository root, output captured as text."""
     return subprocess.run([sys.executable, "-m", "shared.cli", *args], cwd=ROOT, capture_output=True,
                           text=True, timeout=timeout)
+
+
+class BoardHost:
+    """The test as the host on a control board's serial port (the world's simulated board): it sends
+    command frames and collects the board's feedback (``feedback``, in arrival order)."""
+
+    COMMAND_PERIOD_S = 0.004  # the robot service's 250 Hz
+
+    def __init__(self, port: Path) -> None:
+        self.port = serial.Serial(str(port), timeout=0)
+        self.decoder = rb.StreamDecoder()
+        self.feedback: list[rb.FeedbackFrame] = []
+
+    def read(self) -> None:
+        self.feedback += [m for m in self.decoder.feed(self.port.read(65536)) if isinstance(m, rb.FeedbackFrame)]
+
+    def stream(self, cmd: rb.CommandFrame | None, until: Callable[[], Any], timeout: float, what: str) -> Any:
+        """Sends ``cmd`` every command period, its sequence counting up (None: silence), reading the
+        feedback, until ``until()`` is true; fails the test after ``timeout`` s."""
+        def step() -> Any:
+            if cmd is not None:
+                self.port.write(rb.encode_command(cmd))
+                cmd.sequence += 1
+            self.read()
+            return until()
+
+        return wait_until(step, timeout, what, period=self.COMMAND_PERIOD_S)
+
+    def brake_trial(self, cmd: rb.CommandFrame, stream_s: float) -> float:
+        """A command stream of ``stream_s`` seconds, then silence: the board time (s) from the last
+        command to the board's first brake report that names it."""
+        t_end = time.monotonic() + stream_s
+        self.stream(cmd, lambda: time.monotonic() > t_end, stream_s + 5, "the end of the command stream")
+        final = cmd.sequence - 1
+        # Matched by sequence: under CPU load the report may already have come during the stream.
+        brake = self.stream(None, lambda: next((m for m in self.feedback if m.watchdog_expired and
+                                                m.last_command_sequence == final), None),
+                            5.0, f"the board's brake report after command {final}")
+        return (brake.timestamp_us - brake.last_command_us) * 1e-6
+
+    def close(self) -> None:
+        self.port.close()

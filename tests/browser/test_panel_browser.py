@@ -13,7 +13,7 @@ import pytest
 
 from shared import msgs
 from tests.browser._cdp import Chromium, find_chromium
-from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, write_deployment
+from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
 from tests.contract.test_panel_contract import camera_info, joint_state, plan, scene, tactile
 
 CHROMIUM = find_chromium()
@@ -84,12 +84,13 @@ def test_panel_renders_and_records_in_headless_chromium(router, tmp_path):
             "the recorder's reply never appeared in the panel"
         assert requests == [{"keys": "xm/**"}]
 
-        time.sleep(1.0)  # let the software renderer settle a frame with everything in it
-        shot = browser.screenshot(tmp_path / "panel.png")
-        pixels = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(float)
-        assert pixels.std() > 5.0, "screenshot is blank"
-        viewport = pixels[150:-150, 300:900]  # the 3D view, clear of the GUI panel and notifications
-        assert (np.abs(viewport - 255).sum(axis=2) > 60).mean() > 0.01, "the 3D view draws nothing"
+        def drawn_screenshot():  # the software renderer takes a few frames to show everything
+            shot = browser.screenshot(tmp_path / "panel.png")
+            pixels = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(float)
+            viewport = pixels[150:-150, 300:900]  # the 3D view, clear of the GUI panel and notifications
+            return shot if pixels.std() > 5.0 and (np.abs(viewport - 255).sum(axis=2) > 60).mean() > 0.01 else None
+
+        shot = wait_until(drawn_screenshot, 20, "a screenshot that is not blank and draws the 3D view", period=0.5)
         (ROOT / ".cache").mkdir(exist_ok=True)
         shutil.copy(shot, ROOT / ".cache" / "panel.png")
         health = query_json(session, "xm/panel/main/@health")[0]

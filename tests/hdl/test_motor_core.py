@@ -10,52 +10,35 @@ logic does not depend on P.
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import sys
 from pathlib import Path
 
-import pytest
+from tests.hdl._cocotb import HDL_MARKS, ROOT, run_cocotb
 
-ROOT = Path(__file__).resolve().parents[2]
 HDL = ROOT / "hdl" / "motor"
 AXIS_SOURCES = ["motor_axis.v", "motor_watchdog.v", "encoder_spi.v", "pid_axis.v", "commutation.v", "sine_rom.v",
                 "pwm_center.v"]
 CLK_PER_US = 2
-needs_iverilog = pytest.mark.skipif(shutil.which("iverilog") is None,
-                                    reason="iverilog not installed (apt-get install -y iverilog)")
+pytestmark = HDL_MARKS
 
 
 def run(tmp_path: Path, toplevel: str, sources: list[str], params: dict, tests: list[str]) -> None:
-    from cocotb_tools.runner import get_results, get_runner
-
-    runner = get_runner("icarus")
-    runner.build(sources=[HDL / s for s in sources], hdl_toplevel=toplevel, build_dir=tmp_path, always=True,
-                 parameters=params, timescale=("1ns", "1ps"))
-    env = {"PYTHONPATH": os.pathsep.join([str(ROOT), str(Path(__file__).parent)] + sys.path)}
-    results = runner.test(hdl_toplevel=toplevel, test_module="test_motor_core", testcase=tests,
-                          build_dir=tmp_path, test_dir=tmp_path, extra_env=env)
-    total, failed = get_results(results)
-    assert total == len(tests) and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
+    run_cocotb([HDL / s for s in sources], toplevel, "test_motor_core", tmp_path, len(tests), params, tests)
 
 
-@needs_iverilog
 def test_watchdog_fires_at_10_ms(tmp_path):
     run(tmp_path, "motor_watchdog", ["motor_watchdog.v"], {"CLK_PER_US": CLK_PER_US}, ["watchdog_10ms"])
 
 
-@needs_iverilog
 def test_commutation_phases(tmp_path):
     run(tmp_path, "commutation", ["commutation.v", "sine_rom.v"], {"POLE_PAIRS": 4},
         ["commutation_bit_exact", "commutation_120_degrees"])
 
 
-@needs_iverilog
 def test_pwm_symmetry_duty_deadtime(tmp_path):
     run(tmp_path, "pwm_center", ["pwm_center.v"], {"W": 11, "DEADTIME": 3}, ["pwm_periods"])
 
 
-@needs_iverilog
 def test_axis_encoder_brake_and_drive(tmp_path):
     run(tmp_path, "motor_axis", AXIS_SOURCES, {"CLK_PER_US": CLK_PER_US, "SPI_HALF": 2, "DEADTIME": 3},
         ["axis_end_to_end"])

@@ -8,15 +8,10 @@ within 5 % of the matrix's largest cell admittance, from one 1024-sample window.
 
 from __future__ import annotations
 
-import os
-import shutil
-import sys
-from pathlib import Path
-
 import numpy as np
-import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.hdl._cocotb import HDL_MARKS, ROOT, run_cocotb
+
 HDL = ROOT / "hdl" / "tactile"
 NTX = NRX = 4
 UART_DIV = 4
@@ -26,20 +21,13 @@ WINDOW = 1024
 CYCLES = [3, 5, 7, 11]  # cycles per window: high oversampling, as the real modulators run at MHz
 
 
-@pytest.mark.skipif(shutil.which("iverilog") is None, reason="iverilog not installed (apt-get install -y iverilog)")
-def test_core_registers_and_impedances(tmp_path):
-    from cocotb_tools.runner import get_results, get_runner
+pytestmark = HDL_MARKS
 
+
+def test_core_registers_and_impedances(tmp_path):
     params = {"NTX": NTX, "NRX": NRX, "UART_DIV": UART_DIV, "CLK_PER_US": 10,
               "LUT_FILE": f'"{HDL / "sine_lut.hex"}"'}
-    runner = get_runner("icarus")
-    runner.build(sources=[HDL / s for s in SOURCES], hdl_toplevel="tactile_core", build_dir=tmp_path, always=True,
-                 parameters=params, timescale=("1ns", "1ps"))
-    env = {"PYTHONPATH": os.pathsep.join([str(ROOT), str(Path(__file__).parent)] + sys.path)}
-    results = runner.test(hdl_toplevel="tactile_core", test_module="test_tactile_core", build_dir=tmp_path,
-                          test_dir=tmp_path, extra_env=env)
-    total, failed = get_results(results)
-    assert total == 5 and failed == 0, f"{failed} of {total} cocotb tests failed; log in {tmp_path}"
+    run_cocotb([HDL / s for s in SOURCES], "tactile_core", "test_tactile_core", tmp_path, expect=5, parameters=params)
 
 
 # ---- cocotb side (runs inside the simulator; no test_ prefix so pytest does not collect it) ----

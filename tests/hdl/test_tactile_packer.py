@@ -4,43 +4,19 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import sys
-from pathlib import Path
 
-import pytest
+from tests.hdl._cocotb import HDL_MARKS, ROOT, run_cocotb
 
-ROOT = Path(__file__).resolve().parents[2]
 HDL = ROOT / "hdl" / "tactile"
 VECTORS = ROOT / "shared" / "protocols" / "vectors" / "tactile.json"
 
 
-def run_cocotb(toplevel: str, sources: list[str], test_module: str, build: Path,
-               parameters: dict | None = None) -> None:
-    from cocotb_tools.runner import get_runner
-
-    runner = get_runner("icarus")
-    runner.build(sources=[HDL / s for s in sources], hdl_toplevel=toplevel, build_dir=build, always=True,
-                 parameters=parameters or {}, timescale=("1ns", "1ps"))
-    results = runner.test(hdl_toplevel=toplevel, test_module=test_module, build_dir=build, test_dir=build,
-                          parameters=parameters or {},
-                          extra_env={"PYTHONPATH": os.pathsep.join([str(ROOT), str(Path(__file__).parent)] +
-                                                                   sys.path)})
-    from cocotb_tools.runner import get_results
-
-    total, failed = get_results(results)
-    assert total > 0 and failed == 0, f"{failed} of {total} cocotb tests failed; see {build}"
+pytestmark = HDL_MARKS
 
 
-needs_iverilog = pytest.mark.skipif(shutil.which("iverilog") is None,
-                                    reason="iverilog not installed (apt-get install -y iverilog)")
-
-
-@needs_iverilog
 def test_packer_bytes_match_the_vectors(tmp_path):
-    run_cocotb("tb_packer", ["tb_packer.v", "tactile_packer.v", "tactile_framer.v", "crc32.v"], "test_tactile_packer",
-               tmp_path)
+    run_cocotb([HDL / s for s in ("tb_packer.v", "tactile_packer.v", "tactile_framer.v", "crc32.v")], "tb_packer",
+               "test_tactile_packer", tmp_path, expect=2)
 
 
 # ---- cocotb side (runs inside the simulator; not collected by pytest: no test_ prefix) ----

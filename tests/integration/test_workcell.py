@@ -1,103 +1,50 @@
 """The whole simulated workcell through the supervisor: record, read back with stock readers,
-kill -9 a service and see it come back."""
+kill -9 a service and see it come back. The recorded rates against the nominal ones: bench/workcell.py."""
 
 from __future__ import annotations
 
-import json
 import os
-import re
 import signal
-import socket
 import subprocess
 import sys
-import time
 from collections import defaultdict
-from pathlib import Path
 
-import numpy as np
 import pytest
+from mcap_ros2.reader import read_ros2_messages
+from rosbags.highlevel import AnyReader
 
 from shared import keys
+from shared.msgs import typestore
+from tests.conftest import ROOT, query_router, sim_workcell, wait_until
 
-ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def query(router: str, selector: str, timeout: float = 3.0) -> list[dict]:
-    import zenoh
-
-    from shared.runtime import open_client
-
-    try:
-        session = open_client(router)
-    except zenoh.ZError:  # router not up yet
-        return []
-    try:
-        return [json.loads(r.ok.payload.to_bytes()) for r in session.get(selector, timeout=timeout) if r.ok]
-    finally:
-        session.close()
 
 
 @pytest.fixture(scope="module")
 def workcell(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("workcell")
-    text = (ROOT / "deploy/sim.toml").read_text()
-    router = f"tcp/127.0.0.1:{free_port()}"
-    text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
-    text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
-    # The same cell whether or not this checkout has trained a policy: the naive fallback (the
-    # learned service has its own contract test).
-    text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
-    text = re.sub(r"port = 8080", f"port = {free_port()}", text)
-    text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
-    deployment = tmp / "sim.toml"
-    deployment.write_text(text)
-    log = (tmp / "up.log").open("w")
-    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        deadline = time.time() + 90
-        while time.time() < deadline:  # up when every registered key is being published
-            reports = query(router, "xm/**/@health") if proc.poll() is None else []
-            published = {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
-            if {s.key for s in keys.REGISTRY} <= published:
-                break
-            time.sleep(2)
-        else:
-            pytest.fail(f"workcell did not come up; missing {sorted({s.key for s in keys.REGISTRY} - published)}; "
-                        f"log: {(tmp / 'up.log').read_text()[-3000:]}")
-        yield {"router": router, "deployment": deployment, "tmp": tmp, "proc": proc}
-    finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-        log.close()
+    with sim_workcell(tmp_path_factory.mktemp("workcell")) as cell:
+        yield cell
 
 
-def test_recording_decodes_with_stock_readers_at_nominal_rates(workcell):
-    out = workcell["tmp"] / "ten_seconds.mcap"
+def stamp_of(ros_msg) -> float:
+    """The header stamp, or a Clock message's time (in the deployment's time base: sim time)."""
+    header = getattr(ros_msg, "header", None)
+    t = header.stamp if header is not None else ros_msg.clock
+    return t.sec + t.nanosec * 1e-9
+
+
+def record(workcell, seconds: float, name: str):
+    out = workcell["tmp"] / name
     subprocess.run([sys.executable, "-m", "shared.cli", "record", "--deployment", str(workcell["deployment"]),
-                    "--duration", "10", "-o", str(out)], cwd=ROOT, check=True, timeout=60)
-    from mcap_ros2.reader import read_ros2_messages
+                    "--duration", str(seconds), "-o", str(out)], cwd=ROOT, check=True, timeout=60 + seconds)
+    return out
 
+
+def test_recording_decodes_with_stock_readers_every_key_in_order(workcell):
+    out = record(workcell, 10, "ten_seconds.mcap")
     stamps: dict[str, list[float]] = defaultdict(list)
     for m in read_ros2_messages(str(out)):
-        header = getattr(m.ros_msg, "header", None)
-        t = (header.stamp.sec + header.stamp.nanosec * 1e-9) if header is not None else \
-            (m.ros_msg.clock.sec + m.ros_msg.clock.nanosec * 1e-9)
-        stamps[m.channel.topic].append(t)
-    from rosbags.highlevel import AnyReader
-
-    from shared.msgs import typestore
-
+        stamps[m.channel.topic].append(stamp_of(m.ros_msg))
     rosbags_counts: dict[str, int] = defaultdict(int)
     with AnyReader([out], default_typestore=typestore()) as reader:
         for conn, _, raw in reader.messages():
@@ -105,34 +52,34 @@ def test_recording_decodes_with_stock_readers_at_nominal_rates(workcell):
             rosbags_counts[conn.topic] += 1
     problems = []
     for spec in keys.REGISTRY:
-        ts = sorted(stamps.get(spec.key, []))
+        ts = stamps.get(spec.key, [])
         if rosbags_counts.get(spec.key, 0) != len(ts):
             problems.append(f"{spec.key}: rosbags read {rosbags_counts.get(spec.key, 0)}, mcap_ros2 {len(ts)}")
         if len(ts) < 3:
             problems.append(f"{spec.key}: only {len(ts)} messages")
-            continue
-        rate = (len(ts) - 1) / (ts[-1] - ts[0])  # in the deployment's time base (sim time)
-        low, high = 0.8 * spec.rate_hz, (np.inf if spec.on_change else 1.2 * spec.rate_hz)
-        if not low <= rate <= high:
-            problems.append(f"{spec.key}: {rate:.1f} Hz, nominal {spec.rate_hz} Hz")
+        elif ts != sorted(ts) or ts[-1] <= ts[0]:
+            problems.append(f"{spec.key}: stamps out of order or not advancing: {ts[:5]} ... {ts[-5:]}")
     assert not problems, "\n".join(problems)
 
 
 def test_killed_service_is_restarted_and_publishes_again(workcell):
     router = workcell["router"]
-    sup = next(r for r in query(router, "xm/deploy/supervisor/@health"))
-    child = next(c for c in sup["children"] if c["service"] == "recon")
+
+    def recon() -> dict | None:
+        sup = next(iter(query_router(router, "xm/deploy/supervisor/@health")), None)
+        return next((c for c in sup["children"] if c["service"] == "recon"), None) if sup else None
+
+    child = recon()
     os.kill(child["pid"], signal.SIGKILL)
-    deadline = time.time() + 30
-    while time.time() < deadline:
-        time.sleep(1)
-        sup = next(iter(query(router, "xm/deploy/supervisor/@health")), None)
-        now = next((c for c in sup["children"] if c["service"] == "recon"), None) if sup else None
-        if now and now["restarts"] >= 1 and now["pid"] and now["pid"] != child["pid"]:
-            health = query(router, "xm/recon/main/@health")
-            if health and health[0]["published_hz"].get("xm/recon/main/scene", 0) > 0:
-                return
-    pytest.fail(f"recon was not restarted and publishing within 30 s: {now}")
+
+    def restarted_and_publishing() -> bool:
+        now = recon()
+        if not (now and now["restarts"] >= 1 and now["pid"] and now["pid"] != child["pid"]):
+            return False
+        health = query_router(router, "xm/recon/main/@health")
+        return bool(health) and health[0]["published_hz"].get("xm/recon/main/scene", 0) > 0
+
+    wait_until(restarted_and_publishing, 30, lambda: f"recon restarted and publishing: {recon()}", period=1.0)
 
 
 def test_status_lists_every_service(workcell):

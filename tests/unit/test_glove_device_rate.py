@@ -1,18 +1,26 @@
 """The world's simulated readout module frames at the core's period, window x tick_div / f_clk."""
 
-import time
-
 import numpy as np
 import serial
 
 from services.world.devices import GloveDevice
 from services.world.sim import TACTILE_REGIONS
 from shared.protocols import tactile
+from tests.conftest import wait_until
 
 
-def _frames(port: serial.Serial, decoder: tactile.StreamDecoder) -> list:
-    time.sleep(0.002)  # through the pty
-    return [m for m in decoder.feed(port.read(port.in_waiting)) if isinstance(m, tactile.TactileFrame)]
+def _received(port: serial.Serial, decoder: tactile.StreamDecoder, kind: type, what: str, device=None) -> list:
+    """Waits until at least one message of ``kind`` came through the pty (polling ``device`` meanwhile,
+    as the world does every tick); returns those decoded."""
+    got: list = []
+
+    def arrived() -> list:
+        if device is not None:
+            device.poll()
+        got.extend(m for m in decoder.feed(port.read(port.in_waiting)) if isinstance(m, kind))
+        return got
+
+    return wait_until(arrived, 5.0, what)
 
 
 def test_frame_period_follows_the_window_and_tick_div_registers(tmp_path):
@@ -29,7 +37,8 @@ def test_frame_period_follows_the_window_and_tick_div_registers(tmp_path):
             for t in t0 + np.arange(int(round(seconds * 1000))) * 1e-3:  # world ticks of 1 ms
                 if device.due(t):
                     device.emit(t, forces)
-                    frames += _frames(host, decoder)  # the host keeps up, as the glove service does
+                    # the host keeps up, as the glove service does: one window, one frame
+                    frames += _received(host, decoder, tactile.TactileFrame, f"the frame of the window at {t:.3f} s")
                 else:
                     device.poll()
             return frames
@@ -38,10 +47,8 @@ def test_frame_period_follows_the_window_and_tick_div_registers(tmp_path):
         assert np.allclose(np.diff([f.timestamp_us for f in first]), 10_000, atol=1)
         host.write(tactile.encode_write(tactile.REG_WINDOW, 128))  # the host halves the window
         host.flush()
-        time.sleep(0.05)  # through the pty
-        device.poll()
-        replies = [m for m in decoder.feed(host.read(64)) if isinstance(m, tactile.RegisterReply)]
-        assert replies and replies[0].value == 128
+        replies = _received(host, decoder, tactile.RegisterReply, "the reply to the window write", device)
+        assert [r.value for r in replies] == [128]
         second = run(0.2, 0.2)
         assert np.allclose(np.diff([f.timestamp_us for f in second[1:]]), 5_000, atol=1)
         assert len(second) >= 2 * len(first) - 2

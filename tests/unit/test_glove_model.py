@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from services.glove.calibration import Calibration, fit_linear, fit_rational, plot_fit, rational, report
 from services.glove.layout import (
@@ -78,9 +79,5 @@ def test_calibration_save_load_round_trip_and_bad_file(tmp_path):
     np.testing.assert_array_equal(back.pressure(z), cal.pressure(z))
     assert back.pressure(z).dtype == np.float32 and np.all(back.pressure(z)[CELL_MASK == 0] == 0)
     (tmp_path / "bad.json").write_text("{}")
-    try:
+    with pytest.raises(ValueError, match="not a glove calibration"):
         Calibration.load(tmp_path / "bad.json")
-    except ValueError as exc:
-        assert "not a glove calibration" in str(exc)
-    else:
-        raise AssertionError("no error for a bad calibration file")

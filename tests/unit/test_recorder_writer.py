@@ -169,7 +169,7 @@ def test_a_process_killed_mid_recording_leaves_a_readable_file(tmp_path):
         for i in range(200):
             rec.write("{KEY}", "{TACTILE}", tactile(i))
             if i == 120:
-                time.sleep(0.1)  # the next write flushes 0..120
+                time.sleep(0.1)  # flush_s is a time: once it has passed, the next write flushes 0..120
         os._exit(9)  # no close(): no summary, no footer
     """)
     subprocess.run([sys.executable, "-c", script], cwd=ROOT, check=False, timeout=60)

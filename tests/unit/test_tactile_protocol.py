@@ -1,4 +1,5 @@
-"""Tactile protocol v2 against its committed vectors, plus property tests of the decoder."""
+"""Tactile protocol v2 against its committed vectors, plus its own decoder properties (those every
+stream decoder shares are in test_protocols.py)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from shared.protocols import tactile
+from tests.unit.test_protocols import accounted
 
 CASES = json.loads(tactile.VECTORS_PATH.read_text())
 FRAME_CASES = [c for c in CASES if "real" in c]
@@ -126,25 +128,6 @@ def test_register_file_model():
     assert [(c.address, c.value) for c in cmds] == [(0x104, 77), (0, None)]
 
 
-def accounted(decoder: tactile.StreamDecoder) -> int:
-    """Every byte fed is in a good frame, discarded (and counted), or still buffered."""
-    s = decoder.stats
-    return s["frame_bytes"] + s["bytes_discarded"] + len(decoder.frames.buffer)
-
-
-@settings(max_examples=150, deadline=None)
-@given(st.lists(st.one_of(st.binary(max_size=300), st.sampled_from(FRAMES)), max_size=10),
-       st.integers(min_value=1, max_value=700))
-def test_decoder_never_raises_and_counts_every_rejected_byte(chunks, split):
-    stream = b"".join(chunks)
-    decoder = tactile.StreamDecoder()
-    out = []
-    for i in range(0, len(stream), split):  # arbitrary read boundaries
-        out += decoder.feed(stream[i:i + split])
-    assert accounted(decoder) == len(stream)
-    assert len(out) <= sum(1 for c in chunks if c in FRAMES)  # garbage never passes the CRC
-
-
 @settings(max_examples=150, deadline=None)
 @given(st.sampled_from(FRAMES), st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), min_size=1,
                                         max_size=8))
@@ -162,13 +145,3 @@ def test_mutated_frames_are_rejected_and_the_next_good_frame_recovered(frame, fl
         assert decoder.stats["bytes_discarded"] > 0 or decoder.stats["malformed"] > 0
     assert all(isinstance(o, tactile.TactileFrame) for o in out)
     assert accounted(decoder) == n * len(frame) + len(data)
-
-
-@settings(max_examples=150, deadline=None)
-@given(st.binary(max_size=2000), st.sampled_from(FRAMES))
-def test_a_good_frame_after_any_garbage_is_recovered(garbage, frame):
-    decoder = tactile.StreamDecoder()
-    # A partial frame inside the garbage can hide at most one following frame: send three.
-    out = decoder.feed(garbage + frame + frame + frame)
-    assert len(out) >= 2
-    assert accounted(decoder) == len(garbage) + 3 * len(frame)

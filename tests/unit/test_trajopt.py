@@ -28,6 +28,12 @@ def home(left_y: float = 0.15, right_y: float = -0.15, z: float = 0.15) -> np.nd
     return q
 
 
+def at_rest(opt, q0):
+    """The optimizer reset and the robot standing at q0: the executing trajectory and goals where it is."""
+    opt.reset()
+    return np.repeat(q0[None], K, 0), np.repeat(opt.points(q0)[None], K, 0)
+
+
 def run(opt, cur, goals, mask, steps):
     results = []
     for _ in range(steps):
@@ -69,10 +75,8 @@ def test_tracks_moving_reachable_goals_within_joint_velocity_and_acceleration_li
 
 def test_a_goal_step_is_followed_at_the_velocity_limit(workcell):
     model, opt = workcell
-    opt.reset()
     q0 = home()
-    cur = np.repeat(q0[None], K, 0)
-    goals = np.repeat(opt.points(q0)[None], K, 0)
+    cur, goals = at_rest(opt, q0)
     goals[:, 2, 0] += 0.2  # right finger: 20 cm forward at once
     r = run(opt, cur, goals, np.ones((K, 3), bool), 1)[0]
     assert r.ok
@@ -83,10 +87,8 @@ def test_a_goal_step_is_followed_at_the_velocity_limit(workcell):
 
 def test_separating_planes_keep_the_arms_apart_when_goals_would_make_them_collide(workcell):
     model, opt = workcell
-    opt.reset()
     q0 = home(left_y=0.05)
-    cur = np.repeat(q0[None], K, 0)
-    goals = np.repeat(opt.points(q0)[None], K, 0)
+    cur, goals = at_rest(opt, q0)
     goals[:, 2] = [0.0, 0.04, 0.12]  # the right finger wants the left carriage's place
     results = run(opt, cur, goals, np.ones((K, 3), bool), 30)
     assert all(r.ok for r in results), [r.reason for r in results if not r.ok]
@@ -108,10 +110,8 @@ def test_the_next_cycle_reuses_the_planes_of_its_shifted_knots_exactly(workcell)
     """A cycle that starts from the last iterate shifted by whole knots takes its separating planes
     from the last final pass; they must equal a fresh GJK/EPA pass at those configurations."""
     model, opt = workcell
-    opt.reset()
     q0 = home(left_y=0.05)
-    cur = np.repeat(q0[None], K, 0)
-    goals = np.repeat(opt.points(q0)[None], K, 0)
+    cur, goals = at_rest(opt, q0)
     goals[:, 2] = [0.0, 0.04, 0.12]  # contact between the arms: slots in use
     F = opt.cfg.fixed_knots
     for shift in (1, 3, 0):
@@ -163,10 +163,8 @@ def test_buffered_calls_give_the_values_of_ordinary_calls(workcell):
 
 def test_masked_goals_are_ignored_even_when_nan(workcell):
     _, opt = workcell
-    opt.reset()
     q0 = home()
-    cur = np.repeat(q0[None], K, 0)
-    goals = np.repeat(opt.points(q0)[None], K, 0)
+    cur, goals = at_rest(opt, q0)
     goals[:, 2] = np.nan
     mask = np.ones((K, 3), bool)
     mask[:, 2] = False

@@ -89,5 +89,6 @@ def test_the_grip_axis_point_gives_the_gripper_yaw_a_lever():
     np.testing.assert_allclose(plan.positions[0, -1], [0.0, 0.0025 + GRIP_AXIS, 0.01])
     assert plan.mask[:, -1].tolist() == [True, True, False]  # needs both fingertips
     goals, gmask = goals_for_horizon(PlanArrays(0.0, 0.1, names, pos, mask), ["left/grip_axis"], 0.0, 0.1, 2)
-    np.testing.assert_allclose(goals[0, 0], plan.positions[0, -1]) and gmask[0, 0]
+    np.testing.assert_allclose(goals[0, 0], plan.positions[0, -1])
+    assert gmask[0, 0]
     assert with_grip_axis(PlanArrays(0.0, 0.1, ["right/8"], pos[:, 2:], mask[:, 2:])).names == ["right/8"]
