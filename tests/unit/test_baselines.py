@@ -19,7 +19,8 @@ def demos():
     return synthetic_protocol(train=3, validation=2, steps=40)
 
 
-@pytest.mark.parametrize("name", BASELINES)
+@pytest.mark.parametrize("name", [pytest.param(b, marks=pytest.mark.slow) if b == "single_state" else b
+                                  for b in BASELINES])  # single_state trains our network: ~18 s
 def test_every_baseline_fits_and_rolls_out(name, demos):
     train, val = demos[:3], demos[3:]
     method = make(name, quick=True)

@@ -168,6 +168,7 @@ def test_the_lift_anchor_raises_the_mated_module_as_high_as_every_demonstration_
     assert state.mated_s == 0.0 and not state.mated and state.mated_at is None
 
 
+@pytest.mark.slow
 def test_anchors_recover_a_teacher_whose_hand_is_off_by_two_centimetres(monkeypatch, demos):
     """Physically, in the loop: the teacher's own grasping hand displaced by 2 cm misses the lens
     and nothing is assembled; with the anchors the same hand grasps, places, presses and lifts."""

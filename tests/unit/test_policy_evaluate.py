@@ -23,6 +23,7 @@ def demos():
     return assembly_protocol(0)
 
 
+@pytest.mark.slow
 def test_merge_keeps_earlier_rows_and_replaces_rerun_ones(tmp_path, demos):
     first = evaluate(methods=["naive", "promp_simple"], out_dir=tmp_path, quick=True, progress=False, demos=demos)
     again = evaluate(methods=["naive"], out_dir=tmp_path, quick=True, progress=False, demos=demos, merge=True)
@@ -34,6 +35,7 @@ def test_merge_keeps_earlier_rows_and_replaces_rerun_ones(tmp_path, demos):
     assert list(alone) == ["naive"]
 
 
+@pytest.mark.slow
 def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
     first = evaluate(methods=["naive", "dmp"], out_dir=tmp_path, quick=True, progress=False, demos=demos)
     assert rescore(tmp_path, 0, demos) == first
@@ -57,6 +59,7 @@ def test_rescore_reads_the_saved_rollouts_back(tmp_path, demos):
         rescore(tmp_path, 0, demos)
 
 
+@pytest.mark.slow
 def test_xm_train_teacher_keeps_the_final_weights_unless_told(tmp_path):
     """`xm train --teacher S` keeps the validation layouts unseen (as row (1) of `xm eval`), so the
     robot loop on them is out of sample; --select validation picks on them instead."""
@@ -67,6 +70,7 @@ def test_xm_train_teacher_keeps_the_final_weights_unless_told(tmp_path):
     assert json.loads((tmp_path / "b" / "train.json").read_text())["selection_demos"] == 12
 
 
+@pytest.mark.slow
 def test_selection_keeps_the_best_held_out_checkpoint_and_otherwise_the_last():
     """With held-out demos every scored checkpoint competes; without, only the final one is scored and kept."""
     train_d, val_d = split(assembly_protocol(0))
@@ -79,6 +83,7 @@ def test_selection_keeps_the_best_held_out_checkpoint_and_otherwise_the_last():
     assert [e["step"] for e in final.evals] == [6] and final.best_step == 6
 
 
+@pytest.mark.slow
 def test_a_training_draw_changes_the_learned_rows_and_only_them(tmp_path, demos):
     """--draw K trains from other random numbers: another net for our rows, the same for draw 0
     run twice, and the deterministic baselines unchanged."""
@@ -106,6 +111,7 @@ def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
     assert "--catch-mm must be 0 or a positive" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_xm_eval_keeps_the_net_it_scored(tmp_path, demos):
     """policy_<row>.pt is the very net of the row: reloaded, it scores the same; baselines leave none."""
     rows = evaluate(methods=["single_state", "promp_simple"], out_dir=tmp_path, quick=True, progress=False,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 
 import evaluation.evaluate as ev
@@ -126,6 +127,7 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
     assert calls == [3, 4] and report["success_rate"] == 0.5
 
 
+@pytest.mark.slow
 def test_the_cell_assembles_the_camera_with_the_teachers_own_hands(tmp_path):
     """Everything but the policy, physically: the gripper reaches the 4 mm lens body, grasps and
     carries the 3 g module, the wrist follows the pinch's yaw, the connector is placed within 3 mm,
