@@ -316,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--catch-mm", type=float, default=30.0,
                         help="--execute: hand feedback starts only once the gripper has come this close to the "
                         "policy's own hand (the gripper starts where no demonstrated hand was; docs/policy.md, "
-                        "Sessions 17 and 24); 0: from the first step (default %(default)s)")
+                        "Robot in the loop); 0: from the first step (default %(default)s)")
     parser.add_argument("--anchors", action=argparse.BooleanOptionalAction, default=True,
                         help="--execute: contact anchors mined from the training demonstrations (grasp point and "
                         "heading, connector mate, pressures; docs/policy.md) close the last centimetres; "

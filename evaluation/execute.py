@@ -70,7 +70,7 @@ PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compet
 HOLD_M = 0.008  # the gripper holds the module: shut, with the grasp point this close to its pads
 LOST_M = 0.02  # ... and has lost it when the point is this far from them
 # of the demonstrated pressure: predicted touch switches contact on / off (the nets predict 10-25 % of the
-# demonstrated peak at a grasp; at 0.1 a weakly predicted mirrored grasp never closed: docs/policy.md, Session 19)
+# demonstrated peak at a grasp; at 0.1 a weakly predicted mirrored grasp never closed)
 TOUCH_ON, TOUCH_OFF = 0.05, 0.025
 TOUCH_RAMP_S = 0.3  # the demonstrations' grasp force ramps in over 0.3 s
 GRIP_SETTLE_S = 0.6  # held once shut this long on the grasp point (the gripper dwells there until then)
@@ -216,7 +216,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     module is held, onto the placement that brings its mate point to the observed target.
     ``horizon_dt``: the step of the policy's horizon rollouts (default its sample period; the
     optimizer's knot spacing, 7.16's keyframes, takes 2.5 times fewer network passes but measured
-    10 / 12 against 12 / 12 on seed 1, docs/policy.md Session 14).
+    10 / 12 against 12 / 12 on seed 1).
     ``catch_m``: with feedback, the grasping hand is observed at the gripper only from when the pads
     first come this close to the policy's own pinch (None: from the first step). The gripper starts
     where no demonstrated hand was; until it has caught up with the policy's hand it follows the

@@ -8,8 +8,8 @@ where the validation (reference) trajectory observed it, on both sides: the refe
 their flags, the prediction's by the reference's flag at the same time step (the rollout starts
 where the reference starts and runs as long). A prediction sample during an occlusion of the
 reference says nothing about where that point was seen, so it is not compared to the seen samples
-(until session 12 it was, which scored a method that keeps an object still while it is occluded
-above one that carries it: docs/policy.md, Session 13).
+(comparing it would score a method that keeps an object still while it is occluded above one that
+carries it).
 """
 
 from __future__ import annotations

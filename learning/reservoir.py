@@ -6,7 +6,7 @@ velocities, H_t = H_{t,+1} + H_{t,-1}. W_R is a random orthogonal matrix scaled 
 A random orthogonal matrix turns nearly all of its state quickly (rotation periods of a few
 steps) and keeps one slow direction, chosen by chance; ``periods`` instead fixes the
 rotation periods, spread log-evenly, and leaves only the eigenbasis random (docs/policy.md,
-Session 16).
+Evidence).
 
 Because the map is linear, a rotation of the velocities about gravity by angle a gives
 H = cos(a) H_xy + sin(a) H_perp + H_z, so rotated activations are precomputed exactly

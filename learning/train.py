@@ -5,7 +5,7 @@ with held-out demonstrations, in the schedule's second part (from ``eval_from``)
 ``eval_every`` steps a neural-simulation rollout from each of their start states scored with the
 Table 7.1 distance; the best checkpoint is kept. Without held-out demonstrations the final
 (averaged) weights are kept: rollouts from the training starts cannot tell checkpoints apart
-(docs/policy.md, Session 15). The checkpoint (state_dict + JSON config) loads with
+(docs/policy.md, Evidence). The checkpoint (state_dict + JSON config) loads with
 ``torch.load(weights_only=True)``; a loss-curve PNG and train.json go beside it.
 """
 

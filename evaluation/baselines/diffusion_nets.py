@@ -70,7 +70,7 @@ class ConditionalUnet1D(nn.Module):
         # a full-resolution level for the first skip, which Chi et al.'s net leaves unused: without it
         # every input value passes a down_dims[0] x horizon/2 bottleneck (160 x 8 = 1280 here), fewer
         # values than a chunk of our 150-D actions has (16 x 150 = 2400), and the net cannot even
-        # predict the noise it is given (training loss stayed at 1.0; docs/policy.md, Session 9)
+        # predict the noise it is given (training loss stays at 1.0; docs/baselines.md)
         d0 = down_dims[0]
         self.up.append(nn.ModuleList([FiLMResBlock(2 * d0, d0, c, kernel, groups),
                                       FiLMResBlock(d0, d0, c, kernel, groups), nn.Identity()]))
