@@ -4,8 +4,9 @@ Table top at z=0, the robot from shared/robots/<robot>.urdf (the deployment pick
 ``workcell`` by default, or the 6-DoF arm with a four-finger hand ``hand_arm``) with a motor per
 actuated joint (the control-board simulator computes the efforts; MuJoCo's URDF importer turns each
 ``<mimic>`` into a joint equality, so coupled joints have no motor), task objects as free bodies, the
-teacher's hand keypoints as mocap spheres (visual only), and 7 cameras on the top of an 80 cm cube
-frame.
+teacher's hand keypoints as mocap spheres (visual only), a ChArUco calibration board as a mocap
+plate (hidden under the table until ``xm calibrate`` moves it), and 7 cameras on the top of an
+80 cm cube frame.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from shared.charuco import BoardSpec
 from shared.geometry import look_at
 from shared.kinematics import ROBOTS_DIR, load_robot
 
@@ -27,6 +29,8 @@ LATCH = "connector_latch"  # weld equality camera -> board
 # default 20 ms time constant a gripper squeezing a 3 g module sinks millimetres into it; the
 # shortest time constant the step allows keeps that to a fraction of a millimetre.
 OBJECT_SOLREF = [2 * PHYSICS_DT, 1.0]
+CALIB_BOARD = "calib_board"  # mocap body whose frame is the board frame of shared/charuco.py
+CALIB_BOARD_PX = 96  # texture pixels per chessboard square: sharper than any camera sees it
 
 # (x, y) of the 7 cameras on the top beams; the front beam is set back (thesis 5.4).
 CAMERA_XY = [(-0.4, -0.4), (-0.4, 0.0), (-0.4, 0.4), (0.4, -0.4), (0.4, 0.4), (0.15, -0.4), (0.15, 0.4)]
@@ -82,6 +86,9 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         raise ValueError(f"robot must be one of {ROBOTS}, got {robot!r}")
     spec = mujoco.MjSpec.from_file(str(ROBOTS_DIR / f"{robot}.urdf"))
     spec.option.timestep = PHYSICS_DT
+    # The URDF import has already skipped the URDF's <visual> elements; keep the visual-only geoms
+    # added here (frame posts, hand keypoints) and the calibration board's texture in the model.
+    spec.compiler.discardvisual = False
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps that do not creep
     spec.option.impratio = 10.0
     spec.visual.quality.shadowsize = 0  # software GL: shadows cost more than they show
@@ -120,11 +127,29 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
             body = world.add_body(name=f"{hand}_kp{k}", mocap=True, pos=[0, 0, -1])
             body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.007 if k % 4 else 0.009, 0, 0], rgba=rgba,
                           contype=0, conaffinity=0)
+    _add_calibration_board(spec, BoardSpec())
     for cam in camera_specs(width, height):
         R = cam.world_T_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> MuJoCo camera axes
         world.add_camera(name=cam.name, pos=list(cam.world_T_cam[:3, 3]), fovy=CAMERA_FOVY_DEG,
                          xyaxes=list(R[:, 0]) + list(R[:, 1]))
     return spec.compile()
+
+
+def _add_calibration_board(spec: mujoco.MjSpec, board: BoardSpec) -> None:
+    """A thin textured box whose -z face, in the board's own frame (z into the board), is the print,
+    with a grey backing plate behind it; it collides with nothing."""
+    image = board.image(CALIB_BOARD_PX)[::-1]  # MuJoCo's texture rows run bottom-up
+    tex = spec.add_texture(name=CALIB_BOARD, type=mujoco.mjtTexture.mjTEXTURE_2D, width=image.shape[1],
+                           height=image.shape[0], nchannel=3)
+    tex.data = np.repeat(image[:, :, None], 3, axis=2).tobytes()
+    mat = spec.add_material(name=CALIB_BOARD, texuniform=False, texrepeat=[1, 1])
+    mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = CALIB_BOARD
+    w, h = board.size_m
+    body = spec.worldbody.add_body(name=CALIB_BOARD, mocap=True, pos=[0, 0, -1])
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[w / 2, h / 2, 0.0005], pos=[w / 2, h / 2, 0.0005],
+                  material=CALIB_BOARD, contype=0, conaffinity=0, mass=0.1)
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[w / 2, h / 2, 0.0015], pos=[w / 2, h / 2, 0.0027],
+                  rgba=[0.5, 0.5, 0.5, 1], contype=0, conaffinity=0, mass=0.1)  # covers the mirrored print
 
 
 def _workcell_drives(spec: mujoco.MjSpec) -> None:
