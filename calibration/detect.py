@@ -23,6 +23,11 @@ from shared.charuco import BoardSpec
 MIN_CORNERS = 6
 MIN_AREA_FRACTION = 0.002  # hull of the detected corners over the image area
 MIN_FORESHORTENING = 0.2  # smallest / largest singular value of the board->image map: ~78 degrees tilt
+# Sub-pixel refinement after detectBoard: a half-window of about a seventh of the (foreshortened)
+# square side keeps the neighbouring squares' markers out of the window; on rendered 640x480
+# frames this halves the camera rotation error against the truth.
+SUBPIX_FRACTION = 0.14
+SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
 
 
 @dataclass
@@ -53,6 +58,19 @@ class Detections:
         return out
 
 
+def scale(ids: np.ndarray, corners: np.ndarray, board: BoardSpec) -> np.ndarray | None:
+    """Singular values (px per metre, largest first) of the board->image map at the centre of the
+    detected corners, or None when no homography fits; their ratio is the foreshortening."""
+    obj = board.corners()[ids, :2]
+    H, _ = cv2.findHomography(obj, corners, 0)
+    if H is None:
+        return None
+    centre = obj.mean(axis=0)
+    x, y, w = H @ np.array([centre[0], centre[1], 1.0])
+    J = (H[:2, :2] * w - np.outer([x, y], H[2, :2])) / w**2
+    return np.linalg.svd(J, compute_uv=False)
+
+
 def degenerate(ids: np.ndarray, corners: np.ndarray, board: BoardSpec, image_size: tuple[int, int]) -> str | None:
     """Why a view cannot be used (``too_few``, ``collinear``, ``too_small``, ``edge_on``), or None."""
     if len(ids) < MIN_CORNERS:
@@ -63,16 +81,9 @@ def degenerate(ids: np.ndarray, corners: np.ndarray, board: BoardSpec, image_siz
     hull = cv2.convexHull(corners.astype(np.float32))
     if cv2.contourArea(hull) < MIN_AREA_FRACTION * image_size[0] * image_size[1]:
         return "too_small"
-    obj = board.corners()[ids, :2]
-    H, _ = cv2.findHomography(obj, corners, 0)
-    if H is None:
+    s = scale(ids, corners, board)
+    if s is None:
         return "collinear"
-    centre = obj.mean(axis=0)
-    # Jacobian of the homography at the centre of the detected corners: its conditioning is the
-    # foreshortening of the board there.
-    x, y, w = H @ np.array([centre[0], centre[1], 1.0])
-    J = (H[:2, :2] * w - np.outer([x, y], H[2, :2])) / w**2
-    s = np.linalg.svd(J, compute_uv=False)
     if s[1] < MIN_FORESHORTENING * s[0]:
         return "edge_on"
     return None
@@ -92,7 +103,12 @@ class BoardDetector:
         corners, ids, _, _ = self.detector.detectBoard(gray)
         if ids is None or len(ids) == 0:
             return None
-        return ids.ravel().astype(int), corners.reshape(-1, 2).astype(float)
+        ids, corners = ids.ravel().astype(int), corners.reshape(-1, 2).astype(np.float32)
+        s = scale(ids, corners, self.spec) if len(ids) >= 4 else None
+        if s is not None:
+            half = int(np.clip(SUBPIX_FRACTION * s[1] * self.spec.square_m, 1, 8))
+            corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (half, half), (-1, -1), SUBPIX_CRITERIA)
+        return ids, corners.reshape(-1, 2).astype(float)
 
 
 class Collector:

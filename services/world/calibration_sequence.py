@@ -2,7 +2,7 @@
 
 Pose 0 is the registration: the board lies face up on the table, which fixes the world frame
 (``xm calibrate`` reads the same placement from the deployment's ``[calibration]`` table). The
-others cover the volume above the table at heights up to 45 cm, tilted up to 60 degrees towards
+others cover the volume above the table at heights up to 55 cm, tilted up to 60 degrees towards
 any side and turned about their normal, so every camera sees the board from many angles, some
 near the image border (partial views) and some nearly edge-on (which detection skips).
 Poses are ``world_T_board`` (4x4) in the board frame of ``shared/charuco.py`` (z into the board).
@@ -18,8 +18,8 @@ from scipy.spatial.transform import Rotation
 from shared.charuco import BoardSpec
 
 HIDDEN_Z = -1.0  # under the table: out of every camera's view
-VOLUME_XY = 0.25  # board centres within +-25 cm of the table centre
-VOLUME_Z = (0.03, 0.45)
+VOLUME_XY = 0.35  # board centres within +-35 cm of the table centre
+VOLUME_Z = (0.03, 0.55)
 MAX_TILT_DEG = 60.0
 
 
