@@ -9,6 +9,7 @@ board lies on the table)::
     width = 640                  # capture size of a simulated calibration run
     height = 480
     frames = 120                 # frame sets of the simulated sequence
+    model = "full"               # camera model: "full" (OpenCV's) or "centred" (see calibration/bundle.py)
 
 Missing keys take the defaults shown (those of the simulated board body).
 """
@@ -19,6 +20,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from calibration.bundle import MODELS
 from services.world.calibration_sequence import Registration
 from shared.charuco import BoardError, BoardSpec
 
@@ -30,9 +32,10 @@ class Settings:
     width: int = 640
     height: int = 480
     frames: int = 120
+    model: str = "full"
 
 
-KEYS = {"board", "registration", "width", "height", "frames"}
+KEYS = {"board", "registration", "width", "height", "frames", "model"}
 
 
 def settings_from_table(table: dict, where: str = "[calibration]") -> Settings:
@@ -45,9 +48,12 @@ def settings_from_table(table: dict, where: str = "[calibration]") -> Settings:
         frames = int(table.get("frames", 120))
     except (TypeError, ValueError, IndexError) as exc:
         raise BoardError(f"{where}: {exc}") from exc
+    model = str(table.get("model", "full"))
+    if model not in MODELS:
+        raise BoardError(f"{where}.model: one of {', '.join(MODELS)}, got {model!r}")
     if width < 16 or height < 16 or frames < 2:
         raise BoardError(f"{where}: width/height at least 16 px and frames at least 2, got {width}x{height}, {frames}")
-    return Settings(BoardSpec.from_dict(table.get("board", {}), f"{where}.board"), reg, width, height, frames)
+    return Settings(BoardSpec.from_dict(table.get("board", {}), f"{where}.board"), reg, width, height, frames, model)
 
 
 def load_settings(deployment: str | Path) -> Settings:

@@ -7,7 +7,7 @@ of every kept chessboard corner, under a robust loss (soft L1, as ``scipy.optimi
 defines it). The solver is Levenberg-Marquardt on the normal equations: with about a thousand
 unknowns they are a small dense system, where ``least_squares``' sparse trust region (LSMR inner
 solves) needed minutes for the same problem. The Jacobian is sparse (a residual depends on one
-camera and one board pose) and taken by finite differences over 21 column groups that touch
+camera and one board pose) and taken by finite differences over at most 21 column groups that touch
 disjoint rows, whatever the number of frame sets. Corners whose error exceeds a multiple of the
 robust error scale are dropped and the problem is solved again.
 """
@@ -26,6 +26,10 @@ from calibration.init import Initial
 from shared.charuco import BoardSpec
 
 N_INTR = 9  # fx fy cx cy k1 k2 p1 p2 k3
+# Camera models: which of the 9 intrinsics are unknowns. "full": all (OpenCV's default model);
+# "centred": one focal length (fx = fy), k1 and k2, the principal point at the image centre and no
+# tangential distortion (the model aniposelib fits; right for lenses centred on their sensor).
+MODELS = {"full": (0, 1, 2, 3, 4, 5, 6, 7, 8), "centred": (0, 4, 5)}
 OUTLIER_SIGMAS = 5.0  # of the robust error scale
 MIN_OUTLIER_PX = 0.5  # never drop corners closer than this
 
@@ -86,27 +90,42 @@ def project(intr: np.ndarray, p_cam: np.ndarray) -> np.ndarray:
 
 
 class Problem:
-    def __init__(self, n_cams: int, reference: int, obs: Observations) -> None:
+    def __init__(self, n_cams: int, reference: int, obs: Observations, model: str = "full") -> None:
+        if model not in MODELS:
+            raise ValueError(f"camera model must be one of {', '.join(MODELS)}, got {model!r}")
         self.n, self.ref, self.obs = n_cams, reference, obs
+        self.free = np.array(MODELS[model])
+        self.tied_aspect = 1 not in MODELS[model]  # fy follows fx
+        self.n_intr = len(self.free)
+        self.fixed = np.zeros((n_cams, N_INTR))  # values of the intrinsics that are not unknowns
         self.movable = [c for c in range(n_cams) if c != reference]
         self.ext_index = {c: i for i, c in enumerate(self.movable)}
         self.n_frames = len(obs.frames)
-        self.o_ext = N_INTR * n_cams
+        self.o_ext = self.n_intr * n_cams
         self.o_board = self.o_ext + 6 * len(self.movable)
         self.size = self.o_board + 6 * self.n_frames
 
     def pack(self, K: list, dist: list, cam_T_rig: list, rig_T_board: dict) -> np.ndarray:
         x = np.zeros(self.size)
         for c in range(self.n):
-            x[N_INTR * c:N_INTR * (c + 1)] = [K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], *dist[c]]
+            self.fixed[c] = [K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], *dist[c]]
+            x[self.n_intr * c:self.n_intr * (c + 1)] = self.fixed[c, self.free]
         for c, i in self.ext_index.items():
             x[self.o_ext + 6 * i:self.o_ext + 6 * i + 6] = _rt(cam_T_rig[c])
         for i, f in enumerate(self.obs.frames):
             x[self.o_board + 6 * i:self.o_board + 6 * i + 6] = _rt(rig_T_board[f])
         return x
 
+    def intrinsics(self, x: np.ndarray) -> np.ndarray:
+        """(n, 9) intrinsics: the unknowns where the model has them, the fixed values elsewhere."""
+        intr = self.fixed.copy()
+        intr[:, self.free] = x[:self.o_ext].reshape(self.n, self.n_intr)
+        if self.tied_aspect:
+            intr[:, 1] = intr[:, 0]
+        return intr
+
     def unpack(self, x: np.ndarray) -> tuple[list, list, list, dict]:
-        intr = x[:self.o_ext].reshape(self.n, N_INTR)
+        intr = self.intrinsics(x)
         K = [np.array([[i[0], 0, i[2]], [0, i[1], i[3]], [0, 0, 1.0]]) for i in intr]
         dist = [i[4:].copy() for i in intr]
         ext = self._extrinsics(x)
@@ -121,7 +140,7 @@ class Problem:
 
     def residuals(self, x: np.ndarray, mask: np.ndarray) -> np.ndarray:
         cam, frame, obj, uv = (a[mask] for a in (self.obs.cam, self.obs.frame, self.obs.obj, self.obs.uv))
-        intr = x[:self.o_ext].reshape(self.n, N_INTR)
+        intr = self.intrinsics(x)
         ext = self._extrinsics(x)
         boards = x[self.o_board:].reshape(-1, 6)
         p_rig = np.einsum("mij,mj->mi", rotations(boards[:, :3])[frame], obj) + boards[frame, 3:]
@@ -135,7 +154,8 @@ class Problem:
         m = len(cam)
         moving = cam != self.ref
         ext = np.array([self.ext_index.get(c, 0) for c in cam], int)
-        groups = [(N_INTR * np.arange(self.n) + k, N_INTR * cam + k, np.ones(m, bool)) for k in range(N_INTR)]
+        ni = self.n_intr
+        groups = [(ni * np.arange(self.n) + k, ni * cam + k, np.ones(m, bool)) for k in range(ni)]
         groups += [(self.o_ext + 6 * np.arange(len(self.movable)) + k, self.o_ext + 6 * ext + k, moving)
                    for k in range(6)]
         groups += [(self.o_board + 6 * np.arange(self.n_frames) + k, self.o_board + 6 * frame + k, np.ones(m, bool))
@@ -234,9 +254,10 @@ def levenberg_marquardt(prob: Problem, x: np.ndarray, mask: np.ndarray, f_scale:
     return x, max_iter
 
 
-def bundle_adjust(det: Detections, board: BoardSpec, init: Initial, rounds: int = 2) -> BundleResult:
+def bundle_adjust(det: Detections, board: BoardSpec, init: Initial, rounds: int = 2, model: str = "full"
+                  ) -> BundleResult:
     obs = observations(det, board, set(init.rig_T_board))
-    prob = Problem(len(det.names), init.reference, obs)
+    prob = Problem(len(det.names), init.reference, obs, model)
     x = prob.pack(init.K, init.dist, init.cam_T_rig, init.rig_T_board)
     mask = np.ones(len(obs.cam), bool)
     f_scale = 1.0

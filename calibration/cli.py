@@ -52,6 +52,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=Path, metavar="DIR", help="calibrate from frame sets saved in DIR")
     p.add_argument("--save-frames", type=Path, metavar="DIR", help="also save the captured frame sets in DIR")
     p.add_argument("--count", type=int, help="frame sets of the simulated sequence (default: [calibration] frames)")
+    p.add_argument("--model", choices=("full", "centred"), help="camera model (default: [calibration] model)")
     p.add_argument("--seed", type=int, default=0, help="simulated sequence seed (default: %(default)s)")
     p.add_argument("--output", type=Path, default=Path("runs/calibration/rig.json"),
                    help="calibration file; the report goes beside it (default: %(default)s)")
@@ -66,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     except BoardError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if args.count:
-        settings = Settings(settings.board, settings.registration, settings.width, settings.height, args.count)
+    settings = Settings(settings.board, settings.registration, settings.width, settings.height,
+                        args.count or settings.frames, args.model or settings.model)
     collector = Collector(settings.board)
 
     def sink(index: int, images: list) -> None:
@@ -90,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         det = collector.result(names)
         world_T_board = calseq.registration_pose(settings.board, settings.registration)
-        cal = calibrate(det, settings.board, world_T_board, registration_frame=0)
+        cal = calibrate(det, settings.board, world_T_board, registration_frame=0, model=settings.model)
     except (CaptureUnusableError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

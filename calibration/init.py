@@ -44,9 +44,9 @@ def to_T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return T
 
 
-def intrinsics(views: list[Detection], board: BoardSpec, size: tuple[int, int]
+def intrinsics(views: list[Detection], board: BoardSpec, size: tuple[int, int], model: str = "full"
                ) -> tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]:
-    """(K, dist, frame -> cam_T_board) of one camera from its views."""
+    """(K, dist, frame -> cam_T_board) of one camera from its views (``model``: see bundle.MODELS)."""
     obj_all = board.corners()
     order = sorted(views, key=lambda v: -len(v.ids))
     step = max(1, len(order) // MAX_INTRINSIC_VIEWS)
@@ -54,7 +54,14 @@ def intrinsics(views: list[Detection], board: BoardSpec, size: tuple[int, int]
     obj = [obj_all[v.ids].astype(np.float32) for v in chosen]
     img = [v.corners.astype(np.float32) for v in chosen]
     flags = cv2.CALIB_FIX_K3  # k3 only in the bundle adjustment, where all views constrain it
-    _, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+    K0 = None
+    if model == "centred":
+        K0 = cv2.initCameraMatrix2D(obj, img, size)
+        K0[0, 2], K0[1, 2] = (size[0] - 1) / 2, (size[1] - 1) / 2  # the image centre, pixel-centre convention
+        K0[0, 0] = K0[1, 1] = (K0[0, 0] + K0[1, 1]) / 2
+        flags |= (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+                  | cv2.CALIB_ZERO_TANGENT_DIST)
+    _, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, K0, None, flags=flags)
     dist = dist.ravel()[:5]
     poses = {}
     for v in views:
@@ -81,7 +88,7 @@ def average_pose(samples: list[np.ndarray]) -> np.ndarray:
     return T
 
 
-def initial_guess(det: Detections, board: BoardSpec) -> Initial:
+def initial_guess(det: Detections, board: BoardSpec, model: str = "full") -> Initial:
     n = len(det.names)
     per_cam = [det.of_camera(c) for c in range(n)]
     never = [det.names[c] for c in range(n) if not per_cam[c]]
@@ -96,7 +103,7 @@ def initial_guess(det: Detections, board: BoardSpec) -> Initial:
                                 "wave the board closer to and across the view of each")
     K, dist, poses = [], [], []
     for c in range(n):
-        Kc, dc, pc = intrinsics(per_cam[c], board, det.image_sizes[c])
+        Kc, dc, pc = intrinsics(per_cam[c], board, det.image_sizes[c], model)
         K.append(Kc)
         dist.append(dc)
         poses.append(pc)

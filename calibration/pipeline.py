@@ -27,17 +27,18 @@ class Calibrated:
     seconds: dict[str, float]
 
 
-def calibrate(det: Detections, board: BoardSpec, world_T_board: np.ndarray, registration_frame: int = 0
-              ) -> Calibrated:
+def calibrate(det: Detections, board: BoardSpec, world_T_board: np.ndarray, registration_frame: int = 0,
+              model: str = "full") -> Calibrated:
+    """``model``: the camera model (``bundle.MODELS``): "full" OpenCV intrinsics or "centred"."""
     t0 = time.perf_counter()
-    init = initial_guess(det, board)
+    init = initial_guess(det, board, model)
     t1 = time.perf_counter()
     if registration_frame not in init.rig_T_board:
         raise CaptureUnusableError(
             f"no camera saw the registration board (frame set {registration_frame}): lay the board flat on the "
             "table where the deployment's [calibration] registration says, in view of the cameras, and capture "
             "it first")
-    result = bundle_adjust(det, board, init)
+    result = bundle_adjust(det, board, init, model=model)
     t2 = time.perf_counter()
     world_T_rig = world_T_board @ np.linalg.inv(result.rig_T_board[registration_frame])
     cams = [CameraCalibration(name, *det.image_sizes[c], result.K[c], result.dist[c],
