@@ -3,10 +3,12 @@
 
 The simulated rig (7 cameras) renders the world's calibration sequence at 640x480 (frames are
 cached under .cache/calibration-bench, rendering is not timed). Both calibrations get the
-registration the same way: the world frame comes from frame set 0, the board lying on the table
-(ours: its bundle-adjusted pose; aniposelib: a rigid fit of its triangulated corners to the known
-board corners). Graded against the simulator's cameras (OpenCV pixel convention), plus for both
-the per-camera RMS reprojection error of corners triangulated from all views with the same code.
+registration the same way: the world frame comes from frame set 0, the board lying on the table,
+whose corners each rig triangulates and rigidly fits to the known board corners
+(calibration/register.py; aniposelib's triangulation for its rig). Graded against the simulator's
+cameras (OpenCV pixel convention), after the best rigid motion of the whole rig onto them (the
+rig's own geometry, free of the shared registration error: rig_*), and for both the per-camera RMS
+reprojection error of corners triangulated from all views with the same code.
 aniposelib runs in its own venv (.cache/anipose-venv, made on first use with the pinned versions
 below) through bench/anipose/calibrate_rows.py. Writes .bench/calibration.json.
 
@@ -44,6 +46,7 @@ from calibration.board import Settings  # noqa: E402
 from calibration.cli import true_cameras  # noqa: E402
 from calibration.detect import Collector, Detections  # noqa: E402
 from calibration.pipeline import calibrate  # noqa: E402
+from calibration.register import kabsch  # noqa: E402
 from calibration.report import truth_errors  # noqa: E402
 from services.world import calibration_sequence as calseq  # noqa: E402
 from shared.calibration import CameraCalibration, RigCalibration  # noqa: E402
@@ -56,6 +59,7 @@ VENV = ROOT / ".cache" / "anipose-venv"
 ANIPOSE_PINS = ["aniposelib==0.8.0", "opencv-contrib-python==5.1.0.95", "numpy==2.4.6", "scipy==1.17.1",
                 "jax==0.10.2", "jaxlib==0.10.2", "numba==0.68.1", "pandas==3.1.1", "toml==0.10.2", "tqdm==4.70.1"]
 FIGURES = ("rms_px", "focal_pct", "principal_point_px", "position_mm", "rotation_deg")
+RIG_FIGURES = ("rig_position_mm", "rig_rotation_deg")
 TARGETS = {"rms_px": 0.3, "focal_pct": 0.2, "position_mm": 1.0, "rotation_deg": 0.05, "seconds": 60.0}
 
 
@@ -113,17 +117,6 @@ def triangulation_rms(rig: RigCalibration, det: Detections) -> list[float]:
     return [float(np.sqrt(np.mean(s))) if s else float("nan") for s in sq]
 
 
-def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Rigid dst_T_src (4x4) minimising the squared distances of the paired points."""
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    T = np.eye(4)
-    T[:3, :3] = Vt.T @ D @ U.T
-    T[:3, 3] = cd - T[:3, :3] @ cs
-    return T
-
-
 def run_anipose(det: Detections, board: BoardSpec, settings: Settings) -> tuple[RigCalibration, dict]:
     python = ensure_venv()
     with tempfile.TemporaryDirectory() as tmp:
@@ -154,13 +147,28 @@ def run_anipose(det: Detections, board: BoardSpec, settings: Settings) -> tuple[
                                                       "anipose_error": out["error"]}
 
 
+def rig_aligned(rig: RigCalibration, truth: dict) -> dict[str, dict]:
+    """Errors after the best rigid motion of the whole rig onto the true cameras (Kabsch on the
+    camera centres): the rig's own geometry, without the registration's error that all share."""
+    est = np.array([c.world_T_cam[:3, 3] for c in rig.cameras])
+    true = np.array([truth[c.name][1][:3, 3] for c in rig.cameras])
+    C = kabsch(est, true)
+    moved = RigCalibration([CameraCalibration(c.name, c.width, c.height, c.K, c.dist, C @ c.world_T_cam)
+                            for c in rig.cameras])
+    return truth_errors(moved, truth)
+
+
 def summary(rig: RigCalibration, det: Detections, rms_ba: list[float] | None) -> dict:
-    truth = truth_errors(rig, true_cameras(*det.image_sizes[0]))
+    true = true_cameras(*det.image_sizes[0])
+    truth = truth_errors(rig, true)
+    aligned = rig_aligned(rig, true)
     tri = triangulation_rms(rig, det)
     per = {c.name: {**{k: round(v, 4) for k, v in truth[c.name].items()}, "rms_px": round(tri[i], 4),
+                    "rig_position_mm": round(aligned[c.name]["position_mm"], 4),
+                    "rig_rotation_deg": round(aligned[c.name]["rotation_deg"], 4),
                     **({"rms_ba_px": round(rms_ba[i], 4)} if rms_ba else {})}
            for i, c in enumerate(rig.cameras)}
-    return {"cameras": per, "max": {k: max(p[k] for p in per.values()) for k in FIGURES}}
+    return {"cameras": per, "max": {k: max(p[k] for p in per.values()) for k in FIGURES + RIG_FIGURES}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -212,12 +220,12 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def table(result: dict) -> str:
-    rows = ["max over cameras" + "".join(f"{k:>19}" for k in FIGURES) + f"{'seconds':>9}"]
+    rows = ["max over cameras" + "".join(f"{k:>19}" for k in FIGURES + RIG_FIGURES) + f"{'seconds':>9}"]
     for who, label in (("ours", "ours, full"), ("ours_centred", "ours, centred"), ("aniposelib", "aniposelib")):
         if who in result:
             m, s = result[who]["max"], result[who]["seconds"]
             t = s.get("total", s.get("solver_s"))
-            rows.append(f"{label:<16}" + "".join(f"{m[k]:>19.4f}" for k in FIGURES) + f"{t:>9.2f}")
+            rows.append(f"{label:<16}" + "".join(f"{m[k]:>19.4f}" for k in FIGURES + RIG_FIGURES) + f"{t:>9.2f}")
     rows.append("targets: " + ", ".join(f"{k} {'ok' if v else 'MISSED'}" for k, v in result["checks"].items()))
     return "\n".join(rows)
 

@@ -1,8 +1,10 @@
 """From detections to the rig calibration file: initial guess, bundle adjustment, registration.
 
 The world frame: frame set ``registration_frame`` shows the board lying on the table at a known
-place (``world_T_board``, from the deployment's ``[calibration] registration``); its adjusted pose
-in the rig frame ties the rig to the world: world_T_rig = world_T_board @ inv(rig_T_board).
+place (``world_T_board``, from the deployment's ``[calibration] registration``). Its corners,
+triangulated by the calibrated rig, are fitted to their known world positions (calibration/register.py);
+when fewer than two cameras saw it, its bundle-adjusted pose ties the rig to the world instead:
+world_T_rig = world_T_board @ inv(rig_T_board).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration import register
 from calibration.bundle import BundleResult, bundle_adjust
 from calibration.detect import Detections
 from calibration.init import CaptureUnusableError, initial_guess
@@ -40,7 +43,10 @@ def calibrate(det: Detections, board: BoardSpec, world_T_board: np.ndarray, regi
             "it first")
     result = bundle_adjust(det, board, init, model=model)
     t2 = time.perf_counter()
-    world_T_rig = world_T_board @ np.linalg.inv(result.rig_T_board[registration_frame])
+    world_T_rig = register.world_T_rig([v for v in det.views if v.frame == registration_frame], result.K,
+                                       result.dist, result.cam_T_rig, board.corners(), world_T_board)
+    if world_T_rig is None:
+        world_T_rig = world_T_board @ np.linalg.inv(result.rig_T_board[registration_frame])
     cams = [CameraCalibration(name, *det.image_sizes[c], result.K[c], result.dist[c],
                               world_T_rig @ np.linalg.inv(result.cam_T_rig[c]), result.rms_px[c])
             for c, name in enumerate(det.names)]

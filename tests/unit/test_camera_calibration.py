@@ -10,7 +10,7 @@ from calibration.board import settings_from_table
 from calibration.detect import Detections, add_view, degenerate
 from calibration.init import CaptureUnusableError, average_pose
 from calibration.pipeline import calibrate
-from calibration.report import truth_errors
+from calibration.report import rotation_deg, truth_errors
 from calibration.synthetic import project_views
 from services.world import calibration_sequence as calseq
 from shared.calibration import from_json, to_json
@@ -42,6 +42,17 @@ def synthetic(n_cams: int = 3, frames: int = 40, noise: float = 0.1, seed: int =
     return det, K, dist, cams
 
 
+def relative_errors(rig_cal, cams: list[np.ndarray]) -> list[tuple[float, float]]:
+    """(mm, degrees) of each camera's pose relative to camera 0, against the truth: the rig's own
+    geometry, free of the one-frame registration's error that every camera shares."""
+    out = []
+    ref_est, ref_true = np.linalg.inv(rig_cal.cameras[0].world_T_cam), np.linalg.inv(cams[0])
+    for cam, truth in zip(rig_cal.cameras[1:], cams[1:], strict=True):
+        est, tru = ref_est @ cam.world_T_cam, ref_true @ truth
+        out.append((1000 * np.linalg.norm(est[:3, 3] - tru[:3, 3]), rotation_deg(est[:3, :3], tru[:3, :3])))
+    return out
+
+
 def test_pipeline_recovers_synthetic_truth():
     det, K, dist, cams = synthetic()
     cal = calibrate(det, BOARD, calseq.registration_pose(BOARD))
@@ -49,8 +60,10 @@ def test_pipeline_recovers_synthetic_truth():
     for name, e in errs.items():
         assert e["focal_pct"] < 0.3, (name, e)
         assert e["principal_point_px"] < 1.5, (name, e)
-        assert e["position_mm"] < 2.0, (name, e)
-        assert e["rotation_deg"] < 0.15, (name, e)
+        assert e["position_mm"] < 5.0, (name, e)  # the world frame rests on one registration frame set
+        assert e["rotation_deg"] < 0.3, (name, e)
+    for mm, deg in relative_errors(cal.rig, cams):
+        assert mm < 1.0 and deg < 0.1, (mm, deg)
     for cam, d in zip(cal.rig.cameras, dist, strict=True):
         assert 0.05 < cam.rms_px < 0.2  # noise is 0.1 px per axis: RMS of the 2-D error ~0.14
         assert np.allclose(cam.dist[:2], d[:2], atol=0.02)
@@ -69,7 +82,8 @@ def test_gross_outliers_are_rejected():
     cal = calibrate(det, BOARD, calseq.registration_pose(BOARD))
     assert (~cal.bundle.inlier).sum() >= 12
     errs = truth_errors(cal.rig, {n: (K[i], cams[i]) for i, n in enumerate(det.names)})
-    assert max(e["position_mm"] for e in errs.values()) < 2.0
+    assert max(e["focal_pct"] for e in errs.values()) < 0.3
+    assert max(mm for mm, _ in relative_errors(cal.rig, cams)) < 1.0
     assert max(c.rms_px for c in cal.rig.cameras) < 0.2
 
 
@@ -119,13 +133,19 @@ def test_degenerate_views_are_skipped_and_counted():
 def test_edge_on_poses_in_a_capture_are_counted_not_used():
     names, K, cams = rig(3)
     reg = calseq.registration_pose(BOARD)
-    # the registration board turned 88 degrees about its x axis: every camera sees it edge-on or not at all
-    R = calseq.Rotation.from_euler("x", 88, degrees=True).as_matrix()
-    tilted = reg.copy()
-    tilted[:3, :3] = R @ reg[:3, :3]
-    det = project_views(BOARD, names, [SIZE] * 3, K, [np.zeros(5)] * 3, cams, [tilted], noise_px=0.0)
-    assert not det.views
-    assert sum(det.skipped.values()) == 3
+    # a board whose print faces 85 degrees away from the direction to cam0: edge-on for cam0
+    centre = np.array([0.0, 0.0, 0.2])
+    d = cams[0][:3, 3] - centre
+    d /= np.linalg.norm(d)
+    perp = np.cross(d, [0.0, 1.0, 0.0])
+    perp /= np.linalg.norm(perp)
+    normal = np.cos(np.radians(85)) * d + np.sin(np.radians(85)) * perp
+    x_axis = np.array([0.0, 1.0, 0.0])
+    z_axis = -normal  # the print faces -z of the board frame
+    tilted = calseq.board_pose(BOARD, centre, np.c_[x_axis, np.cross(z_axis, x_axis), z_axis])
+    det = project_views(BOARD, names, [SIZE] * 3, K, [np.zeros(5)] * 3, cams, [reg, tilted], noise_px=0.0)
+    assert [v.frame for v in det.views if v.camera == 0] == [0]
+    assert det.skipped[(0, "edge_on")] == 1
 
 
 def test_robust_pose_average_ignores_a_wrong_sample():
@@ -172,3 +192,26 @@ def test_board_and_settings_reject_bad_geometry():
         settings_from_table({"boards": {}})
     s = settings_from_table({"board": {"squares_x": 9, "square_m": 0.03, "marker_m": 0.022}, "width": 320})
     assert (s.board.squares_x, s.board.square_m, s.width, s.height) == (9, 0.03, 320, 480)
+
+
+def test_centred_model_keeps_the_principal_point_at_the_image_centre():
+    det, K, _, cams = synthetic(dist=np.array([-0.04, 0.01, 0.0, 0.0, 0.0]))
+    cal = calibrate(det, BOARD, calseq.registration_pose(BOARD), model="centred")
+    for cam, k in zip(cal.rig.cameras, K, strict=True):
+        assert np.allclose(cam.K[:2, 2], [(SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2])
+        assert cam.K[0, 0] == cam.K[1, 1]
+        assert np.allclose(cam.dist[2:], 0.0)
+        assert abs(cam.K[0, 0] / k[0, 0] - 1) < 0.01  # the truth's off-centre point costs some focal accuracy
+
+
+def test_the_world_model_carries_a_textured_board_that_touches_nothing():
+    from services.world.model import CALIB_BOARD, build_model  # noqa: PLC0415  (MuJoCo model build: slower import)
+
+    m = build_model()
+    body = m.body(CALIB_BOARD)
+    assert m.body_mocapid[body.id] >= 0
+    geoms = range(m.body_geomadr[body.id], m.body_geomadr[body.id] + m.body_geomnum[body.id])
+    assert all(m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0 for g in geoms)
+    assert any(m.geom_matid[g] >= 0 for g in geoms)  # the printed texture survived the compile
+    img = BOARD.image(96)
+    assert m.tex_width[0] * m.tex_height[0] == img.size
