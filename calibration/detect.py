@@ -9,10 +9,8 @@ the foreshortened axis carry little and the marker decoding is least reliable).
 
 from __future__ import annotations
 
-import threading
 import time
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -142,32 +140,6 @@ class Collector:
             raise ValueError(f"{len(names)} camera names for frame sets of {len(self.det.names)} images")
         self.det.names = list(names)
         return self.det
-
-
-def detect_frame_sets(frame_sets: list[list[np.ndarray | None]], names: list[str], board: BoardSpec,
-                      threads: int = 2) -> Detections:
-    """Detect in ``frame_sets[f][c]`` (None: no image from camera c in frame set f)."""
-    sizes: list[tuple[int, int] | None] = [None] * len(names)
-    for fs in frame_sets:
-        for c, img in enumerate(fs):
-            if img is not None and sizes[c] is None:
-                sizes[c] = (img.shape[1], img.shape[0])
-    out = Detections(list(names), [s or (0, 0) for s in sizes], len(frame_sets))
-    jobs = [(f, c) for f, fs in enumerate(frame_sets) for c, img in enumerate(fs) if img is not None]
-    detectors: dict[int, BoardDetector] = {}  # one per worker thread
-
-    def run(job: tuple[int, int]) -> tuple[int, int, tuple | None]:
-        tid = threading.get_ident()
-        if tid not in detectors:
-            detectors[tid] = BoardDetector(board)
-        f, c = job
-        return f, c, detectors[tid].detect(frame_sets[f][c])
-
-    with ThreadPoolExecutor(max(1, threads)) as pool:
-        results = list(pool.map(run, jobs))
-    for f, c, found in results:
-        add_view(out, c, f, found, board)
-    return out
 
 
 def add_view(out: Detections, cam: int, frame: int, found: tuple[np.ndarray, np.ndarray] | None,
