@@ -94,6 +94,10 @@ def main(argv: list[str] | None = None) -> int:
         cal = calibrate(det, settings.board, world_T_board, registration_frame=0, model=settings.model)
     except (CaptureUnusableError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        small = collector.det is not None and min(w for w, _ in collector.det.image_sizes) < 640
+        if small:
+            print(f"note: the frames are {collector.det.image_sizes[0][0]}x{collector.det.image_sizes[0][1]}; the "
+                  "board's markers need about 640x480 (in the simulation use --source world)", file=sys.stderr)
         return 1
     truth = true_cameras(*det.image_sizes[0]) if simulated and not args.no_truth else None
     report = rep.build(cal, det, truth, {"capture_s": capture_s - collector.seconds, "detect_s": collector.seconds,

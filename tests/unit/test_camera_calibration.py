@@ -13,6 +13,7 @@ from calibration.pipeline import calibrate
 from calibration.report import rotation_deg, truth_errors
 from calibration.synthetic import project_views
 from services.world import calibration_sequence as calseq
+from services.world.model import CALIB_BOARD, build_model
 from shared.calibration import from_json, to_json
 from shared.charuco import BoardError, BoardSpec
 from shared.geometry import look_at
@@ -205,8 +206,6 @@ def test_centred_model_keeps_the_principal_point_at_the_image_centre():
 
 
 def test_the_world_model_carries_a_textured_board_that_touches_nothing():
-    from services.world.model import CALIB_BOARD, build_model  # noqa: PLC0415  (MuJoCo model build: slower import)
-
     m = build_model()
     body = m.body(CALIB_BOARD)
     assert m.body_mocapid[body.id] >= 0
