@@ -214,3 +214,10 @@ def test_the_world_model_carries_a_textured_board_that_touches_nothing():
     assert any(m.geom_matid[g] >= 0 for g in geoms)  # the printed texture survived the compile
     img = BOARD.image(96)
     assert m.tex_width[0] * m.tex_height[0] == img.size
+
+
+def test_missing_registration_board_is_named():
+    det, *_ = synthetic()
+    det.views = [v for v in det.views if v.frame != 0]
+    with pytest.raises(CaptureUnusableError, match=r"registration board \(frame set 0\)"):
+        calibrate(det, BOARD, calseq.registration_pose(BOARD))
