@@ -25,6 +25,7 @@ Targets (issue 27): RMS <= 0.3 px per camera; position <= 1 mm, rotation <= 0.05
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -63,9 +64,18 @@ RIG_FIGURES = ("rig_position_mm", "rig_rotation_deg")
 TARGETS = {"rms_px": 0.3, "focal_pct": 0.2, "position_mm": 1.0, "rotation_deg": 0.05, "seconds": 60.0}
 
 
+def scene_digest() -> str:
+    """Changes whenever the code that draws the frames does: a stale cache is never reused."""
+    h = hashlib.sha1()
+    for path in ("services/world/render.py", "services/world/model.py", "services/world/calibration_sequence.py",
+                 "shared/charuco.py"):
+        h.update((ROOT / path).read_bytes())
+    return h.hexdigest()[:10]
+
+
 def frames(settings: Settings, seed: int, collector: Collector) -> tuple[list[str], float]:
     """Detect in the cached rendered frames (rendering them first if absent); (names, render seconds)."""
-    folder = CACHE / f"frames-{settings.width}x{settings.height}-n{settings.frames}-s{seed}"
+    folder = CACHE / f"frames-{settings.width}x{settings.height}-n{settings.frames}-s{seed}-{scene_digest()}"
     if (folder / "complete").exists():
         return capture.from_folder(folder, collector.add, lambda i: None), 0.0
     t0 = time.perf_counter()

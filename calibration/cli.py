@@ -22,6 +22,7 @@ from calibration.detect import Collector
 from calibration.init import CaptureUnusableError
 from calibration.pipeline import calibrate
 from services.world import calibration_sequence as calseq
+from services.world import render
 from services.world.model import camera_specs
 from shared.calibration import save
 from shared.charuco import BoardError
@@ -29,12 +30,15 @@ from shared.client import add_connection_args, connect
 
 
 def true_cameras(width: int, height: int) -> dict:
-    """The simulator's cameras in OpenCV's pixel convention: the model's K puts the principal point at
-    (w/2, h/2) in pixel-edge coordinates (OpenGL), which is (w/2 - 0.5, h/2 - 0.5) from pixel centres."""
+    """The simulator's cameras in OpenCV's pixel convention. A renderer that draws each camera's K
+    through an explicit OpenGL frustum (``render.gl_frustum``) renders K exactly; MuJoCo's own
+    camera (``fovy``) puts the principal point at (w/2, h/2) in pixel-edge coordinates, which is
+    (w/2 - 0.5, h/2 - 0.5) from pixel centres (rendered corners agree to 0.01 px)."""
+    offset = 0.0 if hasattr(render, "gl_frustum") else 0.5
     out = {}
     for spec in camera_specs(width, height):
         K = spec.K.copy()
-        K[:2, 2] -= 0.5
+        K[:2, 2] -= offset
         out[spec.name] = (K, spec.world_T_cam)
     return out
 

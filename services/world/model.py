@@ -86,8 +86,8 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         raise ValueError(f"robot must be one of {ROBOTS}, got {robot!r}")
     spec = mujoco.MjSpec.from_file(str(ROBOTS_DIR / f"{robot}.urdf"))
     spec.option.timestep = PHYSICS_DT
-    # The URDF import has already skipped the URDF's <visual> elements; keep the visual-only geoms
-    # added here (frame posts, hand keypoints) and the calibration board's texture in the model.
+    # The URDF importer's discardvisual would also strip the calibration board's texture; the model's
+    # other visual-only geoms are hidden instead (_add_calibration_board), so images stay as they were.
     spec.compiler.discardvisual = False
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps that do not creep
     spec.option.impratio = 10.0
@@ -138,6 +138,9 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
 def _add_calibration_board(spec: mujoco.MjSpec, board: BoardSpec) -> None:
     """A thin textured box whose -z face, in the board's own frame (z into the board), is the print,
     with a grey backing plate behind it; it collides with nothing."""
+    for geom in spec.geoms:  # what discardvisual dropped (visual-only geoms) stays out of the images
+        if geom.contype == 0 and geom.conaffinity == 0:
+            geom.rgba[3] = 0.0
     image = board.image(CALIB_BOARD_PX)[::-1]  # MuJoCo's texture rows run bottom-up
     tex = spec.add_texture(name=CALIB_BOARD, type=mujoco.mjtTexture.mjTEXTURE_2D, width=image.shape[1],
                            height=image.shape[0], nchannel=3)

@@ -212,6 +212,9 @@ def test_the_world_model_carries_a_textured_board_that_touches_nothing():
     geoms = range(m.body_geomadr[body.id], m.body_geomadr[body.id] + m.body_geomnum[body.id])
     assert all(m.geom_contype[g] == 0 and m.geom_conaffinity[g] == 0 for g in geoms)
     assert any(m.geom_matid[g] >= 0 for g in geoms)  # the printed texture survived the compile
+    others = [g for g in range(m.ngeom) if m.geom_bodyid[g] != body.id and m.geom_contype[g] == 0
+              and m.geom_conaffinity[g] == 0]
+    assert others and all(m.geom_rgba[g][3] == 0 for g in others)  # visual-only geoms stay out of the images
     img = BOARD.image(96)
     assert m.tex_width[0] * m.tex_height[0] == img.size
 
