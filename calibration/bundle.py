@@ -41,6 +41,7 @@ class Observations:
     obj: np.ndarray  # (M,3) board point
     uv: np.ndarray  # (M,2) detected pixel
     frames: list[int]  # board pose index -> frame set number
+    ids: np.ndarray  # (M,) chessboard corner id
 
 
 @dataclass
@@ -64,7 +65,8 @@ def observations(det: Detections, board: BoardSpec, frames_with_pose: set[int]) 
     return Observations(
         np.concatenate([np.full(len(v.ids), v.camera) for v in views]),
         np.concatenate([np.full(len(v.ids), index[v.frame]) for v in views]),
-        np.concatenate([obj_all[v.ids] for v in views]), np.concatenate([v.corners for v in views]), frames)
+        np.concatenate([obj_all[v.ids] for v in views]), np.concatenate([v.corners for v in views]), frames,
+        np.concatenate([v.ids for v in views]))
 
 
 def rotations(rvecs: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ import numpy as np
 
 from calibration import register
 from calibration.bundle import BundleResult, bundle_adjust
-from calibration.detect import Detections
+from calibration.detect import Detection, Detections
 from calibration.init import CaptureUnusableError, initial_guess
 from shared.calibration import CameraCalibration, RigCalibration
 from shared.charuco import BoardSpec
@@ -28,6 +28,14 @@ class Calibrated:
     rig: RigCalibration
     bundle: BundleResult
     seconds: dict[str, float]
+
+
+def inlier_views(result: BundleResult, frame: int) -> list[Detection]:
+    """One frame set's corners that the bundle adjustment kept, per camera."""
+    obs = result.obs
+    sel = result.inlier & (obs.frame == obs.frames.index(frame))
+    return [Detection(int(c), frame, obs.ids[sel & (obs.cam == c)], obs.uv[sel & (obs.cam == c)])
+            for c in np.unique(obs.cam[sel])]
 
 
 def calibrate(det: Detections, board: BoardSpec, world_T_board: np.ndarray, registration_frame: int = 0,
@@ -43,8 +51,8 @@ def calibrate(det: Detections, board: BoardSpec, world_T_board: np.ndarray, regi
             "it first")
     result = bundle_adjust(det, board, init, model=model)
     t2 = time.perf_counter()
-    world_T_rig = register.world_T_rig([v for v in det.views if v.frame == registration_frame], result.K,
-                                       result.dist, result.cam_T_rig, board.corners(), world_T_board)
+    world_T_rig = register.world_T_rig(inlier_views(result, registration_frame), result.K, result.dist,
+                                       result.cam_T_rig, board.corners(), world_T_board)
     if world_T_rig is None:
         world_T_rig = world_T_board @ np.linalg.inv(result.rig_T_board[registration_frame])
     cams = [CameraCalibration(name, *det.image_sizes[c], result.K[c], result.dist[c],

@@ -1,6 +1,7 @@
 """The world frame from the registration board: the board lies on the table at a known place, its
-corners are triangulated from every camera that saw them and rigidly fitted (Kabsch) to where
-they lie in the world. The fit uses the calibrated rig only, so it treats every calibration the
+corners (those the bundle adjustment kept) are triangulated from every camera that saw them and
+rigidly fitted (Kabsch, once more without the points far off the first fit) to where they lie in
+the world. The fit uses the calibrated rig only, so it treats every calibration the
 same way (the bench registers aniposelib's rig with it too)."""
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ import numpy as np
 from calibration.detect import Detection
 
 MIN_POINTS = 6  # triangulated corners a registration needs
+OUTLIER_FACTOR = 3.0  # points farther than this times the median fit residual are refitted without
+MIN_OUTLIER_M = 0.0005  # never drop points closer than this to the fit
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -49,4 +52,9 @@ def world_T_rig(views: list[Detection], K: list, dist: list, cam_T_rig: list, bo
         return None
     ids = sorted(pts)
     world = board_points[ids] @ world_T_board[:3, :3].T + world_T_board[:3, 3]
-    return kabsch(np.array([pts[i] for i in ids]), world)
+    rig = np.array([pts[i] for i in ids])
+    T = kabsch(rig, world)
+    # a corner half hidden (by the robot, an object) can triangulate off the board: fit again without
+    err = np.linalg.norm(rig @ T[:3, :3].T + T[:3, 3] - world, axis=1)
+    keep = err <= max(OUTLIER_FACTOR * np.median(err), MIN_OUTLIER_M)
+    return kabsch(rig[keep], world[keep]) if keep.sum() >= MIN_POINTS else T
