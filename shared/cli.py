@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("evaluation.evaluate:main", "Table 7.1 evaluation against the baselines"),
     "glove": ("services.glove.cli:main", "glove tools: calibrate, register"),
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
+    "calibrate": ("calibration.cli:main", "calibrate the camera rig with a ChArUco board (report beside the file)"),
 }
 
 

@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     cal = sub.add_parser("calibrate", help="fit the per-cell calibration from a recording")
     cal.add_argument("recording")
     cal.add_argument("--hand", default="left", choices=list(HAND_NAMES))
-    cal.add_argument("-o", "--output", help="calibration JSON (default calibration/glove-<hand>.json)")
+    cal.add_argument("-o", "--output", help="calibration JSON (default runs/calibration/glove-<hand>.json)")
     reg = sub.add_parser("register", help="read or write a register of a running glove's readout module",
                          description="Reads (no VALUE) or writes a configuration register of the readout module "
                                      "through the running glove service (names: docs/protocols/tactile.md), "
@@ -115,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.output or f"calibration/glove-{args.hand}.json")
+    out = Path(args.output or f"runs/calibration/glove-{args.hand}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     calibration.save(out)
     out.with_suffix(".report.json").write_text(json.dumps({"rational": rat, "linear": lin}, indent=2))

@@ -5,7 +5,8 @@ gantry by default, or the 6-DoF arm with a four-finger hand) with the descriptio
 and a motor per listed joint, limited to its URDF effort (the control-board simulator computes the
 efforts; MuJoCo's URDF importer turns each ``<mimic>`` into a joint equality, so coupled joints have
 no motor), task objects as free bodies, the
-teacher's hand keypoints as mocap bodies (services/world/render.py draws the hands and the room),
+teacher's hand keypoints as mocap bodies (services/world/render.py draws the hands and the room), a
+ChArUco calibration board as a mocap plate (hidden under the table until ``xm calibrate`` moves it),
 and 7 cameras on the top of an 80 cm cube frame.
 """
 
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from shared.charuco import BoardSpec
 from shared.geometry import look_at
 from shared.kinematics import load_robot
 from shared.robots.registry import DEFAULT_ROBOT, describe
@@ -29,6 +31,8 @@ LATCH = "connector_latch"  # weld equality camera -> board
 # default 20 ms time constant a gripper squeezing a 3 g module sinks millimetres into it; the
 # shortest time constant the step allows keeps that to a fraction of a millimetre.
 OBJECT_SOLREF = [2 * PHYSICS_DT, 1.0]
+CALIB_BOARD = "calib_board"  # mocap body whose frame is the board frame of shared/charuco.py
+CALIB_BOARD_PX = 96  # texture pixels per chessboard square: sharper than any camera sees it
 
 # (x, y) of the 7 cameras on the top beams; the front beam is set back (thesis 5.4).
 CAMERA_XY = [(-0.4, -0.4), (-0.4, 0.0), (-0.4, 0.4), (0.4, -0.4), (0.4, 0.4), (0.15, -0.4), (0.15, 0.4)]
@@ -72,6 +76,9 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
     desc = describe(robot)  # UnknownRobotError (a ValueError) names the known robots
     spec = mujoco.MjSpec.from_file(str(desc.urdf))
     spec.option.timestep = PHYSICS_DT
+    # The URDF importer's discardvisual would also strip the calibration board's texture; the model's
+    # other visual-only geoms are hidden instead (_add_calibration_board), so images stay as they were.
+    spec.compiler.discardvisual = False
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC  # with impratio: grasps that do not creep
     spec.option.impratio = 10.0
     spec.visual.quality.shadowsize = 0  # software GL: shadows cost more than they show
@@ -101,19 +108,40 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         spec.add_equality(name=LATCH, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
                           name1="camera", name2="board", active=0,
                           solref=[2 * PHYSICS_DT, 1.0])  # as stiff as the step allows
-    # The teacher's hand keypoints: mocap bodies carrying the pose only (the URDF compiler discards
-    # visual-only geoms such as these spheres); services/world/render.py draws the hands.
+    # The teacher's hand keypoints: mocap bodies carrying the pose only (their visual-only spheres are
+    # hidden, see _add_calibration_board); services/world/render.py draws the hands.
     for h, hand in enumerate(("left", "right")):
         rgba = [0.9, 0.6, 0.5, 1] if h == 0 else [0.5, 0.6, 0.9, 1]
         for k in range(21):
             body = world.add_body(name=f"{hand}_kp{k}", mocap=True, pos=[0, 0, -1])
             body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.007 if k % 4 else 0.009, 0, 0], rgba=rgba,
                           contype=0, conaffinity=0)
+    _add_calibration_board(spec, BoardSpec())
     for cam in camera_specs(width, height):
         R = cam.world_T_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> MuJoCo camera axes
         world.add_camera(name=cam.name, pos=list(cam.world_T_cam[:3, 3]), fovy=CAMERA_FOVY_DEG,
                          xyaxes=list(R[:, 0]) + list(R[:, 1]))
     return spec.compile()
+
+
+def _add_calibration_board(spec: mujoco.MjSpec, board: BoardSpec) -> None:
+    """A thin textured box whose -z face, in the board's own frame (z into the board), is the print,
+    with a grey backing plate behind it; it collides with nothing."""
+    for geom in spec.geoms:  # what discardvisual dropped (visual-only geoms) stays out of the images
+        if geom.contype == 0 and geom.conaffinity == 0:
+            geom.rgba[3] = 0.0
+    image = board.image(CALIB_BOARD_PX)[::-1]  # MuJoCo's texture rows run bottom-up
+    tex = spec.add_texture(name=CALIB_BOARD, type=mujoco.mjtTexture.mjTEXTURE_2D, width=image.shape[1],
+                           height=image.shape[0], nchannel=3)
+    tex.data = np.repeat(image[:, :, None], 3, axis=2).tobytes()
+    mat = spec.add_material(name=CALIB_BOARD, texuniform=False, texrepeat=[1, 1])
+    mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = CALIB_BOARD
+    w, h = board.size_m
+    body = spec.worldbody.add_body(name=CALIB_BOARD, mocap=True, pos=[0, 0, -1])
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[w / 2, h / 2, 0.0005], pos=[w / 2, h / 2, 0.0005],
+                  material=CALIB_BOARD, contype=0, conaffinity=0, mass=0.1)
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[w / 2, h / 2, 0.0015], pos=[w / 2, h / 2, 0.0027],
+                  rgba=[0.5, 0.5, 0.5, 1], contype=0, conaffinity=0, mass=0.1)  # covers the mirrored print
 
 
 def _drives(spec: mujoco.MjSpec, robot: str) -> None:

@@ -14,10 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.world import calibration_sequence as calseq
 from services.world.devices import BoardDevice, GloveDevice
+from services.world.model import CALIB_BOARD
 from services.world.render import snapshot
 from services.world.sim import WorldSim
 from shared import msgs
+from shared.charuco import BoardSpec
 from shared.demo import HAND_NAMES
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
@@ -56,6 +59,10 @@ class WorldService:
         self._due = {"clock": 0.0, "truth": 0.0, "session": 0.0}
         node.queryable("reset", self.cmd_reset)
         node.queryable("mode", self.cmd_mode)
+        node.queryable("calibration", self.cmd_calibration)
+        self._board_mocap = int(self.sim.model.body_mocapid[self.sim.model.body(CALIB_BOARD).id])
+        self._calib_key: tuple | None = None
+        self._calib_poses: list[np.ndarray] = []
         node.health_extra = self._health
 
     # --- control queryables -------------------------------------------------------------
@@ -70,6 +77,32 @@ class WorldService:
             return {"ok": False, "error": f"mode must be 'teacher' or 'robot', got {mode!r}"}
         self.sim.robot_mode = mode
         return {"ok": True, "mode": mode}
+
+    def cmd_calibration(self, req: dict) -> dict:
+        """Place the calibration board at pose ``index`` of the sequence (``count``, ``seed``,
+        ``registration``), or ``{"hide": true}``; answers the sim time from which frames show it."""
+        board = BoardSpec()
+        if req.get("hide"):
+            self.sim.data.mocap_pos[self._board_mocap] = [0.0, 0.0, calseq.HIDDEN_Z]
+            return {"ok": True, "hidden": True, "time": self.sim.time, "board": board.to_dict()}
+        try:
+            count, seed, index = int(req.get("count", 120)), int(req.get("seed", 0)), int(req["index"])
+            reg = calseq.Registration.from_dict(req.get("registration", {}))
+            key = (count, seed, reg)
+            if key != self._calib_key:
+                self._calib_poses, self._calib_key = calseq.sequence(board, count, seed, reg), key
+            if not 0 <= index < count:
+                raise ValueError(f"index {index} outside the sequence of {count} poses")
+        except (KeyError, TypeError, ValueError) as exc:
+            self.node.stats.count("bad_calibration_request")
+            return {"ok": False, "error": f"calibration: {exc!r}; send {{\"index\": i, \"count\": n, \"seed\": s}} "
+                                          "or {\"hide\": true}"}
+        pose = self._calib_poses[index]
+        pos, quat = calseq.mocap(pose)
+        self.sim.data.mocap_pos[self._board_mocap] = pos
+        self.sim.data.mocap_quat[self._board_mocap] = quat
+        return {"ok": True, "index": index, "count": count, "time": self.sim.time, "world_T_board": pose.tolist(),
+                "board": board.to_dict()}
 
     def _health(self) -> dict:
         return {"sim_time": self.sim.time, "realtime_ratio": round(self._rt_ratio, 3),
