@@ -14,7 +14,7 @@ TRACKED_ROOTS = ("services", "shared", "docs", "deploy", "bench", "tests", "hdl"
                  "calibration")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\s]+)`")
-PLAIN = re.compile(r"\b((?:" + "|".join(TRACKED_ROOTS) + r")/[\w./-]*\w)")
+PLAIN = re.compile(r"(?<![\w/.])((?:" + "|".join(TRACKED_ROOTS) + r")/[\w./-]*\w)")  # not inside runs/...
 DEPLOYMENTS = sorted((ROOT / "deploy").glob("*.toml"))
 
 
