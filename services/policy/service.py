@@ -63,6 +63,14 @@ class PolicyService:
         self.pub = node.publisher("xm/policy/main/plan")
         node.subscribe("xm/recon/main/scene", self.on_scene, latest(1))
         node.subscribe("xm/world/sim/session", self.on_session, latest(1))
+        node.clock.on_jump(self.on_clock_jump)
+
+    def on_clock_jump(self, _old: float, _new: float) -> None:
+        """The world restarted: its scene and episode belong to the old timeline."""
+        self.scene, self.fresh_scene, self.episode = None, False, None
+        self.naive.chosen = None
+        if self.runner is not None:
+            self.runner.reset()
 
     def _load_runner(self, path: Path):
         from services.policy.ours import PolicyError
@@ -140,7 +148,7 @@ class PolicyService:
                 if missed:
                     self.node.stats.count("ticks_caught_up", n=missed)
                 runner.step(obs)
-                if t - last_plan >= plan_every:
+                if t - last_plan >= plan_every or t < last_plan:  # (or the clock jumped back)
                     last_plan = t
                     self._publish(t, runner.horizon(None, steps), names, dt)
             except PolicyInputError as exc:

@@ -64,6 +64,7 @@ class RobotService:
         self.target: np.ndarray | None = None
         node.subscribe("xm/trajopt/main/trajectory", self.on_trajectory, latest(1))
         node.queryable("hold", self.cmd_hold)
+        node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state}
 
