@@ -2,8 +2,10 @@
 
 Every service instance of the deployment runs as ``python -m services.<name>``; its output is
 prefixed and collected (console + ``<run_dir>/logs/<name>-<instance>.log``). A process that
-dies is restarted with exponential backoff; liveliness tokens tell who is up. Ctrl-C stops
-everything: SIGTERM, a grace period, then SIGKILL.
+dies is restarted with exponential backoff; liveliness tokens tell who is up. Each child is
+"starting" (first start, no token yet), "restarting" (dead, waiting out its backoff),
+"recovering" (restarted, no token yet) or "ok" (``xm status``). Ctrl-C stops everything:
+SIGTERM, a grace period, then SIGKILL.
 """
 
 from __future__ import annotations
@@ -35,7 +37,10 @@ START_ORDER = ("world", "recorder", "glove", "robot", "camhub", "recon", "trajop
 
 
 def backoff_delay(consecutive_failures: int) -> float:
-    return min(BACKOFF_MAX_S, BACKOFF_START_S * 2 ** max(0, consecutive_failures - 1))
+    """0 for the first exit after a healthy run (a crash or kill: back at once), then doubling."""
+    if consecutive_failures <= 1:
+        return 0.0
+    return min(BACKOFF_MAX_S, BACKOFF_START_S * 2 ** (consecutive_failures - 2))
 
 
 @dataclass
@@ -53,6 +58,14 @@ class Child:
     @property
     def name(self) -> str:
         return f"{self.service}/{self.instance}"
+
+    @property
+    def state(self) -> str:
+        if self.proc is None or self.proc.returncode is not None:
+            return "restarting"
+        if not self.alive:
+            return "recovering" if self.restarts else "starting"
+        return "ok"
 
 
 class Supervisor:
@@ -176,7 +189,7 @@ class Supervisor:
             "service": c.service, "instance": c.instance,
             "pid": c.proc.pid if c.proc and c.proc.returncode is None else None,
             "uptime_s": round(now - c.started_at, 1) if c.proc and c.proc.returncode is None else 0.0,
-            "restarts": c.restarts, "alive": c.alive, "last_exit": c.last_exit,
+            "restarts": c.restarts, "alive": c.alive, "last_exit": c.last_exit, "state": c.state,
         } for c in self.children]}
 
 
@@ -251,16 +264,33 @@ def status_main(argv: list[str] | None = None) -> int:
         print(json.dumps(reports, indent=2))
         return 0
     health = {(r["service"], r["instance"]): r for r in reports}
-    print(f"{'service':<18}{'pid':>8}{'uptime':>9}{'restarts':>9}  {'status':<8} rates (Hz) / errors")
+    print(f"{'service':<18}{'pid':>8}{'uptime':>9}{'restarts':>9}  {'state':<11}{'status':<9} "
+          f"rates (Hz) / rejected, dropped / errors")
     for child in sup["children"]:
         h = health.get((child["service"], child["instance"]), {})
         rates = ", ".join(f"{k.split('/')[-1]}={v:g}" for k, v in h.get("published_hz", {}).items())
         errors = ", ".join(f"{k}={v}" for k, v in h.get("errors", {}).items())
         status = h.get("status", "down" if not child["pid"] else "silent")
+        state = child.get("state", "ok")
+        if state == "ok" and status == "starting":  # token up, still loading
+            state = "recovering" if child["restarts"] else "starting"
         name = f"{child['service']}/{child['instance']}"
         print(f"{name:<18}{child['pid'] or '-':>8}{child['uptime_s']:>8.0f}s{child['restarts']:>9}  "
-              f"{status:<8} {rates}{'  ! ' + errors if errors else ''}")
+              f"{state:<11}{status:<9} {rates}{counted(h)}{'  ! ' + errors if errors else ''}")
     return 0
+
+
+def counted(health: dict) -> str:
+    """`` | rejected=N (reason=n, ...) dropped=M``: what the service's subscriptions refused and discarded."""
+    reasons: dict[str, int] = {}
+    for per_key in health.get("rejected", {}).values():
+        for reason, n in per_key.items():
+            reasons[reason] = reasons.get(reason, 0) + n
+    dropped = sum(health.get("dropped", {}).values())
+    if not reasons and not dropped:
+        return ""
+    detail = ", ".join(f"{r}={n}" for r, n in sorted(reasons.items()))
+    return f" | rejected={sum(reasons.values())}{f' ({detail})' if detail else ''} dropped={dropped}"
 
 
 if __name__ == "__main__":

@@ -6,11 +6,16 @@ arrive; between scenes it runs on its own predictions, the interactive neural si
 7.6.1) and rolled out over the horizon for every plan. ``method = "naive"``: the thesis's baseline
 (10), the nearest training demonstration replayed time-aligned. A missing or unloadable
 checkpoint falls back to naive and says so in @health; a NaN output is counted and never
-published.
+published. Loading is off the start path, so a restarted policy plans again at once: the naive
+demonstrations and the checkpoint (torch, the compiled horizon) load in worker threads, and the
+learned policy serves the naive baseline with status "warming" until its network is ready.
 """
 
 from __future__ import annotations
 
+import asyncio
+import hashlib
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,10 +24,48 @@ import numpy as np
 from services.policy.naive import NaiveReplay
 from services.world.teacher import generate_demo
 from shared import msgs
-from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, Demo
 from shared.runtime import Node, latest
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+# The naive replay's teacher demonstrations take seconds to simulate; a restarted policy reads them
+# from here. The file name carries a digest of the simulation's source, so a changed teacher or
+# world never serves stale demonstrations.
+DEMO_CACHE = Path(os.environ.get("XM_CACHE_DIR", Path.home() / ".cache" / "crossmodal")) / "demos"
+DEMO_SOURCES = [Path(__file__).resolve().parents[1] / "world", Path(__file__).resolve().parents[2] / "shared"]
+
+
+def source_digest() -> str:
+    """A short digest of the Python sources the teacher's demonstrations depend on."""
+    h = hashlib.sha256()
+    for root in DEMO_SOURCES:
+        for path in sorted(root.rglob("*.py")):
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def teacher_demos(task: str, seeds: tuple[int, ...], cache: Path = DEMO_CACHE) -> list[Demo]:
+    """The teacher's demonstrations of ``task`` for ``seeds``, cached on disk (a cache that cannot
+    be written is skipped: the demonstrations are simulated every time)."""
+    digest = source_digest()
+    demos = []
+    for i, seed in enumerate(seeds):
+        path = cache / f"{task}-{seed}-{i}-{digest}.npz"
+        try:
+            demos.append(Demo.load(path))
+            continue
+        except (OSError, ValueError, KeyError):
+            pass
+        demo = generate_demo(task, seed, index=i)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".{path.stem}.{os.getpid()}.npz")
+            demo.save(tmp)
+            os.replace(tmp, path)  # whole or not at all: another policy may read it at the same time
+        except OSError:
+            pass
+        demos.append(demo)
+    return demos
 MAX_CATCH_UP = 25  # policy steps run for ticks the clock skipped (0.5 s at 50 Hz); a longer stall is not caught up
 
 
@@ -52,11 +95,16 @@ class PolicyService:
         self.node = node
         self.p = params
         self.runner = None
+        self.checkpoint: Path | None = None  # set while a checkpoint is to be loaded
         if params.method == "learned":
-            self.runner = self._load_runner(Path(params.checkpoint))
+            path = Path(params.checkpoint)
+            if path.exists():
+                self.checkpoint = path
+                node.set_status("warming", f"loading {path}; serving the naive baseline meanwhile")
+            else:
+                node.set_status("degraded", f"no policy checkpoint at {path}: serving the naive baseline; "
+                                f"train one with `make policy`")
         self.naive = NaiveReplay()
-        if self.runner is None:
-            self.naive.fit([generate_demo(params.task, s, index=i) for i, s in enumerate(params.train_seeds)])
         self.scene = None
         self.fresh_scene = False
         self.episode: tuple[int, float] | None = None  # (demo index, start time)
@@ -72,14 +120,17 @@ class PolicyService:
         if self.runner is not None:
             self.runner.reset()
 
-    def _load_runner(self, path: Path):
+    def _fit_naive(self) -> None:
+        """Worker thread: the teacher demonstrations the naive replay draws from."""
+        self.naive.fit(teacher_demos(self.p.task, tuple(self.p.train_seeds)))
+
+    @staticmethod
+    def _load_runner(path: Path) -> tuple[object | None, str]:
+        """Worker thread: (the runner, "") or (None, why it is unusable)."""
+        # torch and the policy package are heavy and only needed with a checkpoint: imported here.
         from services.policy.ours import PolicyError
         from services.policy.simulate import PolicyRunner
 
-        if not path.exists():
-            self.node.set_status("degraded", f"no policy checkpoint at {path}: serving the naive baseline; "
-                                 f"train one with `make policy`")
-            return None
         try:
             import torch
 
@@ -87,11 +138,9 @@ class PolicyService:
 
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
             warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
-            return PolicyRunner.from_checkpoint(path)
+            return PolicyRunner.from_checkpoint(path), ""
         except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            self.node.set_status("degraded", f"policy checkpoint {path} unusable ({exc}): serving the naive "
-                                 f"baseline")
-            return None
+            return None, f"policy checkpoint {path} unusable ({exc}): serving the naive baseline"
 
     @property
     def method_name(self) -> str:
@@ -109,14 +158,26 @@ class PolicyService:
                 self.runner.reset()
 
     async def run(self) -> None:
-        if self.runner is not None:
-            await self._run_learned()
-        else:
-            await self._run_naive()
+        loading = None
+        if self.checkpoint is not None:
+            loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
+        await asyncio.to_thread(self._fit_naive)
+        if loading is not None:
+            await self._run_naive(until=loading)
+            self.runner, problem = loading.result()
+            if self.runner is None:
+                self.node.set_status("degraded", problem)
+            else:
+                self.node.set_status("ok")
+                self.node.log.info("serving %s", self.method_name)
+                await self._run_learned()
+        await self._run_naive()
 
-    async def _run_naive(self) -> None:
+    async def _run_naive(self, until: asyncio.Future | None = None) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
+            if until is not None and until.done():
+                return
             if self.scene is None or self.episode is None:
                 continue
             if self.naive.chosen is None:

@@ -146,6 +146,10 @@ class BoardDevice:
         self.board = BoardSim(joint_names)
         self.feedback_frames = 0
 
+    def restart_schedule(self) -> None:
+        """The simulated time restarted."""
+        self.board.restart_clock()
+
     def step(self, sim) -> None:
         data = self.pty.read()
         if data:

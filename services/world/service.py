@@ -66,6 +66,8 @@ class WorldService:
         self._due = dict.fromkeys(self._due, 0.0)
         for glove in self.gloves:
             glove.restart_schedule()
+        if self.board is not None:
+            self.board.restart_schedule()
         self._repace = True
         return {"ok": True, "seed": seed}
 

@@ -116,7 +116,7 @@ def test_trajopt_rejects_plans_with_nan_keypoints_with_a_reason_and_a_counter(ro
     with ServiceProcess("trajopt", dep, "main", tmp_path / "trajopt.log") as trajopt:
         assert wait_for(lambda: query_json(session, "xm/trajopt/main/@health"), 60), trajopt.output()
         for share in (1.0, 0.5):  # every keypoint NaN, then half of them
-            def counted() -> bool:
+            def counted(share: float = share) -> bool:
                 now = time.time()
                 session.put("xm/robot/workcell/state", msgs.serialize(msgs.make(
                     "sensor_msgs/msg/JointState", header=msgs.header(now), name=names, position=np.zeros(len(names)),
