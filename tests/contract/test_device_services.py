@@ -117,7 +117,8 @@ def test_robot_follows_trajectories_rejects_nan_and_stops_commanding_without_fee
         steps = np.abs(np.diff([c.position for c in commands[-50:]], axis=0))
         assert np.all(steps <= model.max_velocity * 0.0045 + 1e-6), "velocity limits enforced"
         health = query_json(session, "xm/robot/workcell/@health")[0]
-        assert health["rejections"].get("trajectory contains NaN or infinite values") == 1
+        # The NaN trajectory is refused at the subscription, before the follower sees it.
+        assert health["rejected"]["xm/trajopt/main/trajectory"].get("non_finite") == 1, health["rejected"]
         assert any(k.startswith("malformed") for k in health["errors"])
         # The board vanishes: the host stops commanding (the board's own watchdog brakes).
         dev.close()
