@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import signal
 import sys
+from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, load_deployment, parse_params
-from shared.runtime.logs import setup_logging
+from shared.runtime.logs import fields, setup_logging
 from shared.runtime.node import Node
 from shared.runtime.zsession import EndpointError, open_client
 
@@ -48,6 +50,8 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
         impl = cls(node, params)
         if node.status == "starting":  # the service may already have reported itself degraded
             node.set_status("ok")
+        age = process_age()
+        log.info("ready", extra=fields(since_process_start_s=round(age, 3)) if age is not None else None)
         main = node.spawn(impl.run() if hasattr(impl, "run") else stop.wait(), name="run")
         stopper = asyncio.ensure_future(stop.wait())
         await asyncio.wait({main, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -65,6 +69,16 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
                 log.warning("close failed: %r", exc)
         await node.close()
         session.close()
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (interpreter start and imports included); None off Linux."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
 
 
 def service_main(service: str, cls: type, argv: list[str] | None = None) -> None:
