@@ -214,7 +214,7 @@ class PolicyService:
                     self._publish(t, runner.horizon(None, steps), names, dt)
             except PolicyInputError as exc:
                 self.node.stats.count("bad_scene")
-                self.node.log.warning("scene unusable: %s", exc)
+                self.node.logs.warning("bad_scene", "scene unusable", error=str(exc)[:200])
                 runner.reset()
             except PolicyError:
                 self.node.stats.count("nan_plan")  # never let NaN reach trajopt

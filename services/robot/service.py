@@ -71,7 +71,7 @@ class RobotService:
     def _reject(self, reason: str) -> None:
         self.rejections[reason] = self.rejections.get(reason, 0) + 1
         self.node.stats.count("command_rejected")
-        self.node.log.warning("rejected: %s", reason)
+        self.node.logs.warning(f"rejected:{reason}", "trajectory rejected", reason=reason)
 
     def on_trajectory(self, msg) -> None:
         reason = self.follower.load(msg, self.node.clock.now())

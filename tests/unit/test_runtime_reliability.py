@@ -125,3 +125,53 @@ def test_rate_limited_log_writes_the_first_then_a_summary(caplog):
         limited.every_s = 0.0
         limited.flush()
     assert len(caplog.records) == 3 and "999 more" in caplog.records[-1].getMessage()
+
+
+def test_a_healthy_child_is_restarted_at_once_and_a_failing_one_backs_off():
+    from deploy.supervisor import BACKOFF_MAX_S, backoff_delay
+
+    assert backoff_delay(1) == 0.0
+    delays = [backoff_delay(n) for n in range(2, 12)]
+    assert delays[0] > 0 and delays == sorted(delays) and delays[-1] == BACKOFF_MAX_S
+
+
+def test_supervisor_child_states():
+    from deploy.supervisor import Child
+
+    class Proc:
+        returncode = None
+        pid = 1
+
+    child = Child("recon", "main")
+    assert child.state == "restarting"  # no process
+    child.proc = Proc()
+    assert child.state == "starting"
+    child.restarts = 1
+    assert child.state == "recovering"
+    child.alive = True
+    assert child.state == "ok"
+
+
+def test_status_line_sums_rejections_by_reason_and_drops():
+    from deploy.supervisor import counted
+
+    h = {"rejected": {"a": {"malformed": 2, "non_finite": 1}, "b": {"malformed": 3}}, "dropped": {"a": 4, "b": 1}}
+    assert counted(h) == " | rejected=6 (malformed=5, non_finite=1) dropped=5"
+    assert counted({"rejected": {}, "dropped": {}}) == ""
+
+
+def test_naive_demonstrations_come_from_the_cache_once_written(tmp_path, monkeypatch):
+    from services.policy import service
+
+    first = service.teacher_demos("assembly", (9000,), tmp_path)
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+
+    def no_simulation(*_a, **_k):
+        raise AssertionError("simulated again despite the cache")
+
+    monkeypatch.setattr(service, "generate_demo", no_simulation)
+    again = service.teacher_demos("assembly", (9000,), tmp_path)
+    assert np.array_equal(first[0].hands, again[0].hands) and first[0].meta == again[0].meta
+    monkeypatch.setattr(service, "source_digest", lambda: "other-sources")
+    with pytest.raises(AssertionError, match="simulated again"):
+        service.teacher_demos("assembly", (9000,), tmp_path)  # changed sources: not served from the cache
