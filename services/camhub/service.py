@@ -46,7 +46,7 @@ class CamhubService:
             except RigError as exc:
                 self.node.stats.count("trigger_failed")
                 self.node.set_status("degraded", str(exc))
-                await asyncio.sleep(0.5)
+                await asyncio.sleep(0.1)  # the world is back within a few ticks of restarting: retry soon
                 continue
             self.node.set_status("ok")
             encoded = await self.node.loop.run_in_executor(self.worker, encode_all, frames, self.params.jpeg_quality)

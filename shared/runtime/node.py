@@ -329,8 +329,9 @@ class Node:
             query.drop()
 
     def set_status(self, status: str, message: str = "") -> None:
-        if (status, message) != (self.status, self.message):
-            self.log.info("status %s", status, extra=fields(message=message) if message else None)
+        if (status, message) != (self.status, self.message):  # a flapping status: a line, then summaries
+            self.logs.emit(logging.INFO, f"status:{status}", f"status {status}", **({"message": message} if message
+                                                                                  else {}))
         self.status, self.message = status, message
 
     def health(self) -> dict:
