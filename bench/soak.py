@@ -165,15 +165,16 @@ def measure_kill(monitor: Monitor, child: dict, stuck_after: float) -> dict:
 
 
 def ready_after_start(log: Path) -> float | None:
-    """The newest "ready since_process_start_s=X" of a service's log: its start-up (interpreter,
-    imports, connecting, building the service) before it can publish."""
+    """The newest "ready" of a service's log: its start-up before it can publish (a fresh process:
+    interpreter, imports, connecting, building the service; a spare: connecting and building)."""
     try:
         lines = log.read_text(errors="replace").splitlines()[-400:]
     except OSError:
         return None
     for line in reversed(lines):
-        if " ready " in line and "since_process_start_s=" in line:
-            return float(line.rsplit("since_process_start_s=", 1)[1].split()[0])
+        for field in ("since_process_start_s=", "since_taken_over_s="):  # a fresh process, or a spare
+            if " ready " in line and field in line:
+                return float(line.rsplit(field, 1)[1].split()[0])
     return None
 
 
@@ -266,6 +267,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="seconds between kills (default %(default)s)")
     parser.add_argument("--hog", action=argparse.BooleanOptionalAction, default=True,
                         help="run one CPU-bound process beside the cell (default: on)")
+    parser.add_argument("--standby", action=argparse.BooleanOptionalAction, default=True,
+                        help="`xm up --standby`: an imported spare per service takes over (default: on)")
     parser.add_argument("--deployment", default=str(ROOT / "deploy/sim.toml"))
     parser.add_argument("--seed", type=int, default=0, help="which services are killed, in which order")
     parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
@@ -277,11 +280,13 @@ def main(argv: list[str] | None = None) -> int:
     deployment, router = private_deployment(Path(args.deployment), tmp)
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     up_log = (tmp / "up.log").open("w")
-    up = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"], cwd=ROOT,
+    up = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet",
+                           *(["--standby"] if args.standby else [])], cwd=ROOT,
                           stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
     procs = [up]
     report: dict = {"deployment": str(args.deployment), "minutes": args.minutes, "kill_every_s": args.kill_every,
-                    "hog": args.hog, "cpus": os.cpu_count(), "loadavg_start": os.getloadavg(), "kills": []}
+                    "hog": args.hog, "standby": args.standby, "cpus": os.cpu_count(),
+                    "loadavg_start": os.getloadavg(), "kills": []}
     monitor = None
     try:
         time.sleep(1.0)
