@@ -61,12 +61,13 @@ class RateLimitedLog:
     def warning(self, kind: str, msg: str, **kw: object) -> None:
         self.emit(logging.WARNING, kind, msg, **kw)
 
-    def emit(self, level: int, kind: str, msg: str, **kw: object) -> None:
+    def emit(self, level: int, kind: str, msg: str, exc_info: BaseException | None = None, **kw: object) -> None:
+        """``exc_info``: a traceback for the first line of the kind (the summaries only count)."""
         now = time.monotonic()
         entry = self._kinds.get(kind)
         if entry is None:
             self._kinds[kind] = [now, 0, level, msg, kw]
-            self.log.log(level, msg, extra=fields(**kw))
+            self.log.log(level, msg, extra=fields(**kw), exc_info=exc_info)
             return
         entry[1] += 1
         entry[2:] = [level, msg, kw]

@@ -263,8 +263,8 @@ class Node:
 
     def handler_failed(self, key: str, exc: Exception) -> None:
         self.stats.count("handler_error", key)
-        self.logs.emit(logging.ERROR, f"handler:{key}:{type(exc).__name__}", "handler failed", key=key,
-                       error=repr(exc)[:300])
+        self.logs.emit(logging.ERROR, f"handler:{key}:{type(exc).__name__}", "handler failed", exc_info=exc,
+                       key=key, error=repr(exc)[:300])
 
     async def _flush_logs(self) -> None:
         while True:
@@ -349,19 +349,23 @@ class Node:
             "received_hz": {k: round(m.rate(now), 2) for k, m in self.stats.received.items()},
             "errors": dict(self.stats.errors),
             "rejected": {k: dict(c) for k, c in self.stats.rejected.items()},
-            "dropped": self._dropped(),
+            **self._queue_counts(),
             "clock_jumps": self.clock.jumps,
         }
         if self.health_extra is not None:
             report.update(self.health_extra())
         return report
 
-    def _dropped(self) -> dict[str, int]:
-        """Per key: samples the subscriptions' queue policies discarded."""
-        out: collections.Counter[str] = collections.Counter()
+    def _queue_counts(self) -> dict[str, dict[str, int]]:
+        """Per key: samples that arrived, and those the subscriptions' queue policies discarded
+        (arrived = handled + rejected + dropped, once the queues are drained)."""
+        arrived: collections.Counter[str] = collections.Counter()
+        dropped: collections.Counter[str] = collections.Counter()
         for sub in self._subs:
-            out.update(sub.counts()[1])
-        return dict(out)
+            a, d = sub.counts()
+            arrived.update(a)
+            dropped.update(d)
+        return {"arrived": dict(arrived), "dropped": dict(dropped)}
 
     async def close(self) -> None:
         for close in reversed(self._closers):

@@ -112,6 +112,7 @@ def test_a_flood_of_garbage_is_counted_to_the_last_message_on_keep_latest_queues
         assert rejected + h["dropped"].get(spec.key, 0) == per_key, (spec.key, h["rejected"].get(spec.key),
                                                                     h["dropped"].get(spec.key))
         assert rejected >= 1  # the last one at least was decoded and judged
+        assert h["arrived"][spec.key] == per_key
 
 
 def test_trajopt_rejects_plans_with_nan_keypoints_with_a_reason_and_a_counter(router, tmp_path):
