@@ -10,13 +10,14 @@ DEPLOYMENT ?= deploy/sim.toml
 POLICY_PRESET ?= no_tactile
 POLICY := runs/policy/policy.pt
 
-.PHONY: run test test-fast bench lint clean help policy
+.PHONY: run test test-fast bench soak lint clean help policy
 
 help:
 	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
 	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
 	@echo "make policy - train the network the policy service serves (runs/policy/policy.pt)"
 	@echo "make bench  - benchmarks, results in .bench/*.json"
+	@echo "make soak   - chaos soak: kill -9 a random service every minute for an hour (.bench/soak.json)"
 	@echo "make lint   - ruff"
 
 $(STAMP): pyproject.toml
@@ -47,7 +48,12 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	mkdir -p .bench
-	for b in bench/*.py; do echo "== $$b"; PYTHONPATH=. $(BIN)/python $$b || exit 1; done
+	for b in bench/*.py; do [ $$b = bench/soak.py ] && continue; echo "== $$b"; PYTHONPATH=. $(BIN)/python $$b || exit 1; done
+
+SOAK_MINUTES ?= 60
+soak: $(STAMP)
+	mkdir -p .bench
+	PYTHONPATH=. $(BIN)/python bench/soak.py --minutes $(SOAK_MINUTES)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

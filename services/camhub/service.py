@@ -135,7 +135,7 @@ class CamhubService:
             except RigError as exc:
                 self.node.stats.count("trigger_failed")
                 self.node.set_status("degraded", str(exc))
-                await asyncio.sleep(0.5)
+                await asyncio.sleep(0.1)  # the world is back within a few ticks of restarting: retry soon
                 continue
             if frames.missing:
                 self.node.stats.count("camera_missing", n=len(frames.missing))

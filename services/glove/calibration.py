@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from services.glove.layout import CELL_MASK
 
@@ -56,6 +55,9 @@ def rational(p: np.ndarray, a: float, b: float) -> np.ndarray:
 def fit_rational(p: np.ndarray, r: np.ndarray) -> tuple[float, float]:
     """Least-squares fit of r = a p / (1 + b p) (p reference pressure, r relative response)."""
     a0 = float(np.polyfit(p, r, 1)[0]) if len(p) > 1 else 0.01
+    # scipy.optimize costs the glove service ~0.3 s of start-up and is only needed to fit: imported here.
+    from scipy.optimize import least_squares
+
     res = least_squares(lambda x: rational(p, x[0], x[1]) - r, [max(a0, 1e-6), 1e-3], bounds=([0, 0], [np.inf, 10]))
     return float(res.x[0]), float(res.x[1])
 

@@ -8,11 +8,14 @@ arrive; between scenes it runs on its own predictions, the interactive neural si
 `xm train` saves beside the checkpoint (``demos``: a folder of Demo .npz files). A missing or
 unloadable checkpoint falls back to naive and says so in @health; without demonstrations to replay
 the fallback holds: it publishes the observed hands standing still over the horizon, and says so.
-A NaN output is counted and never published.
+A NaN output is counted and never published. Loading the network is off the start path, so a
+restarted policy plans again at once: the checkpoint and the compiled horizon load in a worker
+thread while the node serves the naive replay (or holds) with status "warming".
 """
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,15 +59,20 @@ class PolicyService:
             raise ValueError(f"policy method {params.method!r}: use 'learned' or 'naive'")
         self.node = node
         self.p = params
-        self.runner = None
+        self.runner: PolicyRunner | None = None
         self.fallback: list[str] = []  # why the node serves less than it was asked to (@health)
+        self.checkpoint: Path | None = None  # set while a checkpoint is to be loaded
         if params.method == "learned":
-            self.runner = self._load_runner(Path(params.checkpoint))
-        self.naive: NaiveReplay | None = None
-        if self.runner is None:
-            self.naive = self._load_naive(Path(params.demos) if params.demos else
-                                          Path(params.checkpoint).parent / "demos")
-        if self.fallback:
+            path = Path(params.checkpoint)
+            if path.exists():
+                self.checkpoint = path
+            else:
+                self.fallback.append(f"no policy checkpoint at {path}: serving the naive baseline; train one "
+                                     f"with `make policy`")
+        self.naive = self._load_naive(Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos")
+        if self.checkpoint is not None:
+            node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
+        elif self.fallback:
             node.set_status("degraded", "; ".join(self.fallback))
         self.scene = None
         self.fresh_scene = False
@@ -72,19 +80,25 @@ class PolicyService:
         self.pub = node.output("plan")
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
+        node.clock.on_jump(self.on_clock_jump)
 
-    def _load_runner(self, path: Path) -> PolicyRunner | None:
-        if not path.exists():
-            self.fallback.append(f"no policy checkpoint at {path}: serving the naive baseline; train one with "
-                                 f"`make policy`")
-            return None
+    def on_clock_jump(self, _old: float, _new: float) -> None:
+        """The world restarted: its scene and episode belong to the old timeline."""
+        self.scene, self.fresh_scene, self.episode = None, False, None
+        if self.naive is not None:
+            self.naive.chosen = None
+        if self.runner is not None:
+            self.runner.reset()
+
+    @staticmethod
+    def _load_runner(path: Path) -> tuple[PolicyRunner | None, str]:
+        """Worker thread: (the runner, "") or (None, why it is unusable)."""
         try:
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
             warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
-            return PolicyRunner.from_checkpoint(path)
+            return PolicyRunner.from_checkpoint(path), ""
         except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            self.fallback.append(f"policy checkpoint {path} unusable ({exc}): serving the naive baseline")
-            return None
+            return None, f"policy checkpoint {path} unusable ({exc}): serving the naive baseline"
 
     def _load_naive(self, folder: Path) -> NaiveReplay | None:
         """The naive replay over the demonstrations in ``folder``; None (hold) where there are none."""
@@ -116,21 +130,31 @@ class PolicyService:
                 self.runner.reset()
 
     async def run(self) -> None:
-        if self.runner is not None:
-            await self._run_learned()
-        else:
-            await self._run_naive()
+        if self.checkpoint is not None:
+            loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
+            await self._run_naive(until=loading)
+            self.runner, problem = loading.result()
+            if self.runner is None:
+                self.fallback.append(problem)
+                self.node.set_status("degraded", "; ".join(self.fallback))
+            else:
+                self.node.set_status("ok")
+                self.node.log.info("serving %s", self.method_name)
+                await self._run_learned()
+        await self._run_naive()
 
-    async def _run_naive(self) -> None:
+    async def _run_naive(self, until: asyncio.Future | None = None) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
+            if until is not None and until.done():
+                return
             if self.scene is None:
                 continue
             try:
                 obs = SceneObs.from_msg(self.scene)
             except ValueError as exc:  # wrong sizes: counted and skipped
                 self.node.stats.count("bad_scene")
-                self.node.log.warning("scene unusable: %s", exc)
+                self.node.logs.warning("bad_scene", "scene unusable", error=str(exc)[:200])
                 continue
             if self.naive is None:  # hold: the observed hands, unobserved points marked so in the plan's mask
                 seen = np.asarray(obs.hand_mask, bool).reshape(-1) & np.isfinite(obs.hands).all(-1).reshape(-1)
@@ -147,7 +171,7 @@ class PolicyService:
                                        self.p.plan_dt)
             except BaselineError as exc:  # a scene of another object list than the demonstrations'
                 self.node.stats.count("bad_scene")
-                self.node.log.warning("scene unusable for the naive replay: %s", exc)
+                self.node.logs.warning("bad_scene", "scene unusable for the naive replay", error=str(exc)[:200])
                 continue
             self._publish(t, flat[:, :HAND_DIMS].reshape(steps, -1, 3), HAND_POINT_NAMES, self.p.plan_dt)
 
@@ -171,12 +195,12 @@ class PolicyService:
                 if missed:
                     self.node.stats.count("ticks_caught_up", n=missed)
                 runner.step(obs)
-                if t - last_plan >= plan_every:
+                if t - last_plan >= plan_every or t < last_plan:  # (or the clock jumped back)
                     last_plan = t
                     self._publish(t, runner.horizon(None, steps), names, dt)
             except PolicyInputError as exc:
                 self.node.stats.count("bad_scene")
-                self.node.log.warning("scene unusable: %s", exc)
+                self.node.logs.warning("bad_scene", "scene unusable", error=str(exc)[:200])
                 runner.reset()
             except PolicyError:
                 self.node.stats.count("nan_plan")  # never let NaN reach trajopt

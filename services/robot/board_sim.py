@@ -195,6 +195,15 @@ class BoardSim:
             self.sticky_flags &= ~CONFIG_REJECTED
             self.counters["configs"] += 1
 
+    def restart_clock(self) -> None:
+        """The simulated time restarted (world reset): feedback is due at once, and the watchdog
+        waits for a command on the new timeline (a kick from the old one would never expire)."""
+        self._next_feedback = 0.0
+        self._last_t = None
+        self.watchdog.last_kick = None
+        self.watchdog.state = "waiting"
+        self.last_command_t = None
+
     def step(self, t: float, q: np.ndarray, qd: np.ndarray,
              dt: float | None = None) -> tuple[np.ndarray, FeedbackFrame | None]:
         """One control period at board time ``t`` with the measured joint state; dt defaults to the time

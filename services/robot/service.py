@@ -65,13 +65,14 @@ class RobotService:
         self.target: np.ndarray | None = None
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
+        node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state}
 
     def _reject(self, reason: str) -> None:
         self.rejections[reason] = self.rejections.get(reason, 0) + 1
         self.node.stats.count("command_rejected")
-        self.node.log.warning("rejected: %s", reason)
+        self.node.logs.warning(f"rejected:{reason}", "trajectory rejected", reason=reason)
 
     def on_trajectory(self, msg) -> None:
         reason = self.follower.load(msg, self.node.clock.now())

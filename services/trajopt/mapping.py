@@ -23,9 +23,14 @@ def plan_arrays(msg) -> PlanArrays:
     names = list(msg.point_names)
     steps, points = int(msg.steps), len(names)
     pos = np.asarray(msg.positions, float)
-    if pos.size != steps * points * 3 or msg.dt <= 0:
+    if pos.size != steps * points * 3 or not msg.dt > 0:
         raise ValueError(f"plan of {steps} steps x {points} points has {pos.size} position values, dt {msg.dt}")
+    if len(msg.mask) not in (0, steps * points):
+        raise ValueError(f"plan of {steps} steps x {points} points has {len(msg.mask)} mask values")
     mask = np.asarray(msg.mask, bool).reshape(steps, points) if len(msg.mask) else np.ones((steps, points), bool)
+    bad = mask & ~np.isfinite(pos.reshape(steps, points, 3)).all(axis=-1)
+    if bad.any():  # a goal the plan asks for that is no number: the plan is broken, not partly usable
+        raise ValueError(f"plan has {int(bad.sum())} non-finite keypoints of {int(mask.sum())} unmasked")
     return PlanArrays(msgs.stamp_seconds(msg.header.stamp), float(msg.dt), names, pos.reshape(steps, points, 3), mask)
 
 

@@ -55,6 +55,7 @@ class TrajoptService:
         self.t_current = 0.0  # time of its first knot
         self.last_result = None
         self.last_rejection: dict | None = None  # the latest rejected solve, kept after later successes
+        self.last_plan_rejection: str | None = None
         self.pub = node.output("trajectory")
         node.input("plan", self.on_plan)
         node.input("state", self.on_state)  # the robot's state: robot/<params.robot>/state by default
@@ -65,6 +66,8 @@ class TrajoptService:
             self.plan = plan_arrays(msg)
         except ValueError as exc:
             self.node.stats.count("bad_plan")
+            self.last_plan_rejection = str(exc)
+            self.node.reject("xm/policy/main/plan", "bad_value", str(exc))
             self.node.set_status("degraded", f"plan rejected: {exc}")
 
     def on_state(self, msg) -> None:
@@ -77,7 +80,8 @@ class TrajoptService:
 
     def _health(self) -> dict:
         r = self.last_result
-        out = {"robot": self.p.robot, "pose_prior": self.pose_prior, "last_rejection": self.last_rejection}
+        out = {"robot": self.p.robot, "pose_prior": self.pose_prior, "last_rejection": self.last_rejection,
+               "last_plan_rejection": self.last_plan_rejection}
         if r is None:
             return out
         return out | {"solve_time_ms": round(r.solve_time_s * 1e3, 3), "iterations": r.iterations,

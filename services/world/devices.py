@@ -101,6 +101,10 @@ class GloveDevice:
         regs = self.registers.values
         return max(regs[tactile.REG_WINDOW], 1) * max(regs[tactile.REG_TICK_DIV], 1) / tactile.CORE_CLOCK_HZ
 
+    def restart_schedule(self) -> None:
+        """The simulated time restarted: the next readout window ends at once."""
+        self._next_frame = 0.0
+
     def due(self, t: float) -> bool:
         """True when a readout window ends at ``t`` (then the next one is scheduled)."""
         if t < self._next_frame:
@@ -141,6 +145,10 @@ class BoardDevice:
         self.decoder = robot_board.StreamDecoder()
         self.board = BoardSim(joint_names)
         self.feedback_frames = 0
+
+    def restart_schedule(self) -> None:
+        """The simulated time restarted."""
+        self.board.restart_clock()
 
     def step(self, sim) -> None:
         data = self.pty.read()

@@ -57,6 +57,7 @@ class WorldService:
         self._snapshot_q = node.session.declare_queryable(SNAPSHOT_KEY, self._on_snapshot)
         self._last_session: tuple | None = None
         self._due = {"clock": 0.0, "truth": 0.0, "session": 0.0}
+        self._repace = False  # set by a reset: pace real time from the new simulated time
         node.queryable("reset", self.cmd_reset)
         node.queryable("mode", self.cmd_mode)
         node.queryable("calibration", self.cmd_calibration)
@@ -69,6 +70,13 @@ class WorldService:
     def cmd_reset(self, req: dict) -> dict:
         seed = int(req.get("seed", self.p.seed))
         self.sim.reset(seed)
+        # Simulated time restarts at 0: every schedule on the old timeline starts over.
+        self._due = dict.fromkeys(self._due, 0.0)
+        for glove in self.gloves:
+            glove.restart_schedule()
+        if self.board is not None:
+            self.board.restart_schedule()
+        self._repace = True
         return {"ok": True, "seed": seed}
 
     def cmd_mode(self, req: dict) -> dict:
@@ -132,6 +140,8 @@ class WorldService:
                     self.board.step(self.sim)
                 self.sim.step(1)
             self._publish_due()
+            if self._repace:
+                self._repace, wall0, sim0 = False, time.monotonic(), self.sim.time
             # Pace to real time (scaled); if we fall behind, run flat out and report the ratio.
             sim_elapsed = self.sim.time - sim0
             wall_target = wall0 + sim_elapsed / self.p.realtime_factor

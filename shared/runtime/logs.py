@@ -42,3 +42,47 @@ def setup_logging(source: str, level: str | None = None) -> logging.Logger:
 def fields(**kw: object) -> dict:
     """``log.info("msg", extra=fields(a=1))`` attaches structured fields."""
     return {"fields": kw}
+
+
+class RateLimitedLog:
+    """One log line per kind of event, then a summary every ``every_s`` seconds while it recurs.
+
+    ``warning(kind, msg, **fields)`` logs the first event of a kind at once; the next ones within
+    ``every_s`` are only counted, and ``flush()`` (or the next event after the interval) writes
+    "<msg> (n more in the last Ts)" with the latest fields. A flood of bad input costs a line per
+    kind per interval, not a line per message.
+    """
+
+    def __init__(self, log: logging.Logger, every_s: float = 10.0) -> None:
+        self.log = log
+        self.every_s = every_s
+        self._kinds: dict[str, list] = {}  # kind -> [last line time, suppressed count, level, msg, fields]
+
+    def warning(self, kind: str, msg: str, **kw: object) -> None:
+        self.emit(logging.WARNING, kind, msg, **kw)
+
+    def emit(self, level: int, kind: str, msg: str, exc_info: BaseException | None = None, **kw: object) -> None:
+        """``exc_info``: a traceback for the first line of the kind (the summaries only count)."""
+        now = time.monotonic()
+        entry = self._kinds.get(kind)
+        if entry is None:
+            self._kinds[kind] = [now, 0, level, msg, kw]
+            self.log.log(level, msg, extra=fields(**kw), exc_info=exc_info)
+            return
+        entry[1] += 1
+        entry[2:] = [level, msg, kw]
+        if now - entry[0] >= self.every_s:
+            self._summary(entry, now)
+
+    def flush(self) -> None:
+        """Writes the summaries that are due; call it every few seconds."""
+        now = time.monotonic()
+        for entry in self._kinds.values():
+            if entry[1] and now - entry[0] >= self.every_s:
+                self._summary(entry, now)
+
+    def _summary(self, entry: list, now: float) -> None:
+        last, count, level, msg, kw = entry
+        self.log.log(level, f"{msg} ({count} more in the last {now - last:.0f} s)",
+                     extra=fields(**kw))
+        entry[0], entry[1] = now, 0

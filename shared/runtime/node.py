@@ -2,9 +2,11 @@
 
 Zenoh callbacks run on Zenoh threads; they only copy the payload and hand it to the event loop
 with ``call_soon_threadsafe``. Each subscription owns a bounded queue with an explicit policy:
-``latest(n)`` keeps the newest n samples (control loops), ``fifo(n)`` keeps all up to n and
-counts overflow (the recorder). Decoding and handlers run on the loop, so a slow handler never
-blocks Zenoh and a malformed payload is counted and dropped.
+``latest(n)`` keeps the newest n samples (control loops), ``fifo(n)`` keeps all up to n (the
+recorder); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
+validation (shared/runtime/validate.py) and handlers run on the loop, so a slow handler never
+blocks Zenoh, and a payload that is malformed or unfit is counted per key and reason
+("rejected") and never reaches the handler. Warnings about bad input are rate-limited per kind.
 """
 
 from __future__ import annotations
@@ -25,13 +27,15 @@ import zenoh
 from shared import keys as keyreg
 from shared import msgs
 from shared.ports import QueuePolicy, fifo, latest
+from shared.runtime import validate
 from shared.runtime.clock import Clock
-from shared.runtime.logs import fields
+from shared.runtime.logs import RateLimitedLog, fields
 from shared.wiring import Binding
 
 __all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
 
 RATE_WINDOW_S = 5.0
+LOG_SUMMARY_S = 10.0  # a recurring warning is summarised at most this often
 
 
 class RateMeter:
@@ -90,15 +94,22 @@ class Subscription:
         self._is_async = inspect.iscoroutinefunction(handler)
         self._wake = asyncio.Event()
         self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}") if self._is_async else None
+        # Per key: samples that arrived, and those the queue policy discarded (Zenoh thread, under _lock).
+        self.arrived: collections.Counter[str] = collections.Counter()
+        self.dropped: collections.Counter[str] = collections.Counter()
         self._sub = node.session.declare_subscriber(key_expr, self._on_sample)
 
     # Zenoh thread: copy and hand over, nothing else.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         item = (str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
         with self._lock:
-            if self.policy.kind == "fifo" and len(self._queue) >= self.policy.depth:
-                self._node.stats.count("queue_overflow")
-                return
+            self.arrived[item[0]] += 1
+            if len(self._queue) >= self.policy.depth:
+                if self.policy.kind == "fifo":
+                    self.dropped[item[0]] += 1  # the newest is refused
+                    self._node.stats.count("queue_overflow")  # the recorder reports this total
+                    return
+                self.dropped[self._queue[0][0]] += 1  # keep-latest: the oldest gives way
             self._queue.append(item)
             if self._scheduled:
                 return
@@ -122,8 +133,7 @@ class Subscription:
                 try:
                     self._handler(msg, item[0]) if self._wants_key else self._handler(msg)
                 except Exception as exc:  # a handler bug must not kill the subscription
-                    self._node.stats.count("handler_error", item[0])
-                    self._node.log.exception("handler failed", extra=fields(key=item[0], error=repr(exc)))
+                    self._node.handler_failed(item[0], exc)
 
     def _decode(self, key: str, payload: bytes, t_recv: float) -> Any:
         stats = self._node.stats
@@ -135,11 +145,16 @@ class Subscription:
         if msgtype == "raw":
             return payload
         try:
-            return msgs.deserialize(payload, msgtype or "")
+            validate.check_size(len(payload), msgtype or "")
+            msg = msgs.deserialize(payload, msgtype or "")
+            validate.check(msg, msgtype or "", self._node.clock.now() if self._node.clock.started else None)
         except msgs.MessageError as exc:
-            stats.count("malformed", key)
-            self._node.log.warning("dropped malformed payload", extra=fields(key=key, error=str(exc)[:200]))
+            self._node.reject(key, "malformed", str(exc))
             return None
+        except validate.RejectedError as exc:
+            self._node.reject(key, exc.reason, exc.detail)
+            return None
+        return msg
 
     async def _dispatch(self) -> None:
         while True:
@@ -161,8 +176,12 @@ class Subscription:
         try:
             await (self._handler(msg, key) if self._wants_key else self._handler(msg))
         except Exception as exc:  # a handler bug must not kill the subscription
-            self._node.stats.count("handler_error", key)
-            self._node.log.exception("handler failed", extra=fields(key=key, error=repr(exc)))
+            self._node.handler_failed(key, exc)
+
+    def counts(self) -> tuple[dict[str, int], dict[str, int]]:
+        """(arrived, dropped by the queue policy) per key, a consistent snapshot."""
+        with self._lock:
+            return dict(self.arrived), dict(self.dropped)
 
     def close(self) -> None:
         self._sub.undeclare()
@@ -175,6 +194,11 @@ class Stats:
         self.published: dict[str, RateMeter] = {}
         self.received: dict[str, RateMeter] = {}
         self.errors: collections.Counter[str] = collections.Counter()
+        self.rejected: dict[str, collections.Counter[str]] = {}  # key -> reason -> count
+
+    def reject(self, key: str, reason: str) -> None:
+        self.rejected.setdefault(key, collections.Counter())[reason] += 1
+        self.count(reason, key)
 
     def count(self, name: str, key: str | None = None, n: int = 1) -> None:
         self.errors[name if key is None else f"{name}:{key}"] += n
@@ -197,11 +221,15 @@ class Node:
         self.status = "starting"
         self.message = ""
         self.health_extra: Callable[[], dict] | None = None
+        self.logs = RateLimitedLog(self.log, LOG_SUMMARY_S)
+        self._subs: list[Subscription] = []
         self._tasks: set[asyncio.Task] = set()
         self._closers: list[Callable[[], None]] = []
         self.stopping = asyncio.Event()
         self._token = session.liveliness().declare_token(self.key("@alive"))
         self.queryable("@health", lambda _req: self.health(), raw_key=True)
+        self.clock.on_jump(self._on_clock_jump)
+        self.spawn(self._flush_logs(), name="log-summaries")
         if clock_mode == "sim":
             self.subscribe("xm/clock", self._on_clock, latest(1), msgtype="rosgraph_msgs/msg/Clock")
 
@@ -210,6 +238,28 @@ class Node:
 
     def _on_clock(self, msg: Any) -> None:
         self.clock.advance(msgs.stamp_seconds(msg.clock))
+
+    def _on_clock_jump(self, old: float, new: float) -> None:
+        # Loops on clock.ticks() rebase themselves; services with their own timing listen too.
+        self.stats.count("clock_jumped_back")
+        self.log.warning("clock jumped back: schedules restart on the new timeline",
+                         extra=fields(old=round(old, 3), new=round(new, 3)))
+
+    def reject(self, key: str, reason: str, detail: str) -> None:
+        """Counts a message unfit for its key (per key and reason) and logs it, rate-limited."""
+        self.stats.reject(key, reason)
+        self.logs.warning(f"rejected:{reason}:{key}", "rejected message", key=key, reason=reason,
+                          detail=detail[:200])
+
+    def handler_failed(self, key: str, exc: Exception) -> None:
+        self.stats.count("handler_error", key)
+        self.logs.emit(logging.ERROR, f"handler:{key}:{type(exc).__name__}", "handler failed", exc_info=exc,
+                       key=key, error=repr(exc)[:300])
+
+    async def _flush_logs(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            self.logs.flush()
 
     def spawn(self, coro: Awaitable, name: str | None = None) -> asyncio.Task:
         task = asyncio.ensure_future(coro)
@@ -237,6 +287,7 @@ class Node:
                   msgtype: str | None = None) -> Subscription:
         """Handler gets ``(msg)`` or ``(msg, key)``; msgtype defaults to the registry's; "raw" gives bytes."""
         sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1))
+        self._subs.append(sub)
         self._closers.append(sub.close)
         return sub
 
@@ -285,8 +336,9 @@ class Node:
             query.drop()
 
     def set_status(self, status: str, message: str = "") -> None:
-        if (status, message) != (self.status, self.message):
-            self.log.info("status %s", status, extra=fields(message=message) if message else None)
+        if (status, message) != (self.status, self.message):  # a flapping status: a line, then summaries
+            self.logs.emit(logging.INFO, f"status:{status}", f"status {status}", **({"message": message} if message
+                                                                                  else {}))
         self.status, self.message = status, message
 
     def health(self) -> dict:
@@ -303,10 +355,24 @@ class Node:
             "published": {k: m.count for k, m in self.stats.published.items()},
             "received_hz": {k: round(m.rate(now), 2) for k, m in self.stats.received.items()},
             "errors": dict(self.stats.errors),
+            "rejected": {k: dict(c) for k, c in self.stats.rejected.items()},
+            **self._queue_counts(),
+            "clock_jumps": self.clock.jumps,
         }
         if self.health_extra is not None:
             report.update(self.health_extra())
         return report
+
+    def _queue_counts(self) -> dict[str, dict[str, int]]:
+        """Per key: samples that arrived, and those the subscriptions' queue policies discarded
+        (arrived = handled + rejected + dropped, once the queues are drained)."""
+        arrived: collections.Counter[str] = collections.Counter()
+        dropped: collections.Counter[str] = collections.Counter()
+        for sub in self._subs:
+            a, d = sub.counts()
+            arrived.update(a)
+            dropped.update(d)
+        return {"arrived": dict(arrived), "dropped": dict(dropped)}
 
     async def close(self) -> None:
         for close in reversed(self._closers):

@@ -8,18 +8,25 @@ A service module provides a class with a nested ``Params`` dataclass and::
 
 its ``ports.py`` declares ``PORTS`` (shared/ports.py), and its ``__main__.py`` calls
 ``service_main("glove", GloveService)``.
+
+With ``--standby`` the process stops after its imports and waits for a line on stdin before it
+connects: the supervisor keeps such a spare per service and hands over to it when the service
+dies, so a restart skips the interpreter's start and the imports.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import signal
 import sys
+import time
+from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, load_deployment
-from shared.runtime.logs import setup_logging
+from shared.runtime.logs import fields, setup_logging
 from shared.runtime.node import Node
 from shared.runtime.zsession import EndpointError, open_client
 from shared.wiring import bind
@@ -30,11 +37,15 @@ def parse_args(service: str, argv: list[str] | None) -> argparse.Namespace:
                                      description=f"crossmodal {service} service")
     parser.add_argument("--deployment", default="deploy/sim.toml", help="deployment TOML file")
     parser.add_argument("--instance", required=True, help="instance name within the deployment")
+    parser.add_argument("--standby", action="store_true",
+                        help="import, then wait for a line on stdin before starting (the supervisor's spare)")
     return parser.parse_args(argv)
 
 
 async def run_node(service: str, cls: type, deployment_path: str, instance: str,
-                   stop: asyncio.Event | None = None) -> None:
+                   stop: asyncio.Event | None = None, woken_at: float | None = None) -> None:
+    """Runs one service instance until ``stop`` (or SIGINT/SIGTERM); ``woken_at``: the monotonic
+    time a standby process was told to start (its start-up is counted from there)."""
     deployment = load_deployment(deployment_path)
     params = deployment.service_params(cls.Params, service, instance)
     ports = bind(deployment, service, instance)
@@ -50,6 +61,10 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
         impl = cls(node, params)
         if node.status == "starting":  # the service may already have reported itself degraded
             node.set_status("ok")
+        if woken_at is not None:
+            log.info("ready", extra=fields(since_taken_over_s=round(time.monotonic() - woken_at, 3)))
+        elif (age := process_age()) is not None:
+            log.info("ready", extra=fields(since_process_start_s=round(age, 3)))
         main = node.spawn(impl.run() if hasattr(impl, "run") else stop.wait(), name="run")
         stopper = asyncio.ensure_future(stop.wait())
         await asyncio.wait({main, stopper}, return_when=asyncio.FIRST_COMPLETED)
@@ -69,10 +84,25 @@ async def run_node(service: str, cls: type, deployment_path: str, instance: str,
         session.close()
 
 
+def process_age() -> float | None:
+    """Seconds since this process started (interpreter start and imports included); None off Linux."""
+    try:
+        start_ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+
+
 def service_main(service: str, cls: type, argv: list[str] | None = None) -> None:
     args = parse_args(service, argv)
+    woken_at = None
+    if args.standby:
+        if not sys.stdin.readline():  # EOF: the supervisor is gone, nobody needs this spare
+            return
+        woken_at = time.monotonic()
     try:
-        asyncio.run(run_node(service, cls, args.deployment, args.instance))
+        asyncio.run(run_node(service, cls, args.deployment, args.instance, woken_at=woken_at))
     except (ConfigError, EndpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)

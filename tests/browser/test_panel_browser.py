@@ -24,7 +24,7 @@ PAGE_TEXT = "document.body ? document.body.innerText : ''"
 
 
 def session_msg() -> object:
-    return msgs.make("xm_msgs/msg/Session", header=msgs.header(12.5), task="pick_place", demo=3, phase="grasp",
+    return msgs.make("xm_msgs/msg/Session", header=msgs.header(time.time()), task="pick_place", demo=3, phase="grasp",
                      tactile_hand="right", seed_layout="{}")
 
 
@@ -53,7 +53,7 @@ def test_panel_renders_and_records_in_headless_chromium(router, tmp_path):
               "xm/glove/left/tactile": tactile("left"), "xm/glove/right/tactile": tactile("right"),
               "xm/camhub/cam0/info": camera_info(), "xm/camhub/cam0/image": jpeg(),
               "xm/world/sim/session": session_msg(), "xm/policy/main/plan": plan()}
-    pubs = {k: (session.declare_publisher(k), msgs.serialize(m)) for k, m in frames.items()}
+    pubs = {k: (session.declare_publisher(k), m) for k, m in frames.items()}
     panel = ServiceProcess("panel", dep, "main", tmp_path / "panel.log")
     browser = None
     try:
@@ -62,8 +62,9 @@ def test_panel_renders_and_records_in_headless_chromium(router, tmp_path):
         browser.navigate(f"http://127.0.0.1:{port}")
 
         def drawn() -> dict | None:
-            for pub, payload in pubs.values():
-                pub.put(payload)
+            for pub, msg in pubs.values():  # stamped now: the panel refuses stale stamps
+                msg.header.stamp = msgs.stamp(time.time())
+                pub.put(msgs.serialize(msg))
             rep = query_json(session, "xm/panel/main/@health")
             return rep[0] if rep and rep[0]["clients"] >= 1 and rep[0]["frames_drawn"] > 0 else None
 

@@ -107,11 +107,11 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
                   "xm/glove/left/tactile": tactile("left"), "xm/glove/right/tactile": tactile("right"),
                   "xm/camhub/cam0/info": camera_info(), "xm/policy/main/plan": plan()}
         pubs = {k: session.declare_publisher(k) for k in frames}
-        payloads = {k: msgs.serialize(m) for k, m in frames.items()}
 
         def received() -> dict | None:
-            for k, pub in pubs.items():
-                pub.put(payloads[k])
+            for k, pub in pubs.items():  # stamped now: the panel refuses stale stamps
+                frames[k].header.stamp = msgs.stamp(time.time())
+                pub.put(msgs.serialize(frames[k]))
             rep = query_json(session, "xm/panel/main/@health")
             return rep[0] if rep and set(frames) <= set(rep[0]["received_hz"]) else None
 

@@ -88,3 +88,75 @@ def test_status_lists_every_service(workcell):
     assert out.returncode == 0, out.stderr
     for svc in ("world", "glove/left", "glove/right", "camhub", "recon", "policy", "trajopt", "robot", "panel"):
         assert svc in out.stdout
+
+
+RECOVERY_S = 3.0  # the target: every key on the new timeline within this long of the world restarting
+
+
+class Timeline:
+    """Per registered key, the header stamps (sim time) of what arrives, for seeing a world restart."""
+
+    def __init__(self, router: str) -> None:
+        from shared import msgs
+        from shared.runtime import open_client
+
+        self._msgs = msgs
+        self.session = open_client(router)
+        self.stamps: dict[str, list[float]] = defaultdict(list)
+        self._sub = self.session.declare_subscriber("xm/**", self._on)
+
+    def _on(self, sample) -> None:
+        key = str(sample.key_expr)
+        spec = keys.BY_KEY.get(key)
+        if spec is None:
+            return
+        try:
+            msg = self._msgs.deserialize(sample.payload.to_bytes(), spec.msgtype)
+        except self._msgs.MessageError:
+            return
+        stamp = msg.clock if spec.msgtype == "rosgraph_msgs/msg/Clock" else msg.header.stamp
+        self.stamps[key].append(self._msgs.stamp_seconds(stamp))
+
+    def latest_clock(self) -> float:
+        return self.stamps["xm/clock"][-1]
+
+    def missing_since_restart(self, before: float) -> list[str]:
+        """Registered keys with no message stamped on the new timeline (well before ``before``)."""
+        return sorted(s.key for s in keys.REGISTRY if not any(t < before - 1.0 for t in self.stamps[s.key][-50:]))
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+
+def _restart_and_check(workcell, restart) -> None:
+    timeline = Timeline(workcell["router"])
+    try:
+        wait_until(lambda: timeline.stamps["xm/clock"] and timeline.latest_clock() > 5.0, 60, "5 s of sim time")
+        before = timeline.latest_clock()
+        restart()
+        # The world itself back (for a kill: a new process, imports and all; its start time is
+        # bench/soak.py's figure), then every other key within the target.
+        wait_until(lambda: timeline.stamps["xm/clock"][-1] < before - 1.0, 60, "the world to restart")
+        wait_until(lambda: not timeline.missing_since_restart(before), RECOVERY_S,
+                   lambda: f"every key on the new timeline within {RECOVERY_S} s of the world's restart; silent: "
+                           f"{timeline.missing_since_restart(before)}")
+        reports = query_router(workcell["router"], "xm/**/@health")
+        robot = next(r for r in reports if r["service"] == "robot")
+        assert "no feedback" not in robot["message"], robot
+        survivors = [r for r in reports if r["service"] not in ("world", "deploy") and r["uptime_s"] > 10]
+        assert all(r["clock_jumps"] >= 1 and r["errors"].get("clock_jumped_back") for r in survivors), \
+            [(r["service"], r["clock_jumps"]) for r in survivors]
+    finally:
+        timeline.close()
+
+
+
+def test_every_service_publishes_again_after_a_world_reset(workcell):
+    _restart_and_check(workcell, lambda: query_router(workcell["router"], "xm/world/sim/@cmd/reset"))
+
+
+def test_every_service_publishes_again_after_the_world_is_killed(workcell):
+    sup = next(r for r in query_router(workcell["router"], "xm/deploy/supervisor/@health"))
+    world = next(c for c in sup["children"] if c["service"] == "world")
+    _restart_and_check(workcell, lambda: os.kill(world["pid"], signal.SIGKILL))

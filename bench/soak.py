@@ -1,0 +1,411 @@
+"""Chaos soak: the simulated cell under the supervisor, a kill -9 of a random service every few
+seconds, one CPU-hog process beside it, `xm record` throughout.
+
+Reports per kill the time until the killed service publishes again (every one of its registered
+keys, or for services without keys its @health answering from the new process), the outage of
+every key around the kill (from live arrivals), the recording's largest gap per key around the
+kill beyond the key's nominal period, each restarted service's start-up (its "ready" log line),
+stuck services (not back within --stuck-after), spurious brakes (the robot's watchdog
+braking while trajectories flow, sampled from its @health) and the RSS of every service over
+time. Writes .bench/soak.json. Targets: every kill recovered within 3 s (p100), 0 stuck, a
+recording gap per kill <= 1 s on every key, RSS growth <= 10 %, 0 spurious brakes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # runnable as a script from anywhere
+
+from shared import keys  # noqa: E402
+from shared.runtime import open_client  # noqa: E402
+
+RECOVERY_TARGET_S = 3.0
+GAP_TARGET_S = 1.0
+RSS_GROWTH_TARGET = 0.10
+RSS_WARMUP_S = 30.0  # a process's RSS is compared from this age on (imports, caches, first frames)
+WINDOW_S = 10.0  # the recording is searched for gaps from 1 s before a kill to this long after
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def private_deployment(src: Path, tmp: Path) -> tuple[Path, str]:
+    """The deployment with its own router port, run dir, panel port and recordings folder."""
+    text = src.read_text()
+    router = f"tcp/127.0.0.1:{free_port()}"
+    text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
+    text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
+    text = re.sub(r"port = 8080", f"port = {free_port()}", text)
+    text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
+    out = tmp / "soak.toml"
+    out.write_text(text)
+    return out, router
+
+
+class Monitor:
+    """Arrival times (monotonic) of every key, and @health queries, over one client session."""
+
+    def __init__(self, router: str) -> None:
+        self.session = open_client(router)
+        self.arrivals: dict[str, list[float]] = defaultdict(list)
+        self._lock = threading.Lock()
+        self._sub = self.session.declare_subscriber("xm/**", self._on)
+
+    def _on(self, sample) -> None:
+        with self._lock:
+            self.arrivals[str(sample.key_expr)].append(time.monotonic())
+
+    def first_after(self, key: str, t: float) -> float | None:
+        with self._lock:
+            times = self.arrivals.get(key, [])
+            i = int(np.searchsorted(times, t, side="right"))
+            return times[i] if i < len(times) else None
+
+    def last_before(self, key: str, t: float) -> float | None:
+        with self._lock:
+            times = self.arrivals.get(key, [])
+            i = int(np.searchsorted(times, t, side="right"))
+            return times[i - 1] if i else None
+
+    def health(self, selector: str, timeout: float = 1.0) -> list[dict]:
+        out = []
+        for reply in self.session.get(selector, timeout=timeout):
+            if reply.ok is not None:
+                try:
+                    out.append(json.loads(reply.ok.payload.to_bytes()))
+                except ValueError:
+                    pass
+        return out
+
+    def children(self) -> list[dict]:
+        sup = self.health("xm/deploy/supervisor/@health")
+        return sup[0]["children"] if sup else []
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+
+def keys_of(service: str, instance: str) -> list[str]:
+    """Registered keys a service instance publishes (camhub publishes per camera, not per instance)."""
+    mine = [s.key for s in keys.REGISTRY if s.service == service]
+    own = [k for k in mine if k.split("/")[2:3] == [instance]]
+    return own or mine
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def wait_up(monitor: Monitor, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    wanted = {s.key for s in keys.REGISTRY}
+    while time.monotonic() < deadline:
+        now = time.monotonic()
+        if all((t := monitor.last_before(k, now)) is not None and now - t < 2.0 for k in wanted):
+            return True
+        time.sleep(0.5)
+    return False
+
+
+def measure_kill(monitor: Monitor, child: dict, stuck_after: float) -> dict:
+    """kill -9 one child, then wait until it is publishing again; the kill's record."""
+    service, instance, pid = child["service"], child["instance"], child["pid"]
+    own = keys_of(service, instance)
+    t_kill = time.monotonic()
+    wall_kill = time.time()
+    os.kill(pid, signal.SIGKILL)
+    deadline = t_kill + stuck_after
+    back: float | None = None
+    new_pid = None
+    while time.monotonic() < deadline:
+        if own:
+            firsts = [monitor.first_after(k, t_kill + 0.02) for k in own]
+            if all(f is not None for f in firsts):
+                back = max(firsts)
+        if back is None or new_pid is None:
+            mine = [c for c in monitor.children() if (c["service"], c["instance"]) == (service, instance)]
+            new_pid = mine[0]["pid"] if mine and mine[0]["pid"] not in (None, pid) else None
+            if not own and new_pid is not None:
+                h = monitor.health(f"xm/{service}/{instance}/@health", 0.5)
+                if h and h[0].get("pid") == new_pid and h[0].get("status") not in ("starting",):
+                    back = time.monotonic()
+        if back is not None:
+            break
+        time.sleep(0.02)
+    return {"service": f"{service}/{instance}", "old_pid": pid, "new_pid": new_pid, "t_kill": wall_kill,
+            "t_kill_mono": t_kill, "recovered_s": None if back is None else round(back - t_kill, 3),
+            "stuck": back is None, "keys": own}
+
+
+def ready_after_start(log: Path) -> float | None:
+    """The newest "ready" of a service's log: its start-up before it can publish (a fresh process:
+    interpreter, imports, connecting, building the service; a spare: connecting and building)."""
+    try:
+        lines = log.read_text(errors="replace").splitlines()[-400:]
+    except OSError:
+        return None
+    for line in reversed(lines):
+        for field in ("since_process_start_s=", "since_taken_over_s="):  # a fresh process, or a spare
+            if " ready " in line and field in line:
+                return float(line.rsplit(field, 1)[1].split()[0])
+    return None
+
+
+def outages(monitor: Monitor, t_kill: float, until: float) -> dict[str, float]:
+    """Per key: the longest silence between the last arrival before the kill and ``until``."""
+    out = {}
+    for spec in keys.REGISTRY:
+        with monitor._lock:
+            times = np.asarray(monitor.arrivals.get(spec.key, []))
+        window = times[(times >= t_kill - 1.0) & (times <= until)]
+        last = monitor.last_before(spec.key, t_kill - 1.0)
+        edges = np.concatenate([[last] if last is not None else [], window, [until]])
+        out[spec.key] = round(float(np.diff(edges).max()), 3) if len(edges) > 1 else None
+    return out
+
+
+def recording_gaps(path: Path, kills: list[dict]) -> dict:
+    """Per kill and key: the largest interval between recorded messages (log time) around the kill,
+    less the key's nominal period (a 1 Hz key has 1 s between messages when all is well)."""
+    from services.recorder.writer import read_messages
+
+    times: dict[str, list[float]] = defaultdict(list)
+    cut: list[str] = []
+    for m in read_messages(path, cut=cut):
+        times[m.key].append(m.log_time * 1e-9)
+    arrays = {k: np.sort(np.asarray(v)) for k, v in times.items()}
+    per_kill = []
+    for kill in kills:
+        t0, t1 = kill["t_kill"] - 1.0, kill["t_kill"] + WINDOW_S
+        gaps = {}
+        for spec in keys.REGISTRY:
+            ts = arrays.get(spec.key, np.zeros(0))
+            inside = ts[(ts >= t0) & (ts <= t1)]
+            edges = np.concatenate([[t0], inside, [t1]])
+            gaps[spec.key] = round(max(0.0, float(np.diff(edges).max()) - 1.0 / spec.rate_hz), 3)
+        per_kill.append(gaps)
+    return {"per_kill": per_kill, "messages": {k: len(v) for k, v in arrays.items()}, "cut": cut}
+
+
+def sample_rss(monitor: Monitor, series: dict, t0: float) -> None:
+    now = time.monotonic()
+    for c in monitor.children():
+        if c.get("pid"):
+            mb = rss_mb(c["pid"])
+            if mb is not None:
+                series[f"{c['service']}/{c['instance']}"].append(
+                    {"t": round(now - t0, 1), "pid": c["pid"], "age_s": c["uptime_s"], "rss_mb": round(mb, 1)})
+
+
+def rss_growth(series: dict) -> dict:
+    """Per service: the largest RSS growth of one process from its RSS_WARMUP_S sample to its last."""
+    out = {}
+    for name, samples in series.items():
+        worst = None
+        for pid in {s["pid"] for s in samples}:
+            mine = [s for s in samples if s["pid"] == pid and s["age_s"] >= RSS_WARMUP_S]
+            if len(mine) >= 2 and mine[-1]["age_s"] - mine[0]["age_s"] >= 60:
+                g = mine[-1]["rss_mb"] / mine[0]["rss_mb"] - 1
+                worst = g if worst is None else max(worst, g)
+        out[name] = None if worst is None else round(worst, 4)
+    return out
+
+
+def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: dict) -> None:
+    """Samples the robot's watchdog at ~5 Hz: braking while a trajectory arrived in the last 0.5 s
+    and no kill of trajopt/robot/world is being recovered is spurious."""
+    key = "xm/trajopt/main/trajectory"
+    prev = "ok"
+    while not stop.is_set():
+        h = monitor.health(f"xm/robot/{robot}/@health", 0.5)
+        now = time.monotonic()
+        if h:
+            state = h[0].get("watchdog", "unknown")
+            last = monitor.last_before(key, now)
+            flowing = last is not None and now - last < 0.5 and not result["recovering"]
+            result["samples"] += 1
+            if state == "braking" and flowing:
+                result["braking_samples_while_commanded"] += 1
+                if prev != "braking":
+                    result["spurious_brakes"] += 1
+                    result["events"].append(round(now - result["t0"], 1))
+            prev = state
+        stop.wait(0.2)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bench/soak.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--minutes", type=float, default=60.0, help="soak length (default %(default)s)")
+    parser.add_argument("--kill-every", type=float, default=60.0, metavar="S",
+                        help="seconds between kills (default %(default)s)")
+    parser.add_argument("--hog", action=argparse.BooleanOptionalAction, default=True,
+                        help="run one CPU-bound process beside the cell (default: on)")
+    parser.add_argument("--standby", action=argparse.BooleanOptionalAction, default=True,
+                        help="`xm up --standby`: an imported spare per service takes over (default: on)")
+    parser.add_argument("--deployment", default=str(ROOT / "deploy/sim.toml"))
+    parser.add_argument("--seed", type=int, default=0, help="which services are killed, in which order")
+    parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
+                        help="a service not publishing again this long after its kill is stuck")
+    parser.add_argument("--out", default=str(ROOT / ".bench/soak.json"))
+    args = parser.parse_args(argv)
+
+    tmp = Path(tempfile.mkdtemp(prefix="xm-soak-"))
+    deployment, router = private_deployment(Path(args.deployment), tmp)
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    up_log = (tmp / "up.log").open("w")
+    up = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet",
+                           *(["--standby"] if args.standby else [])], cwd=ROOT,
+                          stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
+    procs = [up]
+    report: dict = {"deployment": str(args.deployment), "minutes": args.minutes, "kill_every_s": args.kill_every,
+                    "hog": args.hog, "standby": args.standby, "cpus": os.cpu_count(),
+                    "loadavg_start": os.getloadavg(), "kills": []}
+    monitor = None
+    try:
+        time.sleep(1.0)
+        monitor = Monitor(router)
+        if not wait_up(monitor, 180):
+            print(f"the cell did not come up; see {tmp}/up.log", file=sys.stderr)
+            return 1
+        if args.hog:
+            procs.append(subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True))
+        mcap = tmp / "soak.mcap"
+        rec = subprocess.Popen([sys.executable, "-m", "shared.cli", "record", "--deployment", str(deployment),
+                                "-o", str(mcap)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               start_new_session=True, env=env)
+        procs.append(rec)
+        robot = next((c["instance"] for c in monitor.children() if c["service"] == "robot"), "workcell")
+        t0 = time.monotonic()
+        brakes = {"t0": t0, "samples": 0, "braking_samples_while_commanded": 0, "spurious_brakes": 0,
+                  "events": [], "recovering": False}
+        stop = threading.Event()
+        sampler = threading.Thread(target=brake_sampler, args=(monitor, robot, stop, brakes), daemon=True)
+        sampler.start()
+        rss: dict = defaultdict(list)
+        rng = random.Random(args.seed)
+        end = t0 + args.minutes * 60
+        next_kill = t0 + min(args.kill_every, 20.0)
+        next_rss = t0
+        while time.monotonic() < end:
+            now = time.monotonic()
+            if now >= next_rss:
+                sample_rss(monitor, rss, t0)
+                next_rss = now + 10.0
+            if now >= next_kill and now + 15 < end:
+                children = [c for c in monitor.children() if c.get("pid")]
+                if children:
+                    child = rng.choice(children)
+                    brakes["recovering"] = child["service"] in ("world", "robot", "trajopt", "policy", "recon",
+                                                                "camhub")
+                    kill = measure_kill(monitor, child, args.stuck_after)
+                    time.sleep(3.0)  # let downstream services settle before judging brakes again
+                    brakes["recovering"] = False
+                    kill["outage_s"] = outages(monitor, kill["t_kill_mono"], time.monotonic())
+                    kill["t"] = round(kill.pop("t_kill_mono") - t0, 1)
+                    service, instance = kill["service"].split("/")
+                    kill["ready_after_start_s"] = ready_after_start(tmp / "run" / "logs" / f"{service}-{instance}.log")
+                    report["kills"].append(kill)
+                    print(f"[{kill['t']:7.1f} s] kill -9 {kill['service']}: "
+                          f"{'STUCK' if kill['stuck'] else str(kill['recovered_s']) + ' s'}", flush=True)
+                next_kill = now + args.kill_every
+            time.sleep(0.2)
+        stop.set()
+        sampler.join(2)
+        rec.send_signal(signal.SIGINT)
+        rec.wait(30)
+        gaps = recording_gaps(mcap, report["kills"])
+        for kill, g in zip(report["kills"], gaps["per_kill"], strict=True):
+            kill["recording_gap_s"] = g
+        report["recording"] = {"messages": gaps["messages"], "cut": gaps["cut"], "bytes": mcap.stat().st_size}
+        brakes.pop("t0")
+        brakes.pop("recovering")
+        report["brakes"] = brakes
+        report["rss"] = dict(rss)
+        report["rss_growth"] = rss_growth(rss)
+        report["final_health"] = {f"{h['service']}/{h['instance']}": {
+            k: h.get(k) for k in ("status", "message", "errors", "rejected", "dropped", "clock_jumps")}
+            for h in monitor.health("xm/**/@health", 2.0)}
+        report["loadavg_end"] = os.getloadavg()
+        report["summary"] = summarize(report)
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGINT if p is up else signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        try:
+            up.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+        up_log.close()
+        if monitor is not None:
+            monitor.close()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=1))
+    print(json.dumps(report["summary"], indent=1))
+    print(f"wrote {out} (logs in {tmp})")
+    return 0
+
+
+def summarize(report: dict) -> dict:
+    kills = report["kills"]
+    rec = [k["recovered_s"] for k in kills if k["recovered_s"] is not None]
+    gap = [max(v for v in k.get("recording_gap_s", {}).values()) for k in kills if k.get("recording_gap_s")]
+    growth = [g for g in report["rss_growth"].values() if g is not None]
+    by_service: dict[str, list] = defaultdict(list)
+    ready: dict[str, list] = defaultdict(list)
+    for k in kills:
+        by_service[k["service"]].append(k["recovered_s"])
+        ready[k["service"]].append(k.get("ready_after_start_s"))
+    # Gaps on keys of services that were not killed: what a kill costs the rest of the cell.
+    others = [max((v for key, v in k["recording_gap_s"].items() if key not in k["keys"]), default=0.0)
+              for k in kills if k.get("recording_gap_s")]
+    return {
+        "kills": len(kills),
+        "recovered_p50_s": float(np.median(rec)) if rec else None,
+        "recovered_p100_s": max(rec) if rec else None,
+        "recovered_within_target": sum(r <= RECOVERY_TARGET_S for r in rec),
+        "recovery_by_service_s": dict(by_service),
+        "ready_after_process_start_s": dict(ready),
+        "stuck": sum(k["stuck"] for k in kills),
+        "recording_gap_max_per_kill_s": gap,
+        "recording_gap_over_target": sum(g > GAP_TARGET_S for g in gap),
+        "recording_gap_max_on_other_services_keys_s": others,
+        "rss_growth_max": max(growth) if growth else None,
+        "spurious_brakes": report["brakes"]["spurious_brakes"],
+        "targets": {"recovered_p100_s": RECOVERY_TARGET_S, "stuck": 0, "recording_gap_s": GAP_TARGET_S,
+                    "rss_growth": RSS_GROWTH_TARGET, "spurious_brakes": 0},
+    }
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,185 @@
+"""What every subscription checks before a handler sees a message (pure).
+
+A payload is rejected with one reason from ``REASONS``: too large for its type, not decodable,
+a NaN or infinite number anywhere, arrays whose lengths disagree with the message's own
+counts, or a header stamp too far behind or ahead of the receiver's clock. The node counts
+each rejection per key and reason (``@health`` "rejected", ``xm status``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+REASONS = ("oversized", "malformed", "non_finite", "bad_length", "bad_value", "stale_stamp", "future_stamp")
+
+MAX_PAYLOAD_BYTES = 1 << 20  # every type but images: the largest (GroundTruth, Plan) is a few kB
+MAX_PAYLOAD_BYTES_BY_TYPE = {"sensor_msgs/msg/CompressedImage": 16 << 20, "sensor_msgs/msg/Image": 64 << 20}
+STALE_S = 5.0  # older than this against the receiver's clock: a message from a past the cell left
+FUTURE_S = 1.0  # clocks of one cell agree to a few clock periods; more is a stamp from another timeline
+
+KEYPOINTS_PER_HAND = 21
+
+
+class RejectedError(ValueError):
+    """A message that must not reach a handler; ``reason`` is one of ``REASONS``."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+def max_payload(msgtype: str) -> int:
+    return MAX_PAYLOAD_BYTES_BY_TYPE.get(msgtype, MAX_PAYLOAD_BYTES)
+
+
+def check_size(payload_len: int, msgtype: str) -> None:
+    limit = max_payload(msgtype)
+    if payload_len > limit:
+        raise RejectedError("oversized", f"{payload_len} bytes, limit {limit} for {msgtype}")
+
+
+def check(msg: Any, msgtype: str, now: float | None) -> None:
+    """Raises ``RejectedError`` for a decoded message that is not fit to use; ``now`` is the receiver's
+    clock (None: not started, stamps are not checked)."""
+    path = _first_non_finite(msg, msgtype)
+    if path is not None:
+        raise RejectedError("non_finite", f"NaN or infinite value in {path}")
+    rule = LENGTH_RULES.get(msgtype)
+    if rule is not None:
+        rule(msg)
+    header = getattr(msg, "header", None)
+    if header is not None:
+        stamp = header.stamp
+        if stamp.nanosec >= 1_000_000_000:
+            raise RejectedError("bad_value", f"stamp nanosec {stamp.nanosec} >= 1e9")
+        if now is not None:
+            t = stamp.sec + stamp.nanosec * 1e-9
+            if t > now + FUTURE_S:
+                raise RejectedError("future_stamp", f"stamp {t:.3f} s is {t - now:.3f} s ahead of the clock "
+                                    f"({now:.3f})")
+            if t < now - STALE_S:
+                raise RejectedError("stale_stamp", f"stamp {t:.3f} s is {now - t:.3f} s behind the clock "
+                                    f"({now:.3f})")
+    elif msgtype == "rosgraph_msgs/msg/Clock" and msg.clock.nanosec >= 1_000_000_000:
+        raise RejectedError("bad_value", f"clock nanosec {msg.clock.nanosec} >= 1e9")
+
+
+def _first_non_finite(msg: Any, name: str) -> str | None:
+    """The dotted path of the first NaN or infinity in a message, or None."""
+    if isinstance(msg, np.ndarray):
+        if msg.dtype.kind == "f" and not np.isfinite(msg).all():
+            return name
+        return None
+    if isinstance(msg, float):
+        return None if math.isfinite(msg) else name
+    if isinstance(msg, list):
+        for i, item in enumerate(msg):
+            if not isinstance(item, str) and (path := _first_non_finite(item, f"{name}[{i}]")) is not None:
+                return path
+        return None
+    fields = getattr(msg, "__dataclass_fields__", None)
+    if fields is None:
+        return None
+    for field in fields:
+        if field == "__msgtype__":
+            continue
+        if (path := _first_non_finite(getattr(msg, field), field)) is not None:
+            return path
+    return None
+
+
+def _expect(name: str, actual: int, *allowed: int) -> None:
+    if actual not in allowed:
+        want = " or ".join(str(a) for a in allowed)
+        raise RejectedError("bad_length", f"{name} has {actual} values, expected {want}")
+
+
+def _tactile(msg: Any) -> None:
+    cells = int(msg.rows) * int(msg.cols)
+    _expect("pressure", len(msg.pressure), cells)
+    _expect("mask", len(msg.mask), 0, cells)
+
+
+def _tactile_raw(msg: Any) -> None:
+    cells = int(msg.rows) * int(msg.cols)
+    _expect("real", len(msg.real), cells)
+    _expect("imag", len(msg.imag), cells)
+
+
+def _imu(msg: Any) -> None:
+    if len(msg.accel) % 3:
+        raise RejectedError("bad_length", f"accel has {len(msg.accel)} values, not a multiple of 3")
+    _expect("gyro", len(msg.gyro), len(msg.accel))
+
+
+def _plan(msg: Any) -> None:
+    cells = int(msg.steps) * len(msg.point_names)
+    _expect("positions", len(msg.positions), cells * 3)
+    _expect("mask", len(msg.mask), 0, cells)
+    if not msg.dt > 0:
+        raise RejectedError("bad_value", f"dt {msg.dt} is not positive")
+
+
+def _scene(msg: Any) -> None:
+    hands, objects = len(msg.hand_names), len(msg.object_names)
+    _expect("hand_keypoints", len(msg.hand_keypoints), hands * KEYPOINTS_PER_HAND * 3)
+    _expect("hand_mask", len(msg.hand_mask), hands * KEYPOINTS_PER_HAND)
+    _expect("object_keypoints", len(msg.object_keypoints), objects * 3)
+    _expect("object_mask", len(msg.object_mask), objects)
+    regions = hands * len(msg.tactile_regions)
+    _expect("tactile", len(msg.tactile), 0, regions)
+    _expect("tactile_mask", len(msg.tactile_mask), len(msg.tactile))
+
+
+def _ground_truth(msg: Any) -> None:
+    hands, objects = len(msg.hand_names), len(msg.object_names)
+    _expect("hand_keypoints", len(msg.hand_keypoints), hands * KEYPOINTS_PER_HAND * 3)
+    _expect("hand_visible", len(msg.hand_visible), 0, hands * KEYPOINTS_PER_HAND)
+    _expect("object_keypoints", len(msg.object_keypoints), objects * 3)
+    _expect("object_visible", len(msg.object_visible), 0, objects)
+    _expect("body_poses", len(msg.body_poses), len(msg.body_names) * 7)
+
+
+def _joint_state(msg: Any) -> None:
+    n = len(msg.name)
+    _expect("position", len(msg.position), n)
+    _expect("velocity", len(msg.velocity), 0, n)
+    _expect("effort", len(msg.effort), 0, n)
+
+
+def _joint_trajectory(msg: Any) -> None:
+    n = len(msg.joint_names)
+    for i, p in enumerate(msg.points):
+        _expect(f"points[{i}].positions", len(p.positions), n)
+        _expect(f"points[{i}].velocities", len(p.velocities), 0, n)
+        _expect(f"points[{i}].accelerations", len(p.accelerations), 0, n)
+        _expect(f"points[{i}].effort", len(p.effort), 0, n)
+
+
+def _compressed_image(msg: Any) -> None:
+    if not len(msg.data):
+        raise RejectedError("bad_length", "image data is empty")
+
+
+def _camera_info(msg: Any) -> None:
+    if msg.width == 0 or msg.height == 0:
+        raise RejectedError("bad_value", f"image size {msg.width}x{msg.height}")
+
+
+LENGTH_RULES: dict[str, Callable[[Any], None]] = {
+    "xm_msgs/msg/Tactile": _tactile,
+    "xm_msgs/msg/TactileRaw": _tactile_raw,
+    "xm_msgs/msg/Imu": _imu,
+    "xm_msgs/msg/Plan": _plan,
+    "xm_msgs/msg/Scene": _scene,
+    "xm_msgs/msg/GroundTruth": _ground_truth,
+    "sensor_msgs/msg/JointState": _joint_state,
+    "trajectory_msgs/msg/JointTrajectory": _joint_trajectory,
+    "sensor_msgs/msg/CompressedImage": _compressed_image,
+    "sensor_msgs/msg/CameraInfo": _camera_info,
+}
