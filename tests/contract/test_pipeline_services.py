@@ -239,8 +239,8 @@ def test_trajopt_runs_the_hand_arm_from_its_own_state_key_with_the_hand_pose_pri
 def _scene_msg(demo, k: int, now: float, hide: int | None = None):
     mask = np.ones(42, np.uint8)
     hands = demo.hands[k].reshape(42, 3).copy()
-    if hide is not None:  # an occluded point arrives as NaN with mask 0
-        mask[hide], hands[hide] = 0, np.nan
+    if hide is not None:  # an occluded point arrives as zeros with mask 0 (NaN is refused on the wire)
+        mask[hide], hands[hide] = 0, 0.0
     return msgs.serialize(msgs.make(
         "xm_msgs/msg/Scene", header=msgs.header(now), hand_names=["left", "right"],
         hand_keypoints=hands.ravel(), hand_mask=mask, object_names=demo.object_names,
@@ -312,7 +312,7 @@ def test_the_naive_fallback_replays_the_training_demonstrations_or_holds_the_han
     naive = ServiceProcess("policy", dep, "main", tmp_path / "naive.log")
     hold = ServiceProcess("policy", dep, "hold", tmp_path / "hold.log")
     try:
-        plans, _a = collect(session, "xm/policy/main/plan", "xm_msgs/msg/Plan")
+        plans, _a = collect(session, "xm/policy/*/plan", "xm_msgs/msg/Plan")
         assert wait_for(lambda: query_json(session, "xm/policy/hold/@health"), 60), hold.output()
         assert wait_for(lambda: query_json(session, "xm/policy/main/@health"), 60), naive.output()
         session.put("xm/world/sim/session", msgs.serialize(msgs.make(

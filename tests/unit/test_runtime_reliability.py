@@ -159,19 +159,3 @@ def test_status_line_sums_rejections_by_reason_and_drops():
     assert counted(h) == " | rejected=6 (malformed=5, non_finite=1) dropped=5"
     assert counted({"rejected": {}, "dropped": {}}) == ""
 
-
-def test_naive_demonstrations_come_from_the_cache_once_written(tmp_path, monkeypatch):
-    from services.policy import service
-
-    first = service.teacher_demos("assembly", (9000,), tmp_path)
-    assert len(list(tmp_path.glob("*.npz"))) == 1
-
-    def no_simulation(*_a, **_k):
-        raise AssertionError("simulated again despite the cache")
-
-    monkeypatch.setattr(service, "generate_demo", no_simulation)
-    again = service.teacher_demos("assembly", (9000,), tmp_path)
-    assert np.array_equal(first[0].hands, again[0].hands) and first[0].meta == again[0].meta
-    monkeypatch.setattr(service, "source_digest", lambda: "other-sources")
-    with pytest.raises(AssertionError, match="simulated again"):
-        service.teacher_demos("assembly", (9000,), tmp_path)  # changed sources: not served from the cache
