@@ -1,7 +1,12 @@
 """P2: two gloves at 1 kHz each, pty bytes to published Zenoh message, through the real glove
 service processes. Reports loss, latency p50/p99 (send -> subscriber callback) and the glove
 processes' CPU share, next to the raw pty transfer latency measured in the same run.
-Writes .bench/glove.json. Target: 0 loss, p99 <= 2 ms."""
+
+Runs twice: on the host as it is ("idle": other jobs on the machine are not stopped, so say what
+else ran), then with ``--load N`` CPU-bound processes beside it (default: one per core), and
+writes both to .bench/glove.json with the load average seen. Where frames go missing is reported
+too: bytes the simulated device had to drop (its FIFO overflowed) and its FIFO's peak fill.
+Targets: idle 0 lost, p99 <= 2 ms; loaded 0 lost, p99 <= 5 ms."""
 
 from __future__ import annotations
 
@@ -52,8 +57,66 @@ def raw_pty_latency(n: int = 2000) -> np.ndarray:
     return np.array(out)
 
 
+def start_load(n: int) -> list[subprocess.Popen]:
+    """``n`` CPU-bound processes at normal priority, spinning until killed."""
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
+
+
+def stop_load(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+        p.wait(5)
+
+
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--load", type=int, default=os.cpu_count() or 1, metavar="N",
+                        help="CPU-bound processes beside the loaded run (default: one per core, %(default)s)")
+    args = parser.parse_args()
+    if args.load < 0:
+        parser.error("--load must be >= 0")
+    res = {"load_processes": args.load, "cpu_count": os.cpu_count(), "harness_priority": harness_priority(),
+           "idle": run_once(0)}
+    print("idle:   " + line(res["idle"]))
+    res["loaded"] = run_once(args.load)
+    print(f"loaded: {line(res['loaded'])}")
+    res["targets"] = {"idle": {"lost": 0, "latency_p99_ms_max": 2.0}, "loaded": {"lost": 0, "latency_p99_ms_max": 5.0}}
+    res["loaded_p99_ratio_to_idle"] = res["loaded"]["latency_p99_ms"] / max(res["idle"]["latency_p99_ms"], 1e-9)
+    Path(".bench").mkdir(exist_ok=True)
+    Path(".bench/glove.json").write_text(json.dumps(res, indent=2))
+
+
+def harness_priority() -> str:
+    """The bench's own router, subscriber and frame sender stand in for the workcell's consumers and
+    the device: run them SCHED_FIFO (threads created later inherit it; SCHED_RESET_ON_FORK keeps the
+    glove services and the hogs at normal priority) so that the figures measure the glove service,
+    not a harness starved by the hogs."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(20))
+        return "SCHED_FIFO 20"
+    except (OSError, AttributeError) as exc:
+        print(f"warning: bench harness at normal priority ({exc}): its own delays count as latency", file=sys.stderr)
+        return "normal"
+
+
+def line(r: dict) -> str:
+    return (f"2 gloves x {RATE_HZ} Hz for {SECONDS:.0f} s with {r['load_processes']} CPU hogs (load avg "
+            f"{r['loadavg_1min_before']:.1f}): lost {r['lost']}/{r['sent']}, latency p50 {r['latency_p50_ms']:.2f} ms, "
+            f"p99 {r['latency_p99_ms']:.2f} ms (raw pty {r['raw_pty_p50_ms']:.3f} ms); device dropped "
+            f"{r['device_dropped_bytes']} B, FIFO peak {r['device_fifo_peak_bytes']} B; CPU per glove process "
+            + ", ".join(f"{h} {v:.0%}" for h, v in r["cpu_share_per_glove_process"].items()))
+
+
+def run_once(load: int) -> dict:
+    loadavg = os.getloadavg()[0]
+    hogs = start_load(load)
+    try:
+        return {"load_processes": load, "loadavg_1min_before": loadavg, **measure()}
+    finally:
+        stop_load(hogs)
+
+
+def measure() -> dict:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     tmp = Path(tempfile.mkdtemp())
@@ -109,19 +172,19 @@ def main() -> None:
         got = received[h]
         lost += sum(1 for i in range(n) if i not in got)
         lat += [got[i] - sent[h][i] for i in range(n) if i in got]
-    lat = np.array(lat)
+    lat = np.array(lat) if lat else np.array([np.nan])
     raw = raw_pty_latency()
+    dropped = sum(d.dropped_bytes for d in devices.values())
+    peak = max(d.fifo_peak for d in devices.values())
+    for d in devices.values():
+        d.close()
     res = {"gloves": len(HANDS), "rate_hz": RATE_HZ, "seconds": SECONDS, "send_rate_achieved_hz": n / elapsed,
            "sent": n * len(HANDS), "lost": lost, "latency_p50_ms": float(np.percentile(lat, 50) * 1e3),
-           "latency_p99_ms": float(np.percentile(lat, 99) * 1e3), "raw_pty_p50_ms": float(np.median(raw) * 1e3),
-           "cpu_share_per_glove_process": cpu_share, "targets": {"lost": 0, "latency_p99_ms_max": 2.0}}
+           "latency_p99_ms": float(np.percentile(lat, 99) * 1e3), "latency_max_ms": float(np.max(lat) * 1e3),
+           "raw_pty_p50_ms": float(np.median(raw) * 1e3), "device_dropped_bytes": dropped,
+           "device_fifo_peak_bytes": peak, "cpu_share_per_glove_process": cpu_share}
     res["latency_p50_ratio_to_raw_pty"] = res["latency_p50_ms"] / res["raw_pty_p50_ms"]
-    Path(".bench").mkdir(exist_ok=True)
-    Path(".bench/glove.json").write_text(json.dumps(res, indent=2))
-    print(f"2 gloves x {RATE_HZ} Hz for {SECONDS:.0f} s: lost {lost}/{n * 2}, "
-          f"latency p50 {res['latency_p50_ms']:.2f} ms, "
-          f"p99 {res['latency_p99_ms']:.2f} ms (raw pty {res['raw_pty_p50_ms']:.3f} ms); CPU per glove process "
-          + ", ".join(f"{h} {v:.0%}" for h, v in cpu_share.items()))
+    return res
 
 
 if __name__ == "__main__":

@@ -8,12 +8,24 @@ motor efforts to MuJoCo, watchdog braking on host silence.
 
 from __future__ import annotations
 
+import collections
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Callable
+
 import numpy as np
 
 from services.glove.sensor_model import GloveSensorModel
 from services.robot.board_sim import BoardSim
+from services.robot.safety import Limits
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
+from shared.realtime import raise_priority
+
+log = logging.getLogger("xm")
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -136,17 +148,54 @@ class GloveDevice:
 
 
 class BoardDevice:
-    def __init__(self, port: str, joint_names: list[str]) -> None:
+    """SIMULATED control board on a pty.
+
+    The world simulates in bursts of a few physics steps, then sleeps (or, when it runs late, steps
+    flat out to catch up), so the host's commands, which come on wall time, would all reach the board
+    at the first step of a burst: the gaps between them in simulated time would differ from the
+    real ones and the 10 ms watchdog would brake although the host never paused. So a reader thread
+    stamps each command with its wall arrival time, and ``step`` hands it to the board at the step
+    whose simulated time matches (``sim_time_of``, the world's wall -> simulated time map)."""
+
+    MAX_HOLD_S = 1.0  # a command never waits longer than this in wall time, whatever the map says
+
+    def __init__(self, port: str, joint_names: list[str], limits: Limits | None = None) -> None:
         self.pty = PtyDevice(port)
         self.decoder = robot_board.StreamDecoder()
-        self.board = BoardSim(joint_names)
+        self.board = BoardSim(joint_names, limits)
         self.feedback_frames = 0
+        self._inbox: collections.deque[tuple[float, object]] = collections.deque()
+        self._closed = False
+        self._reader = threading.Thread(target=self._read_loop, name="board-pty-reader", daemon=True)
+        self._reader.start()
 
-    def step(self, sim) -> None:
-        data = self.pty.read()
-        if data:
+    def _read_loop(self) -> None:
+        raise_priority("world: control board reader", log)
+        fd = self.pty.master
+        while not self._closed:
+            try:
+                ready, _, _ = select.select([fd], [], [], 0.2)
+                data = os.read(fd, 1 << 16) if ready else b""
+            except BlockingIOError:
+                continue
+            except (OSError, ValueError):  # no host has the port open (EIO), or closed: wait for one
+                time.sleep(0.05)
+                continue
+            t = time.monotonic()
             for msg in self.decoder.feed(data):
-                self.board.receive(msg, sim.time)
+                self._inbox.append((t, msg))
+
+    def step(self, sim, sim_time_of: Callable[[float], float] | None = None) -> None:
+        """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
+        feedback to the pty. Without ``sim_time_of`` every command that arrived is due."""
+        inbox, now = self._inbox, time.monotonic()
+        while inbox:
+            t_arrival, msg = inbox[0]
+            if sim_time_of is not None and sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
+                break
+            inbox.popleft()
+            self.board.receive(msg, sim.time)
+        self.pty.flush()
         q, qd = sim.joint_state()
         efforts, feedback = self.board.step(sim.time, q, qd, sim.physics_dt)
         sim.set_efforts(efforts)
@@ -159,8 +208,12 @@ class BoardDevice:
         modes = {} if cmd is None else {m.name.lower(): int((cmd.mode == m).sum()) for m in robot_board.Mode
                                         if (cmd.mode == m).any()}
         return {"feedback_frames": self.feedback_frames, "dropped_bytes": self.pty.dropped_bytes,
-                "command_modes": modes, "muscle_pressure_max_bar": float(self.board.pressure.max()),
+                "command_modes": modes, "watchdog_brakes": self.board.counters["brake_events"],
+                "limit_brakes": self.board.counters["limit_brakes"],
+                "muscle_pressure_max_bar": float(self.board.pressure.max()),
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}
 
     def close(self) -> None:
+        self._closed = True
+        self._reader.join(1.0)
         self.pty.close()

@@ -1,0 +1,44 @@
+"""Scheduling priority for the threads that must keep up with a device while the host is busy.
+
+Device readers and the robot's command stream run on their own threads and ask for a real-time
+policy (SCHED_FIFO) for the calling thread; where the OS refuses (no CAP_SYS_NICE, no RLIMIT_RTPRIO,
+not Linux) they fall back to a raised nice value, and where that is refused too they keep the normal
+priority. Either way one log line says what the thread got, so a loaded host that loses frames can
+be told apart from one that was never allowed to prioritise them.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+
+DEFAULT_RT_PRIORITY = 10  # above every normal thread, below the kernel's own real-time threads (50)
+FALLBACK_NICE = -10
+
+
+def raise_priority(what: str, log: logging.Logger, rt_priority: int = DEFAULT_RT_PRIORITY,
+                   nice: int = FALLBACK_NICE) -> str:
+    """Give the calling thread SCHED_FIFO at ``rt_priority`` (0: skip), else ``nice``; returns
+    "fifo", "nice" or "normal" and logs the outcome."""
+    tid = threading.get_native_id()
+    errors = []
+    if rt_priority > 0 and hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))  # 0: the calling thread
+            log.info("%s: thread %d runs SCHED_FIFO priority %d", what, tid, rt_priority)
+            return "fifo"
+        except (OSError, ValueError) as exc:
+            errors.append(f"SCHED_FIFO {rt_priority}: {exc.strerror if isinstance(exc, OSError) else exc}")
+    if nice < 0 and hasattr(os, "setpriority"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)  # Linux: a thread id sets that thread only
+            log.warning("%s: thread %d runs at nice %d (%s not permitted): under heavy CPU load it may "
+                        "still be late", what, tid, nice, "; ".join(errors) or "real-time policy")
+            return "nice"
+        except OSError as exc:
+            errors.append(f"nice {nice}: {exc.strerror}")
+    log.warning("%s: thread %d runs at normal priority (%s not permitted): under CPU load device data may be "
+                "late or lost; give the service CAP_SYS_NICE or an RLIMIT_RTPRIO to fix", what, tid,
+                "; ".join(errors) or "priority change")
+    return "normal"
