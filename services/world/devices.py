@@ -181,14 +181,17 @@ class BoardDevice:
             except (OSError, ValueError):  # no host has the port open (EIO), or closed: wait for one
                 time.sleep(0.05)
                 continue
-            t = time.monotonic()
-            for msg in self.decoder.feed(data):
-                self._inbox.append((t, msg))
+            self.arrived(data, time.monotonic())
 
-    def step(self, sim, sim_time_of: Callable[[float], float] | None = None) -> None:
+    def arrived(self, data: bytes, t_wall: float) -> None:
+        """Bytes from the host that arrived at ``t_wall`` (monotonic seconds)."""
+        for msg in self.decoder.feed(data):
+            self._inbox.append((t_wall, msg))
+
+    def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> None:
         """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
         feedback to the pty. Without ``sim_time_of`` every command that arrived is due."""
-        inbox, now = self._inbox, time.monotonic()
+        inbox, now = self._inbox, time.monotonic() if now is None else now
         while inbox:
             t_arrival, msg = inbox[0]
             if sim_time_of is not None and sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
