@@ -30,7 +30,7 @@ from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
-from shared.realtime import raise_priority
+from shared.realtime import raise_priority, raise_process_priority
 from shared.runtime import Node, latest
 
 VELOCITY_SLACK = 1.1  # the rate limit's time is the trajectory's, capped at this times the wall time
@@ -126,6 +126,8 @@ class RobotService:
         """Commands on wall time, one per period: the board's watchdog must be fed even if the sim
         clock stalls or the event loop is busy. A late wake-up sends one command, never a burst."""
         self.stream["priority"] = raise_priority("robot command stream", self.node.log, self.p.rt_priority)
+        # the GIL ties this thread to every other of the process: they must not wait behind other processes
+        raise_process_priority("robot", self.node.log, max(self.p.rt_priority - 1, 0))
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
         while not self._stop.is_set():

@@ -13,8 +13,9 @@ class TrajectoryFollower:
 
     def __init__(self, joint_names: list[str]) -> None:
         self.joint_names = list(joint_names)
-        # (times, positions) as one tuple: the command thread samples while the loop loads
-        self._active: tuple[np.ndarray, np.ndarray] | None = None
+        # (times, positions, the trajectory it replaced) as one tuple: the command thread samples
+        # while the loop loads
+        self._active: tuple[np.ndarray, np.ndarray, tuple | None] | None = None
 
     @property
     def times(self) -> np.ndarray | None:
@@ -43,14 +44,20 @@ class TrajectoryFollower:
             return "trajectory contains NaN or infinite values"
         if np.any(np.diff(times) <= 0):
             return "trajectory times are not increasing"
-        self._active = (times, positions)
+        previous = self._active
+        self._active = (times, positions, previous[:2] + (None,) if previous is not None else None)
         return None
 
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Position and velocity at ``t``. Before the start of the newest trajectory the one it
+        replaced still holds (the planner stamps a trajectory with its own, slightly later, clock:
+        holding the new one's first point there would jump)."""
         active = self._active
         if active is None:
             return None
-        times, pos = active
+        times, pos, previous = active
+        if previous is not None and t < times[0] and t >= previous[0][0]:
+            times, pos = previous[0], previous[1]
         if len(times) == 1 or t <= times[0]:
             return pos[0].copy(), np.zeros(pos.shape[1])
         if t >= times[-1]:

@@ -9,23 +9,23 @@ motor efforts to MuJoCo, watchdog braking on host silence.
 from __future__ import annotations
 
 import collections
-import logging
 import os
-import select
-import threading
+import subprocess
+import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
 from services.glove.sensor_model import GloveSensorModel
 from services.robot.board_sim import BoardSim
 from services.robot.safety import Limits
+from services.world.arrival_stamper import HEADER
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
-from shared.realtime import raise_priority
 
-log = logging.getLogger("xm")
+STAMPER = Path(__file__).with_name("arrival_stamper.py")
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -153,9 +153,10 @@ class BoardDevice:
     The world simulates in bursts of a few physics steps, then sleeps (or, when it runs late, steps
     flat out to catch up), so the host's commands, which come on wall time, would all reach the board
     at the first step of a burst: the gaps between them in simulated time would differ from the
-    real ones and the 10 ms watchdog would brake although the host never paused. So a reader thread
-    stamps each command with its wall arrival time, and ``step`` hands it to the board at the step
-    whose simulated time matches (``sim_time_of``, the world's wall -> simulated time map)."""
+    real ones and the 10 ms watchdog would brake although the host never paused. So a helper
+    process (services/world/arrival_stamper.py) stamps each read from the host with its wall
+    arrival time, and ``step`` hands each command to the board at the step whose simulated time
+    matches (``sim_time_of``, the world's wall -> simulated time map)."""
 
     MAX_HOLD_S = 1.0  # a command never waits longer than this in wall time, whatever the map says
 
@@ -165,23 +166,27 @@ class BoardDevice:
         self.board = BoardSim(joint_names, limits)
         self.feedback_frames = 0
         self._inbox: collections.deque[tuple[float, object]] = collections.deque()
-        self._closed = False
-        self._reader = threading.Thread(target=self._read_loop, name="board-pty-reader", daemon=True)
-        self._reader.start()
+        self._stamped = bytearray()
+        self._stamper = subprocess.Popen([sys.executable, str(STAMPER), str(self.pty.master)],
+                                         pass_fds=[self.pty.master], stdout=subprocess.PIPE,
+                                         stdin=subprocess.DEVNULL, start_new_session=True)
+        os.set_blocking(self._stamper.stdout.fileno(), False)
 
-    def _read_loop(self) -> None:
-        raise_priority("world: control board reader", log)
-        fd = self.pty.master
-        while not self._closed:
-            try:
-                ready, _, _ = select.select([fd], [], [], 0.2)
-                data = os.read(fd, 1 << 16) if ready else b""
-            except BlockingIOError:
-                continue
-            except (OSError, ValueError):  # no host has the port open (EIO), or closed: wait for one
-                time.sleep(0.05)
-                continue
-            self.arrived(data, time.monotonic())
+    def _drain_stamper(self) -> None:
+        """Commands the stamper read, with their arrival times, into the inbox."""
+        try:
+            while chunk := os.read(self._stamper.stdout.fileno(), 1 << 16):
+                self._stamped += chunk
+        except BlockingIOError:
+            pass
+        buf, at = self._stamped, 0
+        while len(buf) - at >= HEADER.size:
+            t, n = HEADER.unpack_from(buf, at)
+            if len(buf) - at - HEADER.size < n:
+                break
+            self.arrived(bytes(buf[at + HEADER.size:at + HEADER.size + n]), t)
+            at += HEADER.size + n
+        del buf[:at]
 
     def arrived(self, data: bytes, t_wall: float) -> None:
         """Bytes from the host that arrived at ``t_wall`` (monotonic seconds)."""
@@ -191,6 +196,7 @@ class BoardDevice:
     def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> None:
         """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
         feedback to the pty. Without ``sim_time_of`` every command that arrived is due."""
+        self._drain_stamper()
         inbox, now = self._inbox, time.monotonic() if now is None else now
         while inbox:
             t_arrival, msg = inbox[0]
@@ -217,6 +223,7 @@ class BoardDevice:
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}
 
     def close(self) -> None:
-        self._closed = True
-        self._reader.join(1.0)
+        self._stamper.kill()
+        self._stamper.wait(2)
+        self._stamper.stdout.close()
         self.pty.close()
