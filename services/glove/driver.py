@@ -17,7 +17,7 @@ import numpy as np
 from services.glove.calibration import Calibration
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
-from shared.realtime import DEFAULT_RT_PRIORITY
+from shared.realtime import DEFAULT_RT_PRIORITY, raise_process_priority
 from shared.serial_link import SerialLink
 
 
@@ -102,6 +102,8 @@ class GloveDriver:
 
     async def run(self) -> None:
         self._loop = asyncio.get_running_loop()
+        # the GIL ties the reader to every other thread of the process: they must not wait behind other processes
+        raise_process_priority("glove", self.log, max(self.link.rt_priority - 1, 0))
         await self.link.run()
 
     def close(self) -> None:
