@@ -52,25 +52,26 @@ def raise_priority(what: str, log: logging.Logger, rt_priority: int = DEFAULT_RT
     return "normal"
 
 
-def raise_process_priority(what: str, log: logging.Logger, rt_priority: int) -> int:
-    """SCHED_FIFO at ``rt_priority`` for every thread of this process that runs at a normal policy
-    (the event loop, Zenoh's threads): a real-time thread waiting for the GIL is otherwise held up
-    as long as the thread holding it waits for a CPU behind every other process. Returns how many
-    threads were raised; logs what was refused."""
-    if rt_priority <= 0 or not hasattr(os, "sched_setscheduler"):
+def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_NICE) -> int:
+    """Nice ``nice`` for every thread of this process that runs at the normal policy (the event loop,
+    Zenoh's threads): a real-time thread waiting for the GIL is otherwise held up as long as the
+    thread holding it waits for a CPU behind other processes. Nice, not real time: these threads do
+    the service's bulk work, and real-time threads using most of a CPU get throttled by the kernel.
+    Returns how many threads were raised; logs what was refused."""
+    if nice >= 0 or not hasattr(os, "setpriority") or not os.path.isdir("/proc/self/task"):
         return 0
     raised, refused = 0, ""
-    for entry in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else []:
+    for entry in os.listdir("/proc/self/task"):
         tid = int(entry)
         try:
-            if os.sched_getscheduler(tid) == os.SCHED_OTHER:
-                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
+            if os.sched_getscheduler(tid) == os.SCHED_OTHER and os.getpriority(os.PRIO_PROCESS, tid) > nice:
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
                 raised += 1
         except OSError as exc:  # refused, or the thread ended meanwhile
             refused = exc.strerror or str(exc)
     if refused and not raised:
-        log.warning("%s: the process's threads keep their normal priority (%s): a busy host can hold "
-                    "up its real-time threads through the GIL", what, refused)
+        log.warning("%s: the process's threads keep their priority (%s): a busy host can hold up its "
+                    "real-time threads through the GIL", what, refused)
     else:
-        log.info("%s: %d threads of the process at SCHED_FIFO priority %d", what, raised, rt_priority)
+        log.info("%s: %d threads of the process at nice %d", what, raised, nice)
     return raised

@@ -103,7 +103,8 @@ class GloveDriver:
     async def run(self) -> None:
         self._loop = asyncio.get_running_loop()
         # the GIL ties the reader to every other thread of the process: they must not wait behind other processes
-        raise_process_priority("glove", self.log, max(self.link.rt_priority - 1, 0))
+        if self.link.rt_priority > 0:
+            raise_process_priority("glove", self.log)
         await self.link.run()
 
     def close(self) -> None:

@@ -127,7 +127,8 @@ class RobotService:
         clock stalls or the event loop is busy. A late wake-up sends one command, never a burst."""
         self.stream["priority"] = raise_priority("robot command stream", self.node.log, self.p.rt_priority)
         # the GIL ties this thread to every other of the process: they must not wait behind other processes
-        raise_process_priority("robot", self.node.log, max(self.p.rt_priority - 1, 0))
+        if self.p.rt_priority > 0:
+            raise_process_priority("robot", self.node.log)
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
         while not self._stop.is_set():
