@@ -6,7 +6,10 @@ efforts for MuJoCo and, at the feedback rate, a FeedbackFrame to encode onto the
 On the real board the same behaviour lives in the FPGA (hdl/motor/: encoder readout, PID,
 commutation, PWM, watchdog). When no command arrived for the watchdog timeout the board brakes:
 damping only (shorted windings), so the Z axes, which carry the arm's weight, sink slowly (about
-5 mm/s here) instead of dropping, as on the real robot (thesis 6.3).
+5 mm/s here) instead of dropping, as on the real robot (thesis 6.3). With position limits installed
+(power-up limits, or the host's config frame) setpoints are clamped into them and a joint whose
+braked stopping distance would carry it past them is braked (``limit_brakes``), so it stops before
+the hard stop whatever it was commanded.
 
 Joints with a muscle pair (the hand-arm's fingers, services/robot/pneumatic.py) also run the
 PNEUMATIC mode: the two-stage PID of thesis 7.3.2 sets the valves, the muscle pressures integrate
