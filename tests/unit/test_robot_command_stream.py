@@ -127,3 +127,15 @@ def test_commands_reach_the_simulated_board_at_their_arrival_time(tmp_path):
             device.close()
     assert results[False] > 0, "without the arrival times the catch-up starves the watchdog"
     assert results[True] == 0
+
+
+def test_before_a_new_trajectory_starts_the_one_it_replaced_still_holds():
+    names = load_robot("workcell").joint_names
+    n = len(names)
+    follower = TrajectoryFollower(names)
+    old = trajectory(names, np.zeros(n), np.full(n, 0.1), 1.0)
+    new = trajectory(names, np.full(n, 0.5), np.zeros(n), 1.0)
+    new.header = msgs.header(0.5)
+    assert follower.load(old, 0.0) is None and follower.load(new, 0.45) is None
+    np.testing.assert_allclose(follower.sample(0.45)[0], 0.045)  # the old one, not the new one's first knot
+    np.testing.assert_allclose(follower.sample(0.6)[0], 0.5)
