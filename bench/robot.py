@@ -86,7 +86,7 @@ def run_once(seconds: float, load: int, speed: float) -> dict:
 
         thread = threading.Thread(target=source, daemon=True)
         thread.start()
-        time.sleep(3.0)  # onto the sweep (the start from the home pose is a real clamp)
+        time.sleep(5.0)  # onto the sweep (the way there from the home pose is clamped, rightly)
         hogs = start_load(load)
         before_r, before_w = health("robot", "workcell"), health("world", "sim")
         t0 = time.monotonic()
