@@ -33,7 +33,7 @@ from shared.protocols.robot_board import Mode
 from shared.realtime import raise_priority, raise_process_priority
 from shared.runtime import Node, latest
 
-VELOCITY_SLACK = 1.1  # the rate limit's time is the trajectory's, capped at this times the wall time
+VELOCITY_SLACK = 1.1  # trajectory time runs at most this much faster than wall time (CommandClock)
 
 
 def command_modes(joint_names: list[str], finger_mode: str = "position") -> np.ndarray:
@@ -78,7 +78,7 @@ class RobotService:
         self.board_limits = board_limits(model)  # the board's, between these and the URDF's
         self.modes = command_modes(self.joint_names, params.finger_mode)
         self.follower = TrajectoryFollower(self.joint_names)
-        self.command_clock = CommandClock()
+        self.command_clock = CommandClock(max_rate=VELOCITY_SLACK)
         self.driver = BoardDriver(params.port, params.baudrate, self.joint_names, node.log, params.rt_priority)
         if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
             node.log.warning("robot instance %r runs model %r: its state goes to %s, not %s", node.instance,
@@ -170,9 +170,9 @@ class RobotService:
         except CommandRejectedError as exc:
             self._reject(str(exc))
             goal, velocity = self.target, np.zeros(len(self.target))
-        # The rate limit runs on trajectory time: a trajectory within the velocity limit is never
-        # clamped because the wall time between two commands jittered.
-        self.target, reasons = limit_step(goal, self.target, self.limits, min(advanced, VELOCITY_SLACK * elapsed))
+        # The rate limit runs on trajectory time (at most VELOCITY_SLACK x the wall time): a trajectory
+        # within the velocity limit is never clamped because the time between two commands jittered.
+        self.target, reasons = limit_step(goal, self.target, self.limits, advanced)
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)

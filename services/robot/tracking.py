@@ -76,14 +76,18 @@ class CommandClock:
     moves the setpoint 10 ms at once and then not at all, which the velocity limit clamps although
     the trajectory itself is within it. This clock advances by the wall time elapsed between
     commands, pulled gently toward the deployment clock (``gain`` of the difference per command),
-    never backward, at most ``max_lead_s`` ahead of it (a stalled clock stops it); a difference over
-    ``jump_s`` (a world restart, a replay looping) snaps it to the clock.
+    never backward and never faster than ``max_rate`` times the wall time (catching up after the
+    clock's messages were held up moves a plan at most that much faster than planned), at most
+    ``max_lead_s`` ahead of it (a stalled clock stops it); a difference over ``jump_s`` (a world
+    restart, a replay looping) snaps it to the clock.
     """
 
-    def __init__(self, gain: float = 0.05, max_lead_s: float = 0.02, jump_s: float = 0.5) -> None:
+    def __init__(self, gain: float = 0.05, max_lead_s: float = 0.05, jump_s: float = 0.5,
+                 max_rate: float = 1.1) -> None:
         self.gain = gain
         self.max_lead_s = max_lead_s
         self.jump_s = jump_s
+        self.max_rate = max_rate
         self.t: float | None = None
         self.jumps = 0
 
@@ -93,7 +97,7 @@ class CommandClock:
             self.jumps += self.t is not None
             self.t = clock_now
             return self.t, 0.0
-        step = max(0.0, elapsed_s + self.gain * (clock_now - self.t))
+        step = min(max(0.0, elapsed_s + self.gain * (clock_now - self.t)), self.max_rate * elapsed_s)
         step = max(0.0, min(step, clock_now + self.max_lead_s - self.t))
         self.t += step
         return self.t, step
