@@ -7,15 +7,17 @@ import numpy as np
 
 from shared import msgs
 
+HISTORY = 10  # replaced trajectories kept for a command time behind the newest one's start
+
 
 class TrajectoryFollower:
     """Holds the active trajectory as arrays; ``sample(t)`` gives the position/velocity target."""
 
     def __init__(self, joint_names: list[str]) -> None:
         self.joint_names = list(joint_names)
-        # (times, positions, the trajectory it replaced) as one tuple: the command thread samples
-        # while the loop loads
-        self._active: tuple[np.ndarray, np.ndarray, tuple | None] | None = None
+        # (times, positions, the trajectories it replaced, newest first) as one tuple: the command
+        # thread samples while the loop loads
+        self._active: tuple[np.ndarray, np.ndarray, tuple] | None = None
 
     @property
     def times(self) -> np.ndarray | None:
@@ -45,19 +47,22 @@ class TrajectoryFollower:
         if np.any(np.diff(times) <= 0):
             return "trajectory times are not increasing"
         previous = self._active
-        self._active = (times, positions, previous[:2] + (None,) if previous is not None else None)
+        history = ((previous[:2],) + previous[2])[:HISTORY] if previous is not None else ()
+        self._active = (times, positions, history)
         return None
 
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """Position and velocity at ``t``. Before the start of the newest trajectory the one it
-        replaced still holds (the planner stamps a trajectory with its own, slightly later, clock:
-        holding the new one's first point there would jump)."""
+        """Position and velocity at ``t``. Before the start of the newest trajectory the newest of
+        those it replaced that has started holds (the planner stamps a trajectory with its own clock,
+        which may run ahead of the command time: holding the new one's first point there would jump)."""
         active = self._active
         if active is None:
             return None
-        times, pos, previous = active
-        if previous is not None and t < times[0] and t >= previous[0][0]:
-            times, pos = previous[0], previous[1]
+        times, pos, history = active
+        if t < times[0]:
+            older = next((h for h in history if h[0][0] <= t), None)
+            if older is not None:
+                times, pos = older
         if len(times) == 1 or t <= times[0]:
             return pos[0].copy(), np.zeros(pos.shape[1])
         if t >= times[-1]:

@@ -152,6 +152,9 @@ def test_before_a_new_trajectory_starts_the_one_it_replaced_still_holds():
     old = trajectory(names, np.zeros(n), np.full(n, 0.1), 1.0)
     new = trajectory(names, np.full(n, 0.5), np.zeros(n), 1.0)
     new.header = msgs.header(0.5)
-    assert follower.load(old, 0.0) is None and follower.load(new, 0.45) is None
-    np.testing.assert_allclose(follower.sample(0.45)[0], 0.045)  # the old one, not the new one's first knot
+    newer = trajectory(names, np.full(n, 0.6), np.zeros(n), 1.0)
+    newer.header = msgs.header(0.55)
+    assert follower.load(old, 0.0) is None and follower.load(new, 0.45) is None and follower.load(newer, 0.5) is None
+    # a command time behind both newer ones: the old one, not a newer one's first knot
+    np.testing.assert_allclose(follower.sample(0.45)[0], 0.045)
     np.testing.assert_allclose(follower.sample(0.6)[0], 0.5)
