@@ -157,4 +157,5 @@ def test_before_a_new_trajectory_starts_the_one_it_replaced_still_holds():
     assert follower.load(old, 0.0) is None and follower.load(new, 0.45) is None and follower.load(newer, 0.5) is None
     # a command time behind both newer ones: the old one, not a newer one's first knot
     np.testing.assert_allclose(follower.sample(0.45)[0], 0.045)
-    np.testing.assert_allclose(follower.sample(0.6)[0], 0.5)
+    np.testing.assert_allclose(follower.sample(0.52)[0], 0.5)
+    np.testing.assert_allclose(follower.sample(0.6)[0], 0.6)
