@@ -23,6 +23,7 @@ from rosbags.highlevel import AnyReader
 from learning.reservoir import Reservoir
 from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
+from shared.recording_files import recording_segments
 
 SCENE_KEY = "xm/recon/main/scene"
 SESSION_KEY = "xm/world/sim/session"
@@ -215,20 +216,22 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
 
 
 # --- recordings --------------------------------------------------------------------------------
-def demos_from_mcap(path: str | Path, dt: float = 0.02, max_gap_s: float = 0.5, min_steps: int = 20,
+def demos_from_mcap(path: str | Path | list[str | Path], dt: float = 0.02, max_gap_s: float = 0.5, min_steps: int = 20,
                     report: list[str] | None = None) -> list[Demo]:
-    """Demonstrations of one MCAP recording (scene + session keys), resampled onto ``dt``.
+    """Demonstrations of one MCAP recording (scene + session keys), resampled onto ``dt``. A segmented
+    recording reads as one: ``path`` may be its first segment, a directory or a list of segments.
 
     NaN keypoints are masked, a gap longer than ``max_gap_s`` ends a demonstration, demonstrations
     shorter than ``min_steps`` are dropped; each such event is appended to ``report`` with the
     demonstration and the time. Raises DatasetError when nothing usable is in the file."""
-    path = Path(path)
-    if not path.exists():
+    files = recording_segments(path)
+    path = Path(path) if isinstance(path, (str, Path)) else files[0] if files else Path("recording")
+    if not files or not all(f.exists() for f in files):
         raise DatasetError(f"{path}: no such recording")
     report = report if report is not None else []
     scenes, sessions = [], []
     try:
-        with AnyReader([path], default_typestore=msgs.typestore()) as reader:
+        with AnyReader(files, default_typestore=msgs.typestore()) as reader:
             topics = {c.topic for c in reader.connections}
             missing = [k for k in (SCENE_KEY, SESSION_KEY) if k not in topics]
             if missing:

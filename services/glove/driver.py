@@ -1,6 +1,9 @@
 """The glove's hardware path: serial port -> protocol decoder -> calibrated pressure.
 
 The same code reads the world's simulated readout module (a pty) and the real radio receiver.
+Frames are decoded, calibrated and handed to ``on_frame`` on the serial link's reader thread (a
+real-time thread where the OS allows: shared/serial_link.py), so a busy event loop or host does
+not hold them up; register replies go to the waiting request on the event loop.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import numpy as np
 from services.glove.calibration import Calibration
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
+from shared.realtime import DEFAULT_RT_PRIORITY, raise_process_priority
 from shared.serial_link import SerialLink
 
 
@@ -50,7 +54,8 @@ class DeviceClock:
 class GloveDriver:
     def __init__(self, port: str, baudrate: int, calibration_path: str,
                  on_frame: Callable[[tactile.TactileFrame, np.ndarray, float], None],
-                 log: logging.Logger, clock: DeviceClock, calibration_seed: int = 0) -> None:
+                 log: logging.Logger, clock: DeviceClock, calibration_seed: int = 0,
+                 rt_priority: int = DEFAULT_RT_PRIORITY) -> None:
         if not port:
             raise ValueError("glove: no serial port configured (set port = \"/dev/ttyACM0\" in the deployment)")
         self.calibration = (Calibration.load(calibration_path) if calibration_path
@@ -61,19 +66,23 @@ class GloveDriver:
         self.log = log
         self.last_sequence: int | None = None
         self._pending: dict[int, list[asyncio.Future]] = {}  # register address -> waiting requests
-        self.link = SerialLink(port, self._on_bytes, baudrate)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.link = SerialLink(port, self._on_bytes, baudrate, rt_priority=rt_priority)
 
-    def _on_bytes(self, data: bytes) -> None:
+    def _on_bytes(self, data: bytes) -> None:  # the reader thread
         for item in self.decoder.feed(data):
             if isinstance(item, tactile.TactileFrame):
                 pressure = self.calibration.pressure(item.impedance)
                 self.on_frame(item, pressure, self.clock.stamp(item.timestamp_us))
-            else:
-                waiting = self._pending.get(item.address)
-                if waiting:
-                    fut = waiting.pop(0)
-                    if not fut.done():
-                        fut.set_result(item)
+            elif self._loop is not None:
+                self._loop.call_soon_threadsafe(self._on_reply, item)
+
+    def _on_reply(self, item: tactile.RegisterReply) -> None:  # the event loop
+        waiting = self._pending.get(item.address)
+        if waiting:
+            fut = waiting.pop(0)
+            if not fut.done():
+                fut.set_result(item)
 
     async def register(self, name: str, value: int | None = None, timeout: float = 0.5) -> tactile.RegisterReply:
         """Reads (value None) or writes one configuration register by name; RegisterError when the
@@ -92,6 +101,10 @@ class GloveDriver:
                 self._pending[address].remove(fut)
 
     async def run(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        # the GIL ties the reader to every other thread of the process: they must not wait behind other processes
+        if self.link.rt_priority > 0:
+            raise_process_priority("glove", self.log)
         await self.link.run()
 
     def close(self) -> None:

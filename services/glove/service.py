@@ -34,6 +34,9 @@ class GloveService:
         calibration_seed: int = -1  # which simulated glove's factory calibration (-1: by hand, 0 left, 1 right)
         publish_raw: bool = False
         publish_imu: bool = False
+        # SCHED_FIFO priority of the serial reader thread, which also decodes and publishes (0: normal
+        # priority); refused by the OS -> nice -10 or normal priority, logged (shared/realtime.py).
+        reader_rt_priority: int = 10
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -41,14 +44,14 @@ class GloveService:
         seed = params.calibration_seed if params.calibration_seed >= 0 else (1 if self.hand == "right" else 0)
         clock = DeviceClock(node.clock.now, sim=node.clock.mode == "sim")
         self.driver = GloveDriver(params.port, params.baudrate, params.calibration, self._on_frame, node.log,
-                                  clock, calibration_seed=seed)
+                                  clock, calibration_seed=seed, rt_priority=params.reader_rt_priority)
         self.tactile_pub = node.output("tactile")
         self.raw_pub = node.output("raw") if params.publish_raw else None
         self.imu_pub = node.output("imu") if params.publish_imu else None
         node.queryable("register", self.cmd_register)
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats)}
 
-    def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:
+    def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:  # the serial reader thread
         header = msgs.header(stamp, f"glove_{self.hand}")
         mask = cell_mask(frame.tx_mask, frame.rx_mask)
         self.tactile_pub.put(msgs.make(

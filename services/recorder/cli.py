@@ -12,8 +12,9 @@ from pathlib import Path
 
 import zenoh
 
+from services.recorder.segments import SEGMENT_S
 from services.recorder.service import Recording, check_pattern, default_path
-from services.recorder.writer import RecordingError, check_mcap, is_complete, read_messages, repair
+from services.recorder.writer import RecordingError, check_mcap, is_complete, read_messages, recording_files, repair
 from shared import keys
 from shared.client import add_connection_args, connect
 from shared.runtime import Node
@@ -34,14 +35,18 @@ def record_main(argv: list[str] | None = None) -> int:
         description="Record the keys of a running deployment into an MCAP file (ros2 profile, CDR bytes "
         "as on the wire; opens in Foxglove, rosbags and mcap-ros2-support). Stops at Ctrl-C or after "
         "--duration and prints messages and rates per key.",
-        epilog="A recording cut by a crash keeps everything up to its last flushed chunk (at most ~1 s "
-        "lost); `xm record --repair FILE` rewrites it as a complete file.")
+        epilog="The recording is written in MCAP segments (FILE, FILE.seg0001.mcap, ...) of --segment "
+        "seconds. A crash leaves every closed segment complete and the open one readable up to its last "
+        "flushed chunk (at most ~1 s lost); `xm record --repair FILE` rewrites a cut segment as a complete "
+        "file (the recorder service does that itself at start).")
     parser.add_argument("--keys", default="xm/**", metavar="PATTERN",
                         help="Zenoh key pattern to record (default: %(default)s, every registered key)")
     parser.add_argument("-o", "--output", metavar="FILE",
                         help="output file (default: recordings/xm-<date>-<time>.mcap)")
     parser.add_argument("--duration", type=float, metavar="S",
                         help="seconds to record (default: until Ctrl-C)")
+    parser.add_argument("--segment", type=float, default=SEGMENT_S, metavar="S",
+                        help="seconds per MCAP segment (default: %(default)s; 0: one file)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing output file")
     parser.add_argument("--repair", metavar="CUT_FILE",
                         help="instead of recording: rewrite a recording cut by a crash into -o "
@@ -92,7 +97,7 @@ async def _record(args: argparse.Namespace, out: Path) -> int:
     tty = sys.stderr.isatty()
     try:
         rec = Recording(node, out, args.keys, {"deployment": name, "deployment_file": args.deployment,
-                                               "router": router, "recorder": "xm record"})
+                                               "router": router, "recorder": "xm record"}, args.segment)
     except (ValueError, OSError) as exc:
         await node.close()
         session.close()
@@ -147,8 +152,11 @@ def replay_main(argv: list[str] | None = None) -> int:
         description="Republish an MCAP recording's stored bytes on their original keys with the original "
         "timing (receive times) scaled by --rate. xm/clock is replayed too, so services of a sim-clock "
         "deployment follow the replay; do not run the world at the same time.",
-        epilog="A recording cut by a crash is replayed up to its last flushed chunk.")
-    parser.add_argument("file", help="MCAP recording (from xm record or the recorder service)")
+        epilog="A segmented recording is replayed as one: give its first segment (the others are found "
+        "beside it), its directory, or the segment files. A segment cut by a crash is replayed up to "
+        "its last flushed chunk.")
+    parser.add_argument("file", nargs="+", help="MCAP recording (from xm record or the recorder service): "
+                        "a file, a directory of recordings, or several segment files")
     parser.add_argument("--rate", type=float, default=1.0,
                         help="playback speed factor (default: %(default)s)")
     parser.add_argument("--keys", default="xm/**", metavar="PATTERN",
@@ -158,9 +166,9 @@ def replay_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.rate > 0:
         parser.error("--rate must be positive")
-    path = Path(args.file)
+    path = Path(args.file[0]) if len(args.file) == 1 else Path(args.file[0]).parent
     try:
-        check_mcap(path)
+        files = recording_files(args.file if len(args.file) > 1 else args.file[0])
     except (RecordingError, OSError) as exc:
         return _fail(str(exc))
     session, _, _ = connect(args)
@@ -172,7 +180,7 @@ def replay_main(argv: list[str] | None = None) -> int:
     try:
         while True:
             cut: list[str] = []
-            n = _replay_once(session, publishers, path, args.rate, args.keys, cut, sent)
+            n = _replay_once(session, publishers, files, args.rate, args.keys, cut, sent)
             passes += 1
             for line in cut if passes == 1 else []:
                 print(f"warning: {line}", file=sys.stderr)
@@ -196,13 +204,14 @@ def replay_main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _replay_once(session: zenoh.Session, publishers: dict[str, zenoh.Publisher], path: Path, rate: float,
-                 pattern: str, cut: list[str], sent: list[int]) -> int:
+def _replay_once(session: zenoh.Session, publishers: dict[str, zenoh.Publisher], files: list[Path],
+                 rate: float, pattern: str, cut: list[str], sent: list[int]) -> int:
     count = 0
     t_file0: int | None = None
     t_wall0 = 0.0
     tty = sys.stderr.isatty()
-    for stored in read_messages(path, cut=cut):
+    path = files[0]
+    for stored in read_messages(files, cut=cut):
         if not keys.key_matches(pattern, stored.key):
             continue
         if t_file0 is None:

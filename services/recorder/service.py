@@ -2,7 +2,9 @@
 
 Subscriptions are lossless FIFOs of raw payloads; each key's type comes from the registry.
 Keys with an `@` chunk (health, liveliness, commands) are never recorded; unregistered keys and
-payloads that do not decode as their key's type are counted in @health and skipped.
+payloads that do not decode as their key's type are counted in @health and skipped. A recording
+is written in segments of ``segment_s`` (services/recorder/segments.py); at start the service
+repairs the segments in its directory that a crash left cut.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from services.recorder.writer import McapRecorder, RecordingError, warm_up
+from services.recorder.segments import SEGMENT_S, SegmentedRecorder, repair_cut_segments
+from services.recorder.writer import RecordingError, warm_up
 from shared import keys, msgs
 from shared.runtime import Node, Subscription, fifo
 from shared.runtime.logs import fields
@@ -58,11 +61,12 @@ def check_pattern(pattern: str) -> str:
 class Recording:
     """One open recording: a lossless raw subscription feeding a writer, flushed by a timer."""
 
-    def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any]) -> None:
+    def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any],
+                 segment_s: float = SEGMENT_S) -> None:
         self.node = node
         self.pattern = check_pattern(pattern)
         warm_up(registered_types())  # cached: costs only the first time in a process
-        self.writer = McapRecorder(path, {**metadata, "keys": pattern})
+        self.writer = SegmentedRecorder(path, {**metadata, "keys": pattern}, segment_s)
         self.unknown: Counter[str] = Counter()
         self.malformed: Counter[str] = Counter()
         self.write_errors = 0
@@ -114,7 +118,8 @@ class Recording:
 
     def summary(self) -> dict:
         return {**self.writer.summary().as_dict(), "keys": self.pattern, "unknown_keys": dict(self.unknown),
-                "malformed": dict(self.malformed), "write_errors": self.write_errors}
+                "malformed": dict(self.malformed), "write_errors": self.write_errors,
+                "segments": [str(p) for p in self.writer.segments], "segment_s": self.writer.segment_s}
 
     async def stop(self) -> dict:
         """Unsubscribe, write what is still queued, close the file."""
@@ -135,12 +140,14 @@ class RecorderService:
     class Params:
         directory: str = "recordings"
         keys: str = "xm/**"  # default pattern of @cmd/start
+        segment_s: float = SEGMENT_S  # length of a recording's MCAP segments (<= 0: one file)
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
         self.recording: Recording | None = None
         self.last: dict | None = None
+        self.repaired: list[dict] = []
         self.deployment_name = _deployment_name(self.deployment)
         warm_up(registered_types())  # now, not while the first messages of a recording queue up
         node.queryable("start", self.cmd_start)
@@ -170,7 +177,7 @@ class RecorderService:
         path = self._path(req.get("path"))
         meta = {"deployment": self.deployment_name, "deployment_file": self.deployment,
                 "recorder": f"{self.node.service}/{self.node.instance}", "clock": self.node.clock.mode}
-        self.recording = Recording(self.node, path, pattern, meta)
+        self.recording = Recording(self.node, path, pattern, meta, self.p.segment_s)
         self.node.set_status("ok", f"recording to {path}")
         self.node.log.info("recording started", extra=fields(path=str(path), keys=pattern))
         return {"ok": True, "path": str(path)}
@@ -197,7 +204,12 @@ class RecorderService:
         rec = self.recording.summary() if self.recording else None
         return {"recording": rec is not None, "path": rec["path"] if rec else None,
                 "messages": rec["messages"] if rec else {}, "bytes": rec["bytes"] if rec else 0,
-                "dropped": dropped(self.node.stats.errors), "last": self.last}
+                "dropped": dropped(self.node.stats.errors), "last": self.last, "repaired_at_start": self.repaired}
+
+    async def run(self) -> None:
+        """Repair what a crash left cut in the directory (off the loop: commands are served meanwhile)."""
+        self.repaired = await asyncio.to_thread(repair_cut_segments, self.p.directory)
+        await asyncio.Event().wait()
 
     async def close(self) -> None:
         if self.recording is not None:

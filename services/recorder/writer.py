@@ -16,6 +16,7 @@ therefore ends after its last complete chunk, but has no summary section and no 
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import socket
@@ -32,6 +33,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from shared import msgs
+from shared.recording_files import recording_segments
 
 MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1024 * 1024
@@ -98,6 +100,8 @@ class McapRecorder:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file: BinaryIO = self.path.open("wb")
+        # Held while the file is written: a recorder starting up repairs only cut files nobody holds.
+        fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._writer.start(profile="ros2", library=LIBRARY)
         self.metadata = {"host": socket.gethostname(), "started_ns": str(time.time_ns()),
@@ -233,6 +237,18 @@ def check_mcap(path: str | Path) -> None:
         raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)")
 
 
+def is_being_written(path: str | Path) -> bool:
+    """True while a live McapRecorder holds ``path`` (its lock goes with the process)."""
+    try:
+        with Path(path).open("rb") as f:
+            fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    return False
+
+
 def is_complete(path: str | Path) -> bool:
     """True when the file ends with a footer (it was closed, not cut)."""
     with Path(path).open("rb") as f:
@@ -243,12 +259,29 @@ def is_complete(path: str | Path) -> bool:
         return f.read() == MAGIC
 
 
-def read_messages(path: str | Path, keys: set[str] | None = None,
-                  cut: list[str] | None = None) -> Iterator[Stored]:
-    """Messages of a recording in log-time order, complete or cut (then up to its last whole chunk).
+def recording_files(source: str | Path | Iterable[str | Path]) -> list[Path]:
+    """The MCAP segments of a recording (a segment's path, a directory, or a list of files) in order;
+    RecordingError when there are none or one is not an MCAP file."""
+    files = recording_segments(source)
+    if not files:
+        raise RecordingError(f"{source}: no MCAP files (*.mcap) in this directory")
+    for f in files:
+        check_mcap(f)
+    return files
 
-    For a cut file, a line saying where it ended is appended to ``cut``."""
-    check_mcap(path)
+
+def read_messages(source: str | Path | Iterable[str | Path], keys: set[str] | None = None,
+                  cut: list[str] | None = None) -> Iterator[Stored]:
+    """Messages of a recording, segment after segment, each in log-time order; complete segments are
+    read with the seeking reader, a cut one up to its last whole chunk.
+
+    ``source``: a segment's path (the recording's other segments are found beside it), a directory
+    of segments, or a list of files. For a cut file, a line saying where it ended is appended to ``cut``."""
+    for path in recording_files(source):
+        yield from _read_file(path, keys, cut)
+
+
+def _read_file(path: Path, keys: set[str] | None, cut: list[str] | None) -> Iterator[Stored]:
     with Path(path).open("rb") as f:
         if is_complete(path):
             source = SeekingReader(f).iter_messages(topics=keys, log_time_order=True)

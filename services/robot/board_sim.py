@@ -6,7 +6,10 @@ efforts for MuJoCo and, at the feedback rate, a FeedbackFrame to encode onto the
 On the real board the same behaviour lives in the FPGA (hdl/motor/: encoder readout, PID,
 commutation, PWM, watchdog). When no command arrived for the watchdog timeout the board brakes:
 damping only (shorted windings), so the Z axes, which carry the arm's weight, sink slowly (about
-5 mm/s here) instead of dropping, as on the real robot (thesis 6.3).
+5 mm/s here) instead of dropping, as on the real robot (thesis 6.3). With position limits installed
+(power-up limits, or the host's config frame) setpoints are clamped into them and a joint whose
+braked stopping distance would carry it past them is braked (``limit_brakes``), so it stops before
+the hard stop whatever it was commanded.
 
 Joints with a muscle pair (the hand-arm's fingers, services/robot/pneumatic.py) also run the
 PNEUMATIC mode: the two-stage PID of thesis 7.3.2 sets the valves, the muscle pressures integrate
@@ -41,6 +44,7 @@ from shared.protocols.robot_board import (
     COMMAND_REJECTED,
     CONFIG_REJECTED,
     JOINT_BRAKING,
+    JOINT_POSITION_LIMIT,
     LIMITS_ACTIVE,
     NO_COMMAND_YET,
     WATCHDOG_EXPIRED,
@@ -144,9 +148,10 @@ class BoardSim:
         self._qd_prev: np.ndarray | None = None
         self._u_prev = np.zeros(n)
         self.counters = {"commands": 0, "commands_rejected": 0, "configs": 0, "configs_rejected": 0,
-                         "brake_events": 0, "clamp_events": 0}
+                         "brake_events": 0, "clamp_events": 0, "limit_brakes": 0}
         self.last_reasons: list[str] = []
         self._braking = True
+        self._in_zone = np.zeros(n, bool)
         # Muscle pairs (PNEUMATIC mode): parameters per joint from pneumatic_params; joints without a
         # drive get a zero torque scale (safety never lets them into the mode anyway).
         muscles = [pneumatic_params(j) or PneumaticParams(torque_per_bar=0.0) for j in self.joint_names]
@@ -238,6 +243,7 @@ class BoardSim:
             uses_position = (safe.mode == POSITION) | (safe.mode == IMPEDANCE) | (safe.mode == PNEUMATIC)
             self.last_safe = np.where(uses_position, safe.position, q)
             effort = self._control(safe, q, qd, dt)
+            effort = self._limit_zone(effort, q, qd, safe.mode != BRAKE, joint_flags, dt)
         effort = np.clip(effort, -self.limits.effort, self.limits.effort)
         self._u_prev = effort
         feedback = None
@@ -245,6 +251,34 @@ class BoardSim:
             self._next_feedback = t + self.feedback_period_s - 1e-9
             feedback = self._feedback(t, q, qd, effort, expired, joint_flags)
         return effort, feedback
+
+    def _limit_zone(self, effort: np.ndarray, q: np.ndarray, qd: np.ndarray, driven: np.ndarray,
+                    joint_flags: np.ndarray, dt: float) -> np.ndarray:
+        """Brake a driven joint whose braked stopping point (it coasts ``|v| m / c`` under the damper,
+        ``v^2 m / 2 F`` where the motor's effort maximum F caps the damper, plus two control periods)
+        lies beyond its position limit while it moves outward, so it stops
+        before the hard stop whatever the setpoint or feed-forward asked: the joint gets the damper's
+        effort or its controller's without its outward integral, whichever pushes it harder back
+        inside (under a load such as the Z axes' weight the damper alone would let it sink on). The
+        controller alone acts again once the joint no longer moves outward."""
+        if not self.limits_active:
+            return effort
+        coast = self.inertia / self.brake_damping + np.abs(qd) * self.inertia / (2 * self.effort_max) + 2 * dt
+        stop = q + qd * coast
+        zone = driven & (((stop > self.limits.upper) & (qd > 0)) | ((stop < self.limits.lower) & (qd < 0)))
+        onset = zone & ~self._in_zone
+        self._in_zone = zone
+        if not zone.any():
+            return effort
+        self.counters["limit_brakes"] += int(onset.sum())
+        self.last_reasons += [f"limit_brake:{self.joint_names[i]}" for i in np.flatnonzero(zone)]
+        joint_flags[zone] |= JOINT_BRAKING | JOINT_POSITION_LIMIT
+        # The integral wound up while the joint lagged its setpoint: it pushes outward, drop it.
+        effort = effort - np.where(zone & (self.integral * qd > 0), self.integral, 0.0)
+        self.integral[zone & (self.integral * qd > 0)] = 0.0
+        damper = self._damper(qd, dt)
+        inward = np.where(qd > 0, np.minimum(effort, damper), np.maximum(effort, damper))
+        return np.where(zone, inward, effort)
 
     def _brake(self, qd: np.ndarray, dt: float) -> np.ndarray:
         """Shorted windings: a viscous damper. The physics applies our effort one step late, so a stiff

@@ -1,4 +1,7 @@
-"""The control board's hardware path: the serial link, command encoding and feedback decoding."""
+"""The control board's hardware path: the serial link, command encoding and feedback decoding.
+
+Feedback is decoded on the link's reader thread (shared/serial_link.py); ``send`` and ``configure``
+are called from the service's command thread."""
 
 from __future__ import annotations
 
@@ -6,12 +9,15 @@ import logging
 
 import numpy as np
 
+from services.robot.safety import Limits
 from shared.protocols import robot_board as rb
+from shared.realtime import DEFAULT_RT_PRIORITY
 from shared.serial_link import SerialLink
 
 
 class BoardDriver:
-    def __init__(self, port: str, baudrate: int, joint_names: list[str], log: logging.Logger) -> None:
+    def __init__(self, port: str, baudrate: int, joint_names: list[str], log: logging.Logger,
+                 rt_priority: int = DEFAULT_RT_PRIORITY) -> None:
         if not port:
             raise ValueError("robot: no serial port configured (set port = \"/dev/ttyUSB0\" in the deployment)")
         self.joint_names = joint_names
@@ -19,7 +25,8 @@ class BoardDriver:
         self.decoder = rb.StreamDecoder()
         self.feedback: rb.FeedbackFrame | None = None
         self.sequence = 0
-        self.link = SerialLink(port, self._on_bytes, baudrate, on_state=self._on_state)
+        self.config_sequence = 0
+        self.link = SerialLink(port, self._on_bytes, baudrate, on_state=self._on_state, rt_priority=rt_priority)
 
     @property
     def watchdog_state(self) -> str:
@@ -42,6 +49,11 @@ class BoardDriver:
         frame = rb.CommandFrame(self.sequence, mode.astype(np.uint8), position, velocity, effort, zeros, zeros)
         self.sequence += 1
         return self.link.write(rb.encode_command(frame))
+
+    def configure(self, limits: Limits) -> bool:
+        """Install ``limits`` (and the 10 ms watchdog) on the board."""
+        self.config_sequence += 1
+        return self.link.write(rb.encode_config(limits.to_config(self.config_sequence)))
 
     async def run(self) -> None:
         await self.link.run()

@@ -30,6 +30,11 @@ from shared.protocols.robot_board import (
 
 WATCHDOG_TIMEOUT_S = 0.010  # thesis 6.3
 CLAMP_TOLERANCE = 1e-4  # m or rad: smaller corrections are float32 rounding, not limit events
+# Soft limits: the host commands no closer to a URDF limit than this, so that tracking overshoot and
+# the board's brake zone (services/robot/board_sim.py) never reach the hard stop. Trajopt plans with a
+# wider margin (services/trajopt/optimizer.py), so a plan never meets the host's clamp.
+SOFT_MARGIN_M = 0.002
+SOFT_MARGIN_RAD = 0.01
 # Plain ints: comparing arrays with IntEnum members is slow, and this runs every control tick.
 _BRAKE, _POSITION, _VELOCITY, _EFFORT, _IMPEDANCE, _PNEUMATIC = (int(m) for m in Mode)
 
@@ -86,6 +91,15 @@ class Limits:
         """From a shared.kinematics RobotModel (URDF limits)."""
         return cls(model.lower, model.upper, model.max_velocity, model.max_effort, tuple(model.joint_names))
 
+    def shrunk(self, margin: np.ndarray) -> Limits:
+        """These limits with each position range narrowed by ``margin`` at both ends (a range narrower
+        than twice its margin shrinks to its middle)."""
+        margin = np.broadcast_to(np.asarray(margin, float), self.lower.shape)
+        mid = (self.lower + self.upper) / 2
+        lower = np.minimum(self.lower + margin, mid)
+        upper = np.maximum(self.upper - margin, mid)
+        return Limits(lower, upper, self.velocity, self.effort, self.names)
+
     @classmethod
     def from_dict(cls, table: dict, joint_names: list[str] | None = None) -> Limits:
         """``{joint: {"lower"|"min", "upper"|"max", "velocity", "effort"}}`` (optionally under "joints"),
@@ -123,6 +137,25 @@ class Limits:
         if not cfg.has_limits:
             raise LimitsError("config frame carries no limits")
         return cls(cfg.lower, cfg.upper, cfg.velocity, cfg.effort, tuple(names))
+
+
+def soft_margins(model) -> np.ndarray:
+    """(n,) the soft-limit margin of each joint of a RobotModel: SOFT_MARGIN_M for prismatic joints,
+    SOFT_MARGIN_RAD for rotary ones."""
+    kinds = {j.name: j.kind for j in model.joints}
+    return np.array([SOFT_MARGIN_M if kinds.get(n) == "prismatic" else SOFT_MARGIN_RAD for n in model.joint_names])
+
+
+def soft_limits(model) -> Limits:
+    """The limits the host commands within: the URDF limits less ``soft_margins``."""
+    return Limits.from_model(model).shrunk(soft_margins(model))
+
+
+def board_limits(model) -> Limits:
+    """The limits installed on the control board: the URDF limits less half of ``soft_margins``, so a
+    setpoint at a soft limit is never clamped there and the board's brake zone stops a joint before
+    the hard stop."""
+    return Limits.from_model(model).shrunk(soft_margins(model) / 2)
 
 
 class JointStateLike(Protocol):

@@ -1,22 +1,40 @@
 """robot node: follow the latest JointTrajectory through the control board at the command rate,
-enforcing joint, velocity and effort limits whatever arrives, and publish the measured state."""
+enforcing joint, velocity and effort limits whatever arrives, and publish the measured state.
+
+Commands go out from a thread of their own (real-time priority where the OS allows,
+shared/realtime.py) on wall time, so that the board's 10 ms watchdog stays fed while the event
+loop or the host is busy. The host clamps into soft limits (the URDF limits less a margin) and
+installs the board's limits (half that margin) by config frame, where the board brakes a joint
+that would otherwise coast past them (services/robot/board_sim.py)."""
 
 from __future__ import annotations
 
 import asyncio
+import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from services.robot.driver import BoardDriver
-from services.robot.safety import CommandRejectedError, Limits, check_finite, limit_step, pneumatic_joints
-from services.robot.tracking import TrajectoryFollower
+from services.robot.safety import (
+    CommandRejectedError,
+    board_limits,
+    check_finite,
+    limit_step,
+    pneumatic_joints,
+    soft_limits,
+)
+from services.robot.tracking import CommandClock, TrajectoryFollower
 from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
+from shared.realtime import raise_priority, raise_process_priority
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
+
+VELOCITY_SLACK = 1.1  # trajectory time runs at most this much faster than wall time (CommandClock)
 
 
 def command_modes(joint_names: list[str], finger_mode: str = "position") -> np.ndarray:
@@ -47,27 +65,41 @@ class RobotService:
         # "pneumatic": joints with a muscle pair (the hand-arm's fingers) follow the trajectory in the
         # board's PNEUMATIC mode (two-stage pressure PID, thesis 7.3.2) instead of POSITION.
         finger_mode: str = "position"
+        # SCHED_FIFO priority of the command thread and of the serial reader (0: normal priority);
+        # refused by the OS -> nice -10 or normal priority, logged (shared/realtime.py).
+        rt_priority: int = 10
+        config_period_s: float = 1.0  # the limits config frame is repeated this often (a board may reset)
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params
         model = load_robot(params.robot)
         self.joint_names = model.joint_names
-        self.limits = Limits.from_model(model)
+        self.limits = soft_limits(model)  # the host never commands beyond these
+        self.board_limits = board_limits(model)  # the board's, between these and the URDF's
         self.modes = command_modes(self.joint_names, params.finger_mode)
         self.follower = TrajectoryFollower(self.joint_names)
-        self.driver = BoardDriver(params.port, params.baudrate, describe(params.robot).board_order, node.log)
+        self.command_clock = CommandClock(max_rate=VELOCITY_SLACK)
+        self.driver = BoardDriver(params.port, params.baudrate, describe(params.robot).board_order, node.log,
+                                  params.rt_priority)
         if node.instance != params.robot:  # trajopt and panel look for xm/robot/<robot model>/state
             node.log.warning("robot instance %r runs model %r: its state goes to %s, not %s", node.instance,
                              params.robot, node.key("state"), robot_state_key(params.robot))
         self.state_pub = node.output("state")
         self.rejections: dict[str, int] = {}
         self.target: np.ndarray | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_config = -np.inf
+        self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0, "configs": 0,
+                       "errors": 0}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
-                                     "rejections": self.rejections, "watchdog": self.driver.watchdog_state}
+                                     "rejections": self.rejections, "watchdog": self.driver.watchdog_state,
+                                     "command_stream": dict(self.stream),
+                                     "command_clock_jumps": self.command_clock.jumps}
 
     def _reject(self, reason: str) -> None:
         self.rejections[reason] = self.rejections.get(reason, 0) + 1
@@ -86,26 +118,64 @@ class RobotService:
     async def run(self) -> None:
         self.node.spawn(self.driver.run(), name="serial")
         self.node.spawn(self._publish_state(), name="state")
-        period = 1.0 / self.p.command_rate_hz
-        # Commands go out on wall time: the board's watchdog must be fed even if the sim clock stalls.
-        while True:
-            await asyncio.sleep(period)
-            self._command_tick(period)
+        self._thread = threading.Thread(target=self._command_loop, name="robot-commands", daemon=True)
+        self._thread.start()
+        while self._thread.is_alive():  # the thread ends only at close()
+            await asyncio.sleep(0.5)
+        if not self._stop.is_set():
+            raise RuntimeError("the command thread ended")
 
-    def _command_tick(self, dt: float) -> None:
+    def _command_loop(self) -> None:
+        """Commands on wall time, one per period: the board's watchdog must be fed even if the sim
+        clock stalls or the event loop is busy. A late wake-up sends one command, never a burst."""
+        self.stream["priority"] = raise_priority("robot command stream", self.node.log, self.p.rt_priority)
+        # the GIL ties this thread to every other of the process: they must not wait behind other processes
+        if self.p.rt_priority > 0:
+            raise_process_priority("robot", self.node.log)
+        period = 1.0 / self.p.command_rate_hz
+        next_t = last = time.monotonic()
+        while not self._stop.is_set():
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            elif delay < -period:
+                self.stream["late_ticks"] += 1
+                next_t = time.monotonic()
+            now = time.monotonic()
+            elapsed, last = now - last, now
+            self.stream["ticks"] += 1
+            self.stream["max_gap_ms"] = max(self.stream["max_gap_ms"], elapsed * 1e3)
+            try:
+                self._command_tick(elapsed, now)
+            except Exception as exc:  # a bug in one tick must not stop the stream (the board would brake)
+                self.stream["errors"] += 1
+                self.node.log.exception("command tick failed: %r", exc)
+
+    def _command_tick(self, elapsed: float, now: float | None = None) -> None:
+        """One command, ``elapsed`` wall seconds after the previous one."""
         fb = self.driver.feedback
-        if fb is None:
-            return  # no state, no commands: the board's watchdog keeps the robot braked
-        if self.target is None:
-            self.target = fb.position.copy()  # start by holding where the robot is
-        sample = self.follower.sample(self.node.clock.now())
+        if fb is None or not self.driver.link.connected:
+            self.target = None  # no state, no commands: the board's watchdog keeps the robot braked
+            self._last_config = -np.inf
+            return
+        now = time.monotonic() if now is None else now
+        if now - self._last_config >= self.p.config_period_s and self.driver.configure(self.board_limits):
+            self._last_config = now
+            self.stream["configs"] += 1
+        if self.target is None:  # start by holding where the robot is (inside the soft limits)
+            self.target = np.clip(fb.position, self.limits.lower, self.limits.upper)
+        t, advanced = self.command_clock.advance(self.node.clock.now(), elapsed)
+        sample = self.follower.sample(t)
         goal, velocity = sample if sample is not None else (self.target, np.zeros(len(self.target)))
         try:
             check_finite(goal, "trajectory sample")
         except CommandRejectedError as exc:
             self._reject(str(exc))
             goal, velocity = self.target, np.zeros(len(self.target))
-        self.target, reasons = limit_step(goal, self.target, self.limits, dt)
+        # The rate limit runs on trajectory time (at most VELOCITY_SLACK x the wall time): a trajectory
+        # within the velocity limit is never clamped because the time between two commands jittered.
+        self.target, reasons = limit_step(goal, self.target, self.limits, advanced)
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)
@@ -125,4 +195,7 @@ class RobotService:
                 effort=fb.current.astype(float)))
 
     async def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            await asyncio.to_thread(self._thread.join, 1.0)
         self.driver.close()

@@ -61,6 +61,10 @@ class TrajoptConfig:
     qp_options: dict = field(default_factory=dict)
     violation_tolerance: float = 1e-3  # a result violating a constraint by more is rejected
     reach_padding: float = 0.02  # goals this far outside the sampled workspace box are unreachable
+    # Plans keep this far inside the URDF joint limits: wider than the robot service's soft-limit margin
+    # (services/robot/safety.py), so the robot never clamps a plan and tracking overshoot stays inside.
+    limit_margin_m: float = 0.003  # prismatic joints
+    limit_margin_rad: float = 0.015  # revolute joints
 
 
 @dataclass
@@ -200,8 +204,16 @@ class TrajectoryOptimizer:
 
     # --- problem data -------------------------------------------------------------------------
     def _limits(self) -> None:
-        """Bounds of the independent joints: a master's limits intersected with those of its mimics."""
+        """Bounds of the independent joints: a master's limits intersected with those of its mimics,
+        each narrowed by the configured margin (a range narrower than two margins: its middle)."""
         lo, hi, vel = self.model.lower.copy(), self.model.upper.copy(), self.model.max_velocity.copy()
+        kinds = {j.name: j.kind for j in self.model.joints}
+        margin = np.array([self.cfg.limit_margin_m if kinds.get(n) == "prismatic" else self.cfg.limit_margin_rad
+                           for n in self.model.joint_names])
+        bounded = np.isfinite(lo) & np.isfinite(hi)
+        mid = np.where(bounded, (lo + hi) / 2, 0.0)
+        lo = np.where(bounded, np.minimum(lo + margin, mid), lo)
+        hi = np.where(bounded, np.maximum(hi - margin, mid), hi)
         alo, ahi, avel = lo[self.act_index], hi[self.act_index], vel[self.act_index]
         for i, j in enumerate(self.model.moving):
             if j.mimic is None:

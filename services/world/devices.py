@@ -8,12 +8,24 @@ motor efforts to MuJoCo, watchdog braking on host silence.
 
 from __future__ import annotations
 
+import collections
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
 import numpy as np
 
 from services.glove.sensor_model import GloveSensorModel
 from services.robot.board_sim import BoardSim
+from services.robot.safety import Limits
+from services.world.arrival_stamper import HEADER
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
+
+STAMPER = Path(__file__).with_name("arrival_stamper.py")
 
 GRAVITY = np.array([0.0, 0.0, -9.81])
 
@@ -140,21 +152,67 @@ class GloveDevice:
 
 
 class BoardDevice:
-    def __init__(self, port: str, joint_names: list[str]) -> None:
+    """SIMULATED control board on a pty.
+
+    The world simulates in bursts of a few physics steps, then sleeps (or, when it runs late, steps
+    flat out to catch up), so the host's commands, which come on wall time, would all reach the board
+    at the first step of a burst: the gaps between them in simulated time would differ from the
+    real ones and the 10 ms watchdog would brake although the host never paused. So a helper
+    process (services/world/arrival_stamper.py) stamps each read from the host with its wall
+    arrival time, and ``step`` hands each command to the board at the step whose simulated time
+    matches (``sim_time_of``, the world's wall -> simulated time map)."""
+
+    MAX_HOLD_S = 1.0  # a command never waits longer than this in wall time, whatever the map says
+
+    def __init__(self, port: str, joint_names: list[str], limits: Limits | None = None) -> None:
         self.pty = PtyDevice(port)
         self.decoder = robot_board.StreamDecoder()
-        self.board = BoardSim(joint_names)
+        self.board = BoardSim(joint_names, limits)
         self.feedback_frames = 0
+        self._inbox: collections.deque[tuple[float, object]] = collections.deque()
+        self._stamped = bytearray()
+        self._stamper = subprocess.Popen([sys.executable, str(STAMPER), str(self.pty.master)],
+                                         pass_fds=[self.pty.master], stdout=subprocess.PIPE,
+                                         stdin=subprocess.DEVNULL, start_new_session=True)
+        os.set_blocking(self._stamper.stdout.fileno(), False)
 
     def restart_schedule(self) -> None:
         """The simulated time restarted."""
         self.board.restart_clock()
 
-    def step(self, sim) -> None:
-        data = self.pty.read()
-        if data:
-            for msg in self.decoder.feed(data):
-                self.board.receive(msg, sim.time)
+    def _drain_stamper(self) -> None:
+        """Commands the stamper read, with their arrival times, into the inbox."""
+        try:
+            while chunk := os.read(self._stamper.stdout.fileno(), 1 << 16):
+                self._stamped += chunk
+        except BlockingIOError:
+            pass
+        buf, at = self._stamped, 0
+        while len(buf) - at >= HEADER.size:
+            t, n = HEADER.unpack_from(buf, at)
+            if len(buf) - at - HEADER.size < n:
+                break
+            self.arrived(bytes(buf[at + HEADER.size:at + HEADER.size + n]), t)
+            at += HEADER.size + n
+        del buf[:at]
+
+    def arrived(self, data: bytes, t_wall: float) -> None:
+        """Bytes from the host that arrived at ``t_wall`` (monotonic seconds)."""
+        for msg in self.decoder.feed(data):
+            self._inbox.append((t_wall, msg))
+
+    def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> None:
+        """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
+        feedback to the pty. Without ``sim_time_of`` every command that arrived is due."""
+        self._drain_stamper()
+        inbox, now = self._inbox, time.monotonic() if now is None else now
+        while inbox:
+            t_arrival, msg = inbox[0]
+            if sim_time_of is not None and sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
+                break
+            inbox.popleft()
+            self.board.receive(msg, sim.time)
+        self.pty.flush()
         q, qd = sim.joint_state()
         efforts, feedback = self.board.step(sim.time, q, qd, sim.physics_dt)
         sim.set_efforts(efforts)
@@ -167,8 +225,13 @@ class BoardDevice:
         modes = {} if cmd is None else {m.name.lower(): int((cmd.mode == m).sum()) for m in robot_board.Mode
                                         if (cmd.mode == m).any()}
         return {"feedback_frames": self.feedback_frames, "dropped_bytes": self.pty.dropped_bytes,
-                "command_modes": modes, "muscle_pressure_max_bar": float(self.board.pressure.max()),
+                "command_modes": modes, "watchdog_brakes": self.board.counters["brake_events"],
+                "limit_brakes": self.board.counters["limit_brakes"],
+                "muscle_pressure_max_bar": float(self.board.pressure.max()),
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}
 
     def close(self) -> None:
+        self._stamper.kill()
+        self._stamper.wait(2)
+        self._stamper.stdout.close()
         self.pty.close()

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.robot.safety import board_limits
 from services.world import calibration_sequence as calseq
 from services.world.devices import BoardDevice, GloveDevice
 from services.world.model import CALIB_BOARD
@@ -50,7 +51,9 @@ class WorldService:
         self.substeps = max(1, round(params.tick_s / self.physics_dt))
         self.gloves = [GloveDevice(port, hand, seed=i, rate_hz=params.glove_rate_hz)  # seed i: its calibration
                        for i, (hand, port) in enumerate(zip(HAND_NAMES, params.glove_ports, strict=False))]
-        self.board = BoardDevice(params.robot_port, describe(params.robot).board_order) if params.robot_port else None
+        self.board = (BoardDevice(params.robot_port, describe(params.robot).board_order, board_limits(self.sim.robot))
+                      if params.robot_port else None)
+        self._wall0, self._sim0 = time.monotonic(), 0.0  # the pacing map, wall -> simulated time
         self.clock_pub = node.output("clock")
         self.truth_pub = node.output("truth")
         self.session_pub = node.output("session")
@@ -131,13 +134,19 @@ class WorldService:
             query.drop()
 
     # --- main loop ----------------------------------------------------------------------
+    def _sim_time_of(self, wall: float) -> float:
+        """The simulated time a wall time (monotonic) maps to, one tick ahead: a burst simulates the
+        tick after the wall time it runs at, so what arrived during the last sleep belongs into it."""
+        return self._sim0 + (wall - self._wall0) * self.p.realtime_factor + self.p.tick_s
+
     async def run(self) -> None:
         self._rt_ratio = 0.0
         wall0, sim0 = time.monotonic(), self.sim.time
         while True:
+            self._wall0, self._sim0 = wall0, sim0
             for _ in range(self.substeps):
                 if self.board is not None:
-                    self.board.step(self.sim)
+                    self.board.step(self.sim, self._sim_time_of)
                 self.sim.step(1)
             self._publish_due()
             if self._repace:

@@ -6,12 +6,14 @@ import threading
 import time
 
 import numpy as np
+from mcap.reader import make_reader
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.highlevel import AnyReader
 
 from services.recorder.cli import record_main, replay_main
 from services.recorder.writer import METADATA_NAME, is_complete, read_messages, read_metadata, repair
 from shared import msgs
+from shared.recording_files import recording_segments
 from tests.conftest import (
     Collector,
     ServiceProcess,
@@ -46,9 +48,9 @@ def health(session) -> dict:
     return query_json(session, f"{REC}/@health")[0]
 
 
-def start_recorder(router, tmp_path) -> tuple[ServiceProcess, object]:
+def start_recorder(router, tmp_path, **extra) -> tuple[ServiceProcess, object]:
     endpoint, session = router
-    params = {"directory": str(tmp_path / "recs")}
+    params = {"directory": str(tmp_path / "recs"), **extra}
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"recorder": {"main": params}})
     svc = ServiceProcess("recorder", dep, "main", tmp_path / "recorder.log")
     wait_healthy(session, "recorder", "main", svc)
@@ -152,6 +154,51 @@ def test_a_recorder_killed_mid_recording_leaves_a_file_readable_up_to_its_last_c
         assert repair(out, fixed) == 50
         with AnyReader([fixed], default_typestore=msgs.typestore()) as reader:
             assert sum(1 for _ in reader.messages()) == 50
+    finally:
+        svc.stop()
+
+
+def test_kill_9_keeps_every_closed_segment_readable_and_a_restart_repairs_the_open_one(router, tmp_path):
+    """Segments of 1 s; the recorder is killed in the fourth. Each closed segment opens in the seeking
+    readers (mcap's with its summary and index, rosbags' AnyReader); the restarted recorder repairs
+    the cut one in place, and the segments read as one recording of every durable message."""
+    svc, session = start_recorder(router, tmp_path, segment_s=1.0)
+    try:
+        first = tmp_path / "recs" / "seg.mcap"
+        assert query_json(session, f"{REC}/@cmd/start", {"path": str(first)})[0]["ok"], svc.output()
+        status = lambda: query_json(session, f"{REC}/@cmd/status")[0]["current"]  # noqa: E731
+        i = 0
+        while len(status()["segments"]) < 4:
+            session.put("xm/clock", clock(i))
+            i += 1
+            time.sleep(0.01)
+        assert wait_for(lambda: status()["durable_messages"] == i, 10), svc.output()
+        svc.kill()
+    finally:
+        svc.stop()
+    segments = recording_segments(first)
+    assert len(segments) >= 4 and not is_complete(segments[-1])
+    seen: list[int] = []
+    for seg in segments[:-1]:
+        with seg.open("rb") as f:
+            reader = make_reader(f)
+            assert reader.get_summary() is not None
+            got = [msgs.deserialize(m.data, "rosgraph_msgs/msg/Clock").clock.sec for _, _, m in reader.iter_messages()]
+        with AnyReader([seg], default_typestore=msgs.typestore()) as reader:
+            assert len(list(reader.messages())) == len(got)
+        seen += got
+    assert seen == list(range(len(seen)))
+    svc, session = start_recorder(router, tmp_path, segment_s=1.0)
+    try:
+        assert wait_for(lambda: health(session)["repaired_at_start"], 10), svc.output()
+        assert health(session)["repaired_at_start"] == [{"path": str(segments[-1]), "ok": True,
+                                                        "messages": i - len(seen)}]
+        assert is_complete(segments[-1])
+        with AnyReader(segments, default_typestore=msgs.typestore()) as reader:
+            got = [msgs.deserialize(raw, "rosgraph_msgs/msg/Clock").clock.sec for _, _, raw in reader.messages()]
+        assert got == list(range(i))
+        assert [msgs.deserialize(s.data, "rosgraph_msgs/msg/Clock").clock.sec
+                for s in read_messages(tmp_path / "recs")] == list(range(i))
     finally:
         svc.stop()
 

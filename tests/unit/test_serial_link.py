@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 
+import serial
+
 from services.world.pty_device import PtyDevice
 from shared.serial_link import SerialLink
 from tests.conftest import wait_until_async
@@ -43,3 +45,26 @@ def test_bytes_both_ways_and_reconnect_after_port_vanishes(tmp_path):
         dev.close()
 
     asyncio.run(go())
+
+
+def test_the_simulated_device_queues_what_the_pty_cannot_take_and_counts_only_fifo_overflow(tmp_path):
+    """A pty holds ~18 kB; the device keeps the rest in its FIFO, in order, and drops (and counts)
+    only what overflows that."""
+    dev = PtyDevice(tmp_path / "dev", fifo_bytes=64 * 1024)
+    port = serial.Serial(str(tmp_path / "dev"), timeout=0.2)
+    data = bytes(i % 251 for i in range(60 * 1024))
+    try:
+        assert dev.write(data) == len(data) and dev.backlog > 0 and dev.dropped_bytes == 0
+        got = bytearray()
+        while len(got) < len(data):
+            chunk = port.read(65536)
+            assert chunk, f"stalled after {len(got)} bytes"
+            got += chunk
+            dev.flush()
+        assert bytes(got) == data and dev.backlog == 0
+        dev.write(bytes(200 * 1024))  # nobody reads: the pty fills, then the FIFO, then bytes drop
+        assert dev.backlog == 64 * 1024 and dev.dropped_bytes > 0
+        assert 180 * 1024 <= dev.dropped_bytes + dev.backlog <= 200 * 1024  # the rest went into the pty
+    finally:
+        port.close()
+        dev.close()

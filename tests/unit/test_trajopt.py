@@ -23,6 +23,7 @@ def workcell():
 def home(left_y: float = 0.15, right_y: float = -0.15, z: float = 0.15) -> np.ndarray:
     """Joint vector with the carriages at world y = left_y, right_y (joints count from +-0.15)."""
     q = np.zeros(10)
+    q[[4, 5]] = 0.01  # fingers a little open: plans keep 3 mm inside the joint limits
     q[[1, 7]] = left_y - 0.15, right_y + 0.15
     q[[2, 8]] = z
     return q

@@ -1,0 +1,147 @@
+"""Spurious brakes and clamps of the robot path: the world (simulated control board on its pty,
+sim clock) and the robot service as processes, a trajopt-like source publishing 1 s trajectories
+at 10 Hz that sweep every joint at up to ``--speed`` of its velocity limit, inside the joint
+limits. Counts per minute, from the services' @health: the board's watchdog brakes (the host's
+command stream left a gap over 10 ms of simulated time), its limit brakes, the host's velocity and
+position clamps, and the longest gap between two commands the robot service sent.
+
+Runs twice: on the host as it is ("idle": other jobs on the machine are not stopped, so say what
+else ran), then with ``--load N`` CPU-bound processes beside it (default: one per core); writes
+both to .bench/robot.json. Target: 0 watchdog brakes and 0 clamps per minute in both.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+from bench.glove import start_load, stop_load  # noqa: E402
+from services.robot.safety import soft_limits  # noqa: E402
+from shared import msgs  # noqa: E402
+from shared.kinematics import load_robot  # noqa: E402
+from shared.runtime import open_router  # noqa: E402
+from tests.conftest import ServiceProcess, free_endpoint, query_json, wait_for, write_deployment  # noqa: E402
+
+KNOTS, KNOT_S, RATE_HZ = 20, 0.05, 10.0
+
+
+def trajectory(names: list[str], t0: float, center: np.ndarray, amplitude: np.ndarray, period: float):
+    """Knots of a sine sweep around ``center`` from sim time ``t0`` (as trajopt publishes them)."""
+    points = []
+    for k in range(KNOTS):
+        t = t0 + k * KNOT_S
+        q = center + amplitude * np.sin(2 * np.pi * t / period)
+        v = amplitude * 2 * np.pi / period * np.cos(2 * np.pi * t / period)
+        points.append(msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=q, velocities=v,
+                                accelerations=np.zeros(0), effort=np.zeros(0),
+                                time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=int(k * KNOT_S),
+                                                          nanosec=int(round((k * KNOT_S % 1) * 1e9)))))
+    return msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(t0, "world"), joint_names=names,
+                     points=points)
+
+
+def run_once(seconds: float, load: int, speed: float) -> dict:
+    endpoint = free_endpoint()
+    router = open_router(endpoint)
+    tmp = Path(tempfile.mkdtemp(prefix="bench-robot-"))
+    port = str(tmp / "run" / "board")
+    dep = write_deployment(tmp / "d.toml", endpoint, {"world": {"sim": {"robot_port": port}},
+                                                      "robot": {"workcell": {"port": port}}}, clock="sim")
+    world = ServiceProcess("world", dep, "sim", tmp / "world.log")
+    robot = None
+    hogs: list = []
+    try:
+        if not wait_for(lambda: Path(port).exists(), 60):
+            raise RuntimeError(f"world did not start:\n{world.output()[-2000:]}")
+        robot = ServiceProcess("robot", dep, "workcell", tmp / "robot.log")
+        health = lambda s, i: (query_json(router, f"xm/{s}/{i}/@health") or [{}])[0]  # noqa: E731
+        if not wait_for(lambda: health("robot", "workcell").get("watchdog") == "ok", 60):
+            raise RuntimeError(f"robot did not start:\n{robot.output()[-2000:]}")
+        model = load_robot("workcell")
+        soft = soft_limits(model)
+        center = (soft.lower + soft.upper) / 2
+        # a period whose peak speed is ``speed`` of the velocity limit, within 90 % of the range
+        amplitude = 0.45 * (soft.upper - soft.lower)
+        period = 2 * np.pi * np.max(amplitude / (speed * soft.velocity))
+        clock = [0.0]
+        router.declare_subscriber("xm/clock", lambda s: clock.__setitem__(0, msgs.stamp_seconds(
+            msgs.deserialize(s.payload.to_bytes(), "rosgraph_msgs/msg/Clock").clock)))
+        pub = router.declare_publisher("xm/trajopt/main/trajectory")
+        stop = threading.Event()
+
+        def source() -> None:
+            while not stop.is_set():
+                pub.put(msgs.serialize(trajectory(model.joint_names, clock[0], center, amplitude, period)))
+                time.sleep(1.0 / RATE_HZ)
+
+        thread = threading.Thread(target=source, daemon=True)
+        thread.start()
+        time.sleep(5.0)  # onto the sweep (the way there from the home pose is clamped, rightly)
+        hogs = start_load(load)
+        before_r, before_w = health("robot", "workcell"), health("world", "sim")
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        after_r, after_w = health("robot", "workcell"), health("world", "sim")
+        minutes = (time.monotonic() - t0) / 60
+        stop.set()
+        thread.join(2)
+        board = lambda h: h["devices"]["robot"]  # noqa: E731
+        err = lambda h, k: h["errors"].get(k, 0)  # noqa: E731
+        return {
+            "load_processes": load, "seconds": seconds, "peak_speed_of_limit": speed,
+            "watchdog_brakes_per_min": (board(after_w)["watchdog_brakes"]
+                                        - board(before_w)["watchdog_brakes"]) / minutes,
+            "limit_brakes_per_min": (board(after_w)["limit_brakes"] - board(before_w)["limit_brakes"]) / minutes,
+            "clamped_velocity_limit_per_min": (err(after_r, "clamped_velocity_limit")
+                                               - err(before_r, "clamped_velocity_limit")) / minutes,
+            "clamped_position_limit_per_min": (err(after_r, "clamped_position_limit")
+                                               - err(before_r, "clamped_position_limit")) / minutes,
+            "command_stream": after_r["command_stream"], "world_realtime_ratio": after_w.get("realtime_ratio"),
+            "loadavg_1min_end": os.getloadavg()[0],
+        }
+    finally:
+        stop_load(hogs)
+        if robot is not None:
+            robot.stop()
+        world.stop()
+        router.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=60.0, help="measured seconds per run (default %(default)s)")
+    parser.add_argument("--load", type=int, default=os.cpu_count() or 1, metavar="N",
+                        help="CPU-bound processes beside the loaded run (default: one per core, %(default)s)")
+    parser.add_argument("--speed", type=float, default=0.8,
+                        help="peak joint speed as a fraction of its velocity limit (default %(default)s)")
+    args = parser.parse_args()
+    res = {"cpu_count": os.cpu_count(), "idle": run_once(args.seconds, 0, args.speed)}
+    print("idle:   " + line(res["idle"]))
+    res["loaded"] = run_once(args.seconds, args.load, args.speed)
+    print("loaded: " + line(res["loaded"]))
+    res["targets"] = {"watchdog_brakes_per_min": 0, "clamped_velocity_limit_per_min": 0}
+    Path(".bench").mkdir(exist_ok=True)
+    Path(".bench/robot.json").write_text(json.dumps(res, indent=2))
+
+
+def line(r: dict) -> str:
+    s = r["command_stream"]
+    return (f"{r['load_processes']} CPU hogs, {r['seconds']:.0f} s: watchdog brakes "
+            f"{r['watchdog_brakes_per_min']:.1f}/min, limit brakes {r['limit_brakes_per_min']:.1f}/min, clamps "
+            f"velocity {r['clamped_velocity_limit_per_min']:.1f}/min position {r['clamped_position_limit_per_min']:.1f}"
+            f"/min; command stream {s['priority']}, longest gap {s['max_gap_ms']:.1f} ms, {s['late_ticks']} late "
+            f"ticks; world real-time ratio {r['world_realtime_ratio']}; load avg {r['loadavg_1min_end']:.1f}")
+
+
+if __name__ == "__main__":
+    main()
