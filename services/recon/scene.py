@@ -1,4 +1,4 @@
-"""Assemble a Scene observation from triangulated points and glove data (pure)."""
+"""Assemble a Scene observation from reconstructed points and glove data (pure)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS
 
 def split_points(points: np.ndarray, mask: np.ndarray, n_hands: int) -> tuple[np.ndarray, np.ndarray,
                                                                              np.ndarray, np.ndarray]:
-    """The stacked point list is hands first (n_hands*21), then object points."""
+    """The stacked point list is hands first (n_hands*21), then object points. Masked points are
+    zero, never NaN."""
     nh = n_hands * KEYPOINTS_PER_HAND
-    hands = np.nan_to_num(points[:nh]).reshape(n_hands, KEYPOINTS_PER_HAND, 3)
-    objects = np.nan_to_num(points[nh:])
-    return hands, mask[:nh].reshape(n_hands, KEYPOINTS_PER_HAND), objects, mask[nh:]
+    points = np.where(np.asarray(mask, bool)[:, None], np.nan_to_num(points), 0.0)
+    hands = points[:nh].reshape(n_hands, KEYPOINTS_PER_HAND, 3)
+    return hands, mask[:nh].reshape(n_hands, KEYPOINTS_PER_HAND), points[nh:], mask[nh:]
 
 
 def tactile_matrix(hand_names: list[str], latest: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,70 @@
+"""Rigid objects posed from their keypoints (pure).
+
+An object's model is its keypoints in its own frame, as the task defines them (the task's object
+table, services/world/teacher.py, is the task definition; recon reads only the names and the
+local points, never a pose). With three or more of its keypoints triangulated, a weighted Kabsch
+fit poses the object and every model keypoint is reported, unseen ones included; a keypoint that
+disagrees with the others by more than ``gate_m`` is dropped and the fit repeated. With fewer,
+the triangulated points are reported as they are, masked where missing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.recon.hand_model import kabsch
+from services.world.teacher import OBJECT_POINTS, TASKS
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    name: str
+    points: np.ndarray  # (k,3) in the object's frame
+    slice: slice  # its rows in the task's stacked object keypoints
+
+
+def task_keypoint_names(task: str) -> list[str]:
+    """The task's object keypoint names, ``object/point``, in the order the scene carries them."""
+    if task not in OBJECT_POINTS:
+        raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
+    return [f"{obj}/{pt}" for obj, pts in OBJECT_POINTS[task].items() for pt in pts]
+
+
+def object_models(task: str) -> list[ObjectModel]:
+    if task not in OBJECT_POINTS:
+        raise ValueError(f"unknown task {task!r} (known: {', '.join(TASKS)})")
+    models, start = [], 0
+    for obj, pts in OBJECT_POINTS[task].items():
+        local = np.array(list(pts.values()), float)
+        models.append(ObjectModel(obj, local, slice(start, start + len(local))))
+        start += len(local)
+    return models
+
+
+def pose_objects(models: list[ObjectModel], points: np.ndarray, mask: np.ndarray,
+                 weight: np.ndarray | None = None, gate_m: float = 0.006,
+                 min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """points (K,3) triangulated, mask (K,), weight (K,) optional. Returns keypoints (K,3), mask
+    (K,) uint8 and, per object, whether a rigid fit produced them (bool array)."""
+    out = np.where(np.asarray(mask, bool)[:, None], np.nan_to_num(points), 0.0)
+    out_mask = np.asarray(mask, np.uint8).copy()
+    w_all = np.ones(len(points)) if weight is None else np.asarray(weight, float)
+    posed = np.zeros(len(models), bool)
+    for i, m in enumerate(models):
+        use = out_mask[m.slice].astype(bool)
+        obs, w = out[m.slice], w_all[m.slice]
+        for _ in range(2):
+            if use.sum() < min_points:
+                break
+            R, t = kabsch(m.points[use], obs[use], w[use])
+            err = np.linalg.norm(m.points @ R.T + t - obs, axis=1)
+            bad = use & (err > gate_m)
+            if not bad.any():
+                out[m.slice] = m.points @ R.T + t
+                out_mask[m.slice] = 1
+                posed[i] = True
+                break
+            use &= ~(err == err[use].max())  # drop the worst point, refit
+    return out, out_mask, posed
