@@ -19,6 +19,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from services.recon.hand_model import (
+    FRAME_POINTS,
+    N_JOINTS,
     N_PARAMS,
     PALM,
     HandShape,
@@ -33,12 +35,15 @@ from services.recon.hand_model import (
 )
 
 LIMIT_STIFFNESS = 1.0  # metres of residual per radian beyond a joint limit: a hard wall for LM
-REST_JOINTS = np.tile([0.0, 0.3, 0.3, 0.2], 5)  # a relaxed hand: the Kabsch start's joint angles
+REST_JOINTS = np.concatenate([np.tile([0.0, 0.3, 0.3, 0.2], 5), np.zeros(3)])  # relaxed: the Kabsch start
+STRETCH_PRIOR = 0.02  # metres of residual per unit of thumb stretch (10 % costs as much as 2 mm)
 
 
 @dataclass
 class FitConfig:
     init_frames: int = 8  # confident frames that estimate the person's shape
+    init_missing: int = 2  # keypoints a confident frame may lack
+    override: float = 2.5  # an observed keypoint this many fit RMS from the model stays as observed
     window: int = 4  # poses kept for the warm start
     lost_after: int = 3  # frames unseen before the window is dropped
     min_points: int = 6  # observed keypoints a fit needs
@@ -58,6 +63,7 @@ class HandTracker:
     resets: int = 0
     last_rms: float = float("nan")
     nfev: int = 0
+    overridden: int = 0
 
     def __post_init__(self) -> None:
         self._lo, self._hi = joint_bounds()
@@ -78,8 +84,8 @@ class HandTracker:
             return points, mask.astype(np.uint8), False
         self._missed = 0
         if self.shape is None:
-            if mask.all():
-                self._init.append(points.copy())
+            if mask[FRAME_POINTS].all() and mask.sum() >= 21 - self.config.init_missing:
+                self._init.append(np.where(mask[:, None], points, np.nan))
                 if len(self._init) >= self.config.init_frames:
                     self.shape = estimate_shape(self._init, self.side)
                     self._init = []
@@ -91,7 +97,13 @@ class HandTracker:
         self._window.append(params)
         while len(self._window) > self.config.window:
             self._window.popleft()
-        return forward(self.shape, params, self.side), np.ones(21, np.uint8), True
+        model = forward(self.shape, params, self.side)
+        # The model is a prior, not a cage: an observed keypoint much further from it than the fit's
+        # typical residual is kept as observed (a hand the model does not quite describe).
+        resid = np.linalg.norm(model - points, axis=1)
+        keep = mask & (w >= 3) & (resid > self.config.override * self.last_rms)
+        self.overridden = int(keep.sum())
+        return np.where(keep[:, None], points, model), np.ones(21, np.uint8), True
 
     def _lose(self) -> None:
         self._missed += 1
@@ -122,7 +134,9 @@ class HandTracker:
         sw = np.sqrt(np.clip(w[idx], 0.0, None))[:, None]
         target = points[idx]
         prior_ref = start[6:].copy()
-        lam = self.config.prior
+        prior_ref[N_JOINTS:] = 0.0  # the thumb's stretch is held toward the person's lengths
+        lam = np.full(N_PARAMS - 6, self.config.prior)
+        lam[N_JOINTS:] = STRETCH_PRIOR
         # The rotation is solved as a correction on the start's rotation: no wrap-around.
         R0 = rodrigues(start[:3])
         cache: dict = {}
@@ -149,7 +163,7 @@ class HandTracker:
             return np.concatenate([J.reshape(-1, N_PARAMS), prior_rows, limit_rows])
 
         prior_rows = np.zeros((N_PARAMS - 6, N_PARAMS))
-        prior_rows[:, 6:] = lam * np.eye(N_PARAMS - 6)
+        prior_rows[:, 6:] = np.diag(lam)
 
         def pack(x: np.ndarray) -> np.ndarray:
             p = x.copy()

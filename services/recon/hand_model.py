@@ -10,13 +10,19 @@ three bones; its joints are an abduction about the chain frame's z and three fle
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 CHAINS = np.array([[1, 2, 3, 4], [5, 6, 7, 8], [9, 10, 11, 12], [13, 14, 15, 16], [17, 18, 19, 20]])
 PALM = np.array([0, 1, 5, 9, 13, 17])  # rigid with the wrist: Kabsch initialises the wrist from these
-N_PARAMS = 6 + 4 * len(CHAINS)  # rotation vector, translation, (abduction, 3 flexions) per chain
+# Rotation vector, translation, (abduction, 3 flexions) per chain, then the thumb's stretch: the
+# thumb's base keypoint is no fixed hinge (its metacarpal slides in the saddle joint), so its three
+# "bones" between keypoints may lengthen or shorten by a bounded fraction, held by a prior.
+N_JOINTS = 4 * len(CHAINS)
+N_PARAMS = 6 + N_JOINTS + 3
+STRETCH_LIMIT = 0.25
 # Joint limits (rad): (abduction, flexion 1, flexion 2, flexion 3); the thumb's are wider because its
 # base frame is only estimated.
 FINGER_LIMITS = np.array([[-0.5, 0.5], [-0.5, 1.8], [-0.3, 2.0], [-0.3, 1.8]])
@@ -34,7 +40,7 @@ class HandShape:
 
 
 def joint_bounds() -> tuple[np.ndarray, np.ndarray]:
-    lim = np.concatenate([THUMB_LIMITS] + [FINGER_LIMITS] * 4)
+    lim = np.concatenate([THUMB_LIMITS] + [FINGER_LIMITS] * 4 + [[[-STRETCH_LIMIT, STRETCH_LIMIT]] * 3])
     lo = np.concatenate([np.full(6, -np.inf), lim[:, 0]])
     hi = np.concatenate([np.full(6, np.inf), lim[:, 1]])
     return lo, hi
@@ -82,31 +88,37 @@ def _rot(a: np.ndarray, axis: int) -> np.ndarray:
     return R
 
 
-def _chains(shape: HandShape, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Chain points (5,4,3) (base, then the three bone ends) in the right-hand frame, and each
-    chain's abduction axis (5,3) and flexion axis (5,3) (every flexion of a chain turns about the
-    same axis: rotations about y keep y)."""
+def _chains(shape: HandShape, joints: np.ndarray, stretch: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Chain points (5,4,3) (base, then the three bone ends) in the right-hand frame, each chain's
+    abduction axis (5,3) and flexion axis (5,3) (every flexion of a chain turns about the same
+    axis: rotations about y keep y), and the bones' directions (5,3,3)."""
     Ra = np.einsum("cij,cjk->cik", shape.frames, _rot(joints[:, 0], 2))
+    bones = shape.bones.copy()
+    bones[0] *= 1.0 + stretch
     P = np.empty((5, 4, 3))
+    dirs = np.empty((5, 3, 3))
     P[:, 0] = shape.palm[1:]
     R = Ra
     for j in range(3):
         R = np.einsum("cij,cjk->cik", R, _rot(joints[:, j + 1], 1))
-        P[:, j + 1] = P[:, j] + shape.bones[:, j:j + 1] * R[:, :, 0]
-    return P, shape.frames[:, :, 2], Ra[:, :, 1]
+        dirs[:, j] = R[:, :, 0]
+        P[:, j + 1] = P[:, j] + bones[:, j:j + 1] * R[:, :, 0]
+    return P, shape.frames[:, :, 2], Ra[:, :, 1], dirs
 
 
-def local_points(shape: HandShape, joints: np.ndarray) -> np.ndarray:
-    """Right-hand keypoints (21,3) in the hand frame for joint angles (5,4)."""
+def local_points(shape: HandShape, joints: np.ndarray, stretch: np.ndarray | None = None) -> np.ndarray:
+    """Right-hand keypoints (21,3) in the hand frame for joint angles (5,4) and thumb stretch (3,)."""
     pts = np.empty((21, 3))
     pts[0] = shape.palm[0]
-    pts[CHAINS] = _chains(shape, joints)[0]
+    pts[CHAINS] = _chains(shape, joints, np.zeros(3) if stretch is None else stretch)[0]
     return pts
 
 
 def forward(shape: HandShape, params: np.ndarray, side: str) -> np.ndarray:
-    """World keypoints (21,3): params = [rotation vector (3), wrist position (3), joints (20)]."""
-    local = local_points(shape, params[6:].reshape(5, 4)) @ mirror(side)
+    """World keypoints (21,3): params = [rotation vector (3), wrist position (3), joints (20),
+    thumb stretch (3)]."""
+    local = local_points(shape, params[6:6 + N_JOINTS].reshape(5, 4), params[6 + N_JOINTS:]) @ mirror(side)
     return local @ rodrigues(params[:3]).T + params[3:6]
 
 
@@ -124,17 +136,19 @@ def forward_jacobian(shape: HandShape, params: np.ndarray, side: str,
     """World keypoints (21,3) and their Jacobian (21,3,N_PARAMS) with respect to params. With a
     ``base`` rotation, params[:3] is a rotation vector applied on top of it (a solver's local
     parametrisation, away from the rotation vector's wrap-around)."""
-    P, z_axis, y_axis = _chains(shape, params[6:].reshape(5, 4))
+    P, z_axis, y_axis, dirs = _chains(shape, params[6:6 + N_JOINTS].reshape(5, 4), params[6 + N_JOINTS:])
     local = np.empty((21, 3))
     local[0] = shape.palm[0]
     local[CHAINS] = P
-    Jl = np.zeros((21, 3, 20))  # local derivatives, right-hand frame
+    Jl = np.zeros((21, 3, N_PARAMS - 6))  # local derivatives, right-hand frame
     rel0 = P[:, 1:] - P[:, :1]  # downstream points about the base
     cols = 4 * np.arange(5)
     Jl[CHAINS[:, 1:], :, cols[:, None]] = np.cross(z_axis[:, None], rel0)
     Jl[CHAINS[:, 1:], :, cols[:, None] + 1] = np.cross(y_axis[:, None], rel0)
     Jl[CHAINS[:, 2:], :, cols[:, None] + 2] = np.cross(y_axis[:, None], P[:, 2:] - P[:, 1:2])
     Jl[CHAINS[:, 3], :, cols + 3] = np.cross(y_axis, P[:, 3] - P[:, 2])
+    for j in range(3):  # a thumb bone's stretch moves every point beyond it along the bone
+        Jl[CHAINS[0, j + 1:], :, N_JOINTS + j] = shape.bones[0, j] * dirs[0, j]
     RM = rodrigues(params[:3]) @ (np.eye(3) if base is None else base) @ mirror(side)
     pts = local @ RM.T + params[3:6]
     J = np.empty((21, 3, N_PARAMS))
@@ -161,19 +175,32 @@ def palm_frame(points: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x, np.cross(z, x), z], axis=1), o
 
 
+FRAME_POINTS = np.array([0, 5, 9, 17])  # what palm_frame needs
+# An average adult hand (m), for what the initialisation phase never saw (rows follow PALM, CHAINS).
+DEFAULT_PALM = np.array([[0.0, 0.0, 0.0], [0.025, 0.020, -0.010], [0.088, 0.025, 0.0], [0.092, 0.005, 0.0],
+                         [0.086, -0.013, 0.0], [0.078, -0.030, 0.0]])
+DEFAULT_BONES = np.array([[0.045, 0.032, 0.028], [0.040, 0.024, 0.020], [0.045, 0.028, 0.021],
+                          [0.042, 0.026, 0.020], [0.033, 0.019, 0.018]])
+
+
 def estimate_shape(frames: list[np.ndarray], side: str) -> HandShape:
-    """A person's shape from frames (each (21,3), all keypoints triangulated): medians of the palm
-    base points in the hand frame and of the bone lengths; the thumb's base frame points along its
-    first bone's median direction."""
+    """A person's shape from frames (each (21,3), NaN where a keypoint was not triangulated; the
+    FRAME_POINTS present in each; what no frame saw comes from DEFAULT_PALM/DEFAULT_BONES): medians of the palm base points in the
+    hand frame and of the bone lengths; the thumb's base frame points along its first bone's
+    median direction."""
     local = []
     for pts in frames:
         R, o = palm_frame(pts, side)
         local.append(((pts - o) @ R) @ mirror(side))
     local = np.stack(local)  # (F,21,3)
-    med = np.median(local, axis=0)
-    bones = np.median(np.linalg.norm(np.diff(np.stack(frames)[:, CHAINS], axis=2), axis=-1), axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: filled from the defaults
+        med = np.nanmedian(local, axis=0)
+        bones = np.nanmedian(np.linalg.norm(np.diff(np.stack(frames)[:, CHAINS], axis=2), axis=-1), axis=0)
+    med[PALM] = np.where(np.isfinite(med[PALM]), med[PALM], DEFAULT_PALM)
+    bones = np.where(np.isfinite(bones), bones, DEFAULT_BONES)
     frames_out = np.repeat(np.eye(3)[None], 5, axis=0)
-    x = med[2] - med[1]
+    x = med[2] - med[1] if np.isfinite(med[2]).all() else np.array([0.6, 0.7, -0.4])
     x /= max(np.linalg.norm(x), 1e-12)
     z = np.array([0.0, 0.0, 1.0]) - x[2] * x
     z /= max(np.linalg.norm(z), 1e-12)
