@@ -125,7 +125,8 @@ class HandTracker:
         last = self._window[-1]
         if len(self._window) < 2:
             return last.copy()
-        guess = last + 0.5 * (last - self._window[-2])  # damped constant velocity
+        guess = last.copy()
+        guess[3:6] += 0.5 * (last[3:6] - self._window[-2][3:6])  # the wrist: damped constant velocity
         return guess
 
     def _solve(self, start: np.ndarray, points: np.ndarray, mask: np.ndarray, w: np.ndarray

@@ -45,13 +45,15 @@ def object_models(task: str) -> list[ObjectModel]:
 
 def pose_objects(models: list[ObjectModel], points: np.ndarray, mask: np.ndarray,
                  weight: np.ndarray | None = None, gate_m: float = 0.006,
-                 min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """points (K,3) triangulated, mask (K,), weight (K,) optional. Returns keypoints (K,3), mask
-    (K,) uint8 and, per object, whether a rigid fit produced them (bool array)."""
+    (K,) uint8, per object whether a rigid fit produced them (bool) and the fit's RMS residual (m,
+    NaN where none)."""
     out = np.where(np.asarray(mask, bool)[:, None], np.nan_to_num(points), 0.0)
     out_mask = np.asarray(mask, np.uint8).copy()
     w_all = np.ones(len(points)) if weight is None else np.asarray(weight, float)
     posed = np.zeros(len(models), bool)
+    rms = np.full(len(models), np.nan)
     for i, m in enumerate(models):
         use = out_mask[m.slice].astype(bool)
         obs, w = out[m.slice], w_all[m.slice]
@@ -65,6 +67,39 @@ def pose_objects(models: list[ObjectModel], points: np.ndarray, mask: np.ndarray
                 out[m.slice] = m.points @ R.T + t
                 out_mask[m.slice] = 1
                 posed[i] = True
+                rms[i] = float(np.sqrt(np.mean(err[use] ** 2)))
                 break
             use &= ~(err == err[use].max())  # drop the worst point, refit
-    return out, out_mask, posed
+    return out, out_mask, posed, rms
+
+
+@dataclass
+class ObjectSmoother:
+    """A short sliding window over each rigid fit: while an object stays put (every keypoint within
+    ``still_m``, or three times the fit's RMS residual when the cameras are noisier, of the
+    window's mean) the window's mean is reported, which averages the
+    triangulation noise of a resting object; a move larger than that restarts the window at once,
+    so a carried object is never dragged behind."""
+
+    window: int = 8
+    still_m: float = 0.008
+
+    def __post_init__(self) -> None:
+        self._hist: dict[str, list[np.ndarray]] = {}
+
+    def update(self, models: list[ObjectModel], points: np.ndarray, posed: np.ndarray,
+               rms: np.ndarray) -> np.ndarray:
+        out = points.copy()
+        for m, ok, r in zip(models, posed, rms, strict=True):
+            if not ok:
+                self._hist.pop(m.name, None)
+                continue
+            new = points[m.slice]
+            hist = self._hist.setdefault(m.name, [])
+            gate = max(self.still_m, 3.0 * float(r))
+            if hist and np.linalg.norm(new - np.mean(hist, axis=0), axis=1).max() > gate:
+                hist.clear()
+            hist.append(new)
+            del hist[:-self.window]
+            out[m.slice] = np.mean(hist, axis=0)
+        return out

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.recon.hand_fit import FitConfig, HandTracker
-from services.recon.objects import object_models, pose_objects, task_keypoint_names
+from services.recon.objects import ObjectSmoother, object_models, pose_objects, task_keypoint_names
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
@@ -41,6 +41,7 @@ class Reconstructor:
         self.gate_px = gate_px
         self.fit_hands = fit_hands
         self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
+        self.smoother = ObjectSmoother()
 
     @property
     def n_points(self) -> int:
@@ -62,7 +63,8 @@ class Reconstructor:
             sl = slice(i * KEYPOINTS_PER_HAND, (i + 1) * KEYPOINTS_PER_HAND)
             hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl])
         t2 = time.perf_counter()
-        objects, object_mask, posed = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
+        objects, object_mask, posed, rms = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
+        objects = self.smoother.update(self.models, objects, posed, rms)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers,
                               {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})
