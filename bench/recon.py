@@ -29,6 +29,7 @@ from services.recon.detector import CameraModel, SimulatedDetector  # noqa: E402
 from services.recon.pipeline import Reconstructor  # noqa: E402
 from services.recon.service import decode_window  # noqa: E402
 from services.recon.triangulation import project, triangulate  # noqa: E402
+from services.world.model import camera_specs  # noqa: E402
 from services.world.sim import WorldSim  # noqa: E402
 from shared.geometry import projection  # noqa: E402
 
@@ -36,8 +37,8 @@ SESSIONS = ((7301, "assembly"), (7302, "pick_place"), (7303, "assembly"), (7304,
 SIZES = ((256, 192), (640, 480))
 
 
-def session_frames(seed: int, task: str, frames: int, rate_hz: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(truth points (N,3) hands first, visible (N,), hand-present flag) per frame set."""
+def session_frames(seed: int, task: str, frames: int, rate_hz: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(truth points (N,3) hands first, visible (N,)) per frame set."""
     sim = WorldSim(task, seed=seed)
     steps = int(round(1.0 / rate_hz / sim.physics_dt))
     out = []
@@ -60,16 +61,8 @@ def run(width: int, height: int, args: argparse.Namespace) -> dict:
     cover = {k: [] for k in ("hand", "hand_dlt", "obj", "obj_dlt")}
     times = {k: [] for k in ("detect", "triangulate", "fit_hands", "fit_objects")}
     fitted = []
-    for s, (seed, task) in enumerate(SESSIONS[:args.sessions]):
-        sim = WorldSim(task, seed=seed)
-        cams = [CameraModel(projection(c.K, c.world_T_cam), width, height)
-                for c in sim.camera_specs()]
-        # the world's cameras are specified at its own size: rescale K to this size
-        for c, spec in zip(cams, sim.camera_specs(), strict=True):
-            K = spec.K.copy()
-            K[0] *= width / spec.width
-            K[1] *= height / spec.height
-            c.P = projection(K, spec.world_T_cam)
+    for seed, task in SESSIONS[:args.sessions]:
+        cams = [CameraModel(projection(c.K, c.world_T_cam), width, height) for c in camera_specs(width, height)]
         P = np.stack([c.P for c in cams])
         det = SimulatedDetector(args.noise, args.dropout, seed=seed, outliers=args.outliers)
         rec = Reconstructor(task)

@@ -185,9 +185,9 @@ DEFAULT_BONES = np.array([[0.045, 0.032, 0.028], [0.040, 0.024, 0.020], [0.045, 
 
 def estimate_shape(frames: list[np.ndarray], side: str) -> HandShape:
     """A person's shape from frames (each (21,3), NaN where a keypoint was not triangulated; the
-    FRAME_POINTS present in each; what no frame saw comes from DEFAULT_PALM/DEFAULT_BONES): medians of the palm base points in the
-    hand frame and of the bone lengths; the thumb's base frame points along its first bone's
-    median direction."""
+    FRAME_POINTS present in each): medians of the palm base points in the hand frame and of the
+    bone lengths (what no frame saw comes from DEFAULT_PALM, DEFAULT_BONES); the thumb's base frame
+    points along its first bone's median direction."""
     local = []
     for pts in frames:
         R, o = palm_frame(pts, side)
