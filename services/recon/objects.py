@@ -4,7 +4,8 @@ An object's model is its keypoints in its own frame, as the task defines them (t
 table, services/world/teacher.py, is the task definition; recon reads only the names and the
 local points, never a pose). With three or more of its keypoints triangulated, a weighted Kabsch
 fit poses the object and every model keypoint is reported, unseen ones included; a keypoint that
-disagrees with the others by more than ``gate_m`` is dropped and the fit repeated. With fewer,
+disagrees with the others by more than ``gate_m`` (or three times the fit's median residual, when
+that is larger) is dropped and the fit repeated. With fewer,
 the triangulated points are reported as they are, masked where missing.
 """
 
@@ -45,39 +46,41 @@ def object_models(task: str) -> list[ObjectModel]:
 
 def pose_objects(models: list[ObjectModel], points: np.ndarray, mask: np.ndarray,
                  weight: np.ndarray | None = None, gate_m: float = 0.006,
-                 min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 min_points: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """points (K,3) triangulated, mask (K,), weight (K,) optional. Returns keypoints (K,3), mask
     (K,) uint8, per object whether a rigid fit produced them (bool) and the fit's RMS residual (m,
-    NaN where none)."""
+    NaN where none), and which keypoints the fits used (K,) bool."""
     out = np.where(np.asarray(mask, bool)[:, None], np.nan_to_num(points), 0.0)
     out_mask = np.asarray(mask, np.uint8).copy()
     w_all = np.ones(len(points)) if weight is None else np.asarray(weight, float)
     posed = np.zeros(len(models), bool)
     rms = np.full(len(models), np.nan)
+    used = np.zeros(len(points), bool)
     for i, m in enumerate(models):
         use = out_mask[m.slice].astype(bool)
         obs, w = out[m.slice], w_all[m.slice]
-        for _ in range(2):
-            if use.sum() < min_points:
-                break
+        while use.sum() >= min_points:
             R, t = kabsch(m.points[use], obs[use], w[use])
             err = np.linalg.norm(m.points @ R.T + t - obs, axis=1)
-            bad = use & (err > gate_m)
+            # the gate scales with the fit's own typical residual: noisier cameras, wider gate
+            bad = use & (err > max(gate_m, 3.0 * float(np.median(err[use]))))
             if not bad.any():
                 out[m.slice] = m.points @ R.T + t
                 out_mask[m.slice] = 1
                 posed[i] = True
                 rms[i] = float(np.sqrt(np.mean(err[use] ** 2)))
+                used[m.slice] = use
                 break
             use &= ~(err == err[use].max())  # drop the worst point, refit
-    return out, out_mask, posed, rms
+    return out, out_mask, posed, rms, used
 
 
 @dataclass
 class ObjectSmoother:
-    """A short sliding window over each rigid fit: while an object stays put (every keypoint within
-    ``still_m``, or three times the fit's RMS residual when the cameras are noisier, of the
-    window's mean) the window's mean is reported, which averages the
+    """A short sliding window over each rigid fit: while an object stays put (every keypoint the fit
+    used within ``still_m``, or three times the fit's RMS residual when the cameras are noisier, of
+    the window's mean; keypoints the fit only extrapolated are too uncertain to judge by) the
+    window's mean is reported, which averages the
     triangulation noise of a resting object; a move larger than that restarts the window at once,
     so a carried object is never dragged behind."""
 
@@ -88,7 +91,7 @@ class ObjectSmoother:
         self._hist: dict[str, list[np.ndarray]] = {}
 
     def update(self, models: list[ObjectModel], points: np.ndarray, posed: np.ndarray,
-               rms: np.ndarray) -> np.ndarray:
+               rms: np.ndarray, used: np.ndarray) -> np.ndarray:
         out = points.copy()
         for m, ok, r in zip(models, posed, rms, strict=True):
             if not ok:
@@ -97,7 +100,8 @@ class ObjectSmoother:
             new = points[m.slice]
             hist = self._hist.setdefault(m.name, [])
             gate = max(self.still_m, 3.0 * float(r))
-            if hist and np.linalg.norm(new - np.mean(hist, axis=0), axis=1).max() > gate:
+            moved = np.linalg.norm(new - np.mean(hist, axis=0), axis=1)[used[m.slice]] if hist else []
+            if len(moved) and moved.max() > gate:
                 hist.clear()
             hist.append(new)
             del hist[:-self.window]

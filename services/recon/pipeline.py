@@ -63,8 +63,8 @@ class Reconstructor:
             sl = slice(i * KEYPOINTS_PER_HAND, (i + 1) * KEYPOINTS_PER_HAND)
             hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl])
         t2 = time.perf_counter()
-        objects, object_mask, posed, rms = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
-        objects = self.smoother.update(self.models, objects, posed, rms)
+        objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
+        objects = self.smoother.update(self.models, objects, posed, rms, used)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers,
                               {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})

@@ -181,7 +181,7 @@ def test_object_posed_from_three_keypoints_fills_the_rest_and_drops_a_wrong_one(
     mask[board.slice] = [1, 1, 1, 1, 0]  # connector unseen
     obs = truth.copy()
     obs[1] += [0.02, 0.0, 0.0]  # a corner 2 cm off: not the object
-    out, out_mask, posed, _ = pose_objects(models, obs, mask)
+    out, out_mask, posed, _, _ = pose_objects(models, obs, mask)
     assert posed.tolist() == [True, False]
     np.testing.assert_allclose(out[board.slice], truth[board.slice], atol=1e-9)
     assert out_mask[board.slice].all()
@@ -193,7 +193,7 @@ def test_object_with_two_keypoints_stays_triangulated():
     pts = np.random.default_rng(2).uniform(-0.1, 0.1, (sum(len(m.points) for m in models), 3))
     mask = np.zeros(len(pts), np.uint8)
     mask[models[0].slice.start:models[0].slice.start + 2] = 1
-    out, out_mask, posed, _ = pose_objects(models, pts, mask)
+    out, out_mask, posed, _, _ = pose_objects(models, pts, mask)
     assert not posed.any()
     np.testing.assert_array_equal(out_mask, mask)
     np.testing.assert_allclose(out[mask == 1], pts[mask == 1])
