@@ -19,11 +19,23 @@ from services.recon.hand_model import kabsch
 from services.world.teacher import OBJECT_POINTS, TASKS
 
 
+LOO_GAIN = 3.0  # leaving one keypoint out divides the fit's RMS by this much: it was an outlier
+
+
 @dataclass(frozen=True)
 class ObjectModel:
     name: str
     points: np.ndarray  # (k,3) in the object's frame
     slice: slice  # its rows in the task's stacked object keypoints
+
+
+def _fit_errors(model: np.ndarray, obs: np.ndarray, w: np.ndarray, use: np.ndarray) -> np.ndarray:
+    R, t = kabsch(model[use], obs[use], w[use])
+    return np.linalg.norm(model @ R.T + t - obs, axis=1)
+
+
+def _fit_rms(model: np.ndarray, obs: np.ndarray, w: np.ndarray, use: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(_fit_errors(model, obs, w, use)[use] ** 2)))
 
 
 def task_keypoint_names(task: str) -> list[str]:
@@ -60,18 +72,28 @@ def pose_objects(models: list[ObjectModel], points: np.ndarray, mask: np.ndarray
         use = out_mask[m.slice].astype(bool)
         obs, w = out[m.slice], w_all[m.slice]
         while use.sum() >= min_points:
-            R, t = kabsch(m.points[use], obs[use], w[use])
-            err = np.linalg.norm(m.points @ R.T + t - obs, axis=1)
+            err = _fit_errors(m.points, obs, w, use)
+            fit_rms = float(np.sqrt(np.mean(err[use] ** 2)))
             # the gate scales with the fit's own typical residual: noisier cameras, wider gate
             bad = use & (err > max(gate_m, 3.0 * float(np.median(err[use]))))
-            if not bad.any():
+            drop = None
+            if use.sum() > min_points:
+                # a keypoint whose removal shrinks the residual several-fold is not the object's
+                loo = {k: _fit_rms(m.points, obs, w, use & (np.arange(len(use)) != k)) for k in np.flatnonzero(use)}
+                k_best = min(loo, key=loo.get)
+                if bad.any() or loo[k_best] < fit_rms / LOO_GAIN:
+                    drop = k_best
+            elif bad.any():
+                break  # three keypoints that disagree: no pose
+            if drop is None:
+                R, t = kabsch(m.points[use], obs[use], w[use])
                 out[m.slice] = m.points @ R.T + t
                 out_mask[m.slice] = 1
                 posed[i] = True
-                rms[i] = float(np.sqrt(np.mean(err[use] ** 2)))
+                rms[i] = fit_rms
                 used[m.slice] = use
                 break
-            use &= ~(err == err[use].max())  # drop the worst point, refit
+            use[drop] = False
     return out, out_mask, posed, rms, used
 
 
