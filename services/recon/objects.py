@@ -18,7 +18,6 @@ import numpy as np
 from services.recon.hand_model import kabsch
 from services.world.teacher import OBJECT_POINTS, TASKS
 
-
 LOO_GAIN = 3.0  # leaving one keypoint out divides the fit's RMS by this much: it was an outlier
 
 
