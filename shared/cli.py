@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
     "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
     "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
+    "recon": ("services.recon.cli:main", "reconstruct a recording offline (live stages + trajectory refinement)"),
     "train": ("services.policy.train:main", "train the policy from recordings or teacher demos"),
     "simulate": ("services.policy.simulate:main", "neural simulation of a trained policy"),
     "eval": ("services.policy.evaluate:main", "Table 7.1 evaluation against the baselines"),

@@ -64,6 +64,7 @@ class HandTracker:
     last_rms: float = float("nan")
     nfev: int = 0
     overridden: int = 0
+    last_params: np.ndarray | None = None  # this frame's fit (what the offline refinement starts from)
 
     def __post_init__(self) -> None:
         self._lo, self._hi = joint_bounds()
@@ -77,6 +78,7 @@ class HandTracker:
         """points (21,3) triangulated, mask (21,) of those that exist, weight (21,) optional (views
         that agreed). Returns keypoints (21,3), their mask (21,) and whether the model produced them
         (then every keypoint is filled in, occluded ones included)."""
+        self.last_params = None
         mask = np.asarray(mask, bool)
         points = np.where(mask[:, None], np.nan_to_num(points), 0.0)
         if mask.sum() < self.config.min_points:
@@ -95,6 +97,7 @@ class HandTracker:
         if params is None:
             return points, mask.astype(np.uint8), False
         self._window.append(params)
+        self.last_params = params
         while len(self._window) > self.config.window:
             self._window.popleft()
         model = forward(self.shape, params, self.side)

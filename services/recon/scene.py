@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
+from shared import msgs
 from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS
 
 
@@ -26,3 +29,15 @@ def tactile_matrix(hand_names: list[str], latest: dict[str, np.ndarray]) -> tupl
             tactile[i] = latest[hand]
             mask[i] = 1
     return tactile, mask
+
+
+def scene_message(stamp: float, hand_names: list[str], hands: np.ndarray, hand_mask: np.ndarray,
+                  object_names: list[str], objects: np.ndarray, object_mask: np.ndarray,
+                  tactile: np.ndarray, tactile_mask: np.ndarray) -> Any:
+    """The xm_msgs/msg/Scene of one frame set."""
+    return msgs.make(
+        "xm_msgs/msg/Scene", header=msgs.header(stamp, "world"), hand_names=list(hand_names),
+        hand_keypoints=np.asarray(hands, np.float32).ravel(), hand_mask=np.asarray(hand_mask, np.uint8).ravel(),
+        object_names=list(object_names), object_keypoints=np.asarray(objects, np.float32).ravel(),
+        object_mask=np.asarray(object_mask, np.uint8).ravel(), tactile_regions=list(TACTILE_REGIONS),
+        tactile=np.asarray(tactile, np.float32).ravel(), tactile_mask=np.asarray(tactile_mask, np.uint8).ravel())

@@ -20,9 +20,8 @@ from services.glove.layout import region_means
 from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
 from services.recon.frameset import FrameSetBuffer
 from services.recon.pipeline import Reconstruction, Reconstructor
-from services.recon.scene import tactile_matrix
+from services.recon.scene import scene_message, tactile_matrix
 from shared import msgs
-from shared.demo import TACTILE_REGIONS
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
@@ -184,14 +183,9 @@ class ReconService:
         self.frame_sets += 1
         self.scene_pub.put(self._scene(stamp, r))
 
-    def _scene(self, stamp: float, r: Reconstruction):
+    def _scene(self, stamp: float, r: Reconstruction) -> object:
         hand_names = self.recon.hand_names
         fresh = {h: v for h, (t, v) in self.tactile.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
         tactile, tactile_mask = tactile_matrix(hand_names, fresh)
-        return msgs.make(
-            "xm_msgs/msg/Scene", header=msgs.header(stamp, "world"), hand_names=hand_names,
-            hand_keypoints=r.hands.astype(np.float32).ravel(), hand_mask=r.hand_mask.ravel(),
-            object_names=self.recon.object_names, object_keypoints=r.objects.astype(np.float32).ravel(),
-            object_mask=r.object_mask.ravel(), tactile_regions=list(TACTILE_REGIONS),
-            tactile=tactile.ravel(), tactile_mask=tactile_mask.ravel())
-
+        return scene_message(stamp, hand_names, r.hands, r.hand_mask, self.recon.object_names, r.objects,
+                             r.object_mask, tactile, tactile_mask)
