@@ -206,12 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         print("xm recon: OUT must differ from the recording", file=sys.stderr)
         return 2
     try:
-        names = Reconstructor(args.task).n_points
-        frames = read_detections(args.recording, args, names)
+        frames = read_detections(args.recording, args, Reconstructor(args.task).n_points)
         if not frames.stamps:
             raise RecordingError(f"{args.recording}: no frame sets (no camhub images)")
-        scenes, summary = reconstruct(frames, args.task, OfflineConfig(jerk_px_per_m=args.jerk, max_nfev=args.max_evaluations),
-                                      refine=not args.no_refine)
+        config = OfflineConfig(jerk_px_per_m=args.jerk, max_nfev=args.max_evaluations)
+        scenes, summary = reconstruct(frames, args.task, config, refine=not args.no_refine)
     except (RecordingError, ValueError) as exc:
         print(f"xm recon: {exc}", file=sys.stderr)
         return 2
