@@ -45,6 +45,7 @@ class Frames:
     confidence: list[np.ndarray] = field(default_factory=list)
     object_names: list[str] | None = None
     tactile: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)
+    corrupt: int = 0  # JPEG windows that did not decode
 
 
 def _camera(key: str) -> str:
@@ -99,11 +100,16 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
                 if len(msg.hand_visible) else None
             uv, seen = det.detect([out.cameras[c] for c in order], points, visible)
             out.object_names = list(msg.object_names)
-            _append(out, order, stamp, uv, seen.astype(float))
+            _append(out, stamp, uv, seen.astype(float))
     else:
         for stamp, blobs in images:
-            views = [View(c, out.cameras[c], img) for c in order if c in blobs
-                     for img in [decode_window(blobs[c], out.cameras[c])] if img is not None]
+            views = []
+            for c in (c for c in order if c in blobs):
+                img = decode_window(blobs[c], out.cameras[c])
+                if img is None:
+                    out.corrupt += 1  # dropped, like the live service does
+                else:
+                    views.append(View(c, out.cameras[c], img))
             if len(views) < 2:
                 continue
             uv, conf = learned.detect(views)
@@ -112,11 +118,11 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
             full_uv, full_conf = np.zeros((len(order), n_points, 2)), np.zeros((len(order), n_points))
             for v, view in enumerate(views):
                 full_uv[order.index(view.camera)], full_conf[order.index(view.camera)] = uv[v], conf[v]
-            _append(out, order, stamp, full_uv, full_conf)
+            _append(out, stamp, full_uv, full_conf)
     return out
 
 
-def _append(out: Frames, order: list[str], stamp: float, uv: np.ndarray, conf: np.ndarray) -> None:
+def _append(out: Frames, stamp: float, uv: np.ndarray, conf: np.ndarray) -> None:
     out.stamps.append(stamp)
     out.uv.append(uv)
     out.confidence.append(conf)
@@ -222,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         stamp_ns = int(round(msgs.stamp_seconds(scene.header.stamp) * 1e9))
         rec.write(SCENE_KEY, "xm_msgs/msg/Scene", msgs.serialize(scene, "xm_msgs/msg/Scene"), stamp_ns)
     rec.close()
-    print(f"xm recon: {len(scenes)} frame sets -> {args.out}")
+    print(f"xm recon: {len(scenes)} frame sets -> {args.out}"
+          + (f" ({frames.corrupt} corrupt JPEG windows dropped)" if frames.corrupt else ""))
     for hand, info in summary.items():
         print(f"  {hand}: {info}")
     return 0
