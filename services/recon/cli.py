@@ -60,6 +60,8 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
     triggers: list[float] = []
     buffer, images = FrameSetBuffer(), []
     learned = _learned(args) if args.detector == "learned" else None
+    # every camera the recording has, so that its first frame set is not cut short
+    expected = {_camera(s.key) for s in read_messages(path, keys={f"xm/camhub/{c}/info" for c in CAMERAS})}
     for stored in read_messages(path):
         if stored.key.endswith("/info") and stored.key.startswith("xm/camhub/"):
             msg = msgs.deserialize(stored.data, stored.msgtype)
@@ -75,12 +77,13 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
                 if _camera(stored.key) == CAMERAS[0]:
                     triggers.append(stamp)
             else:
-                images += buffer.add(stamp, _camera(stored.key), bytes(msg.data), set(out.cameras))
+                images += buffer.add(stamp, _camera(stored.key), bytes(msg.data), expected)
         elif stored.key.startswith("xm/glove/") and stored.key.endswith("/tactile"):
             msg = msgs.deserialize(stored.data, stored.msgtype)
             pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
             out.tactile.setdefault(msg.hand, []).append((msgs.stamp_seconds(msg.header.stamp),
                                                          region_means(pressure)))
+    images += buffer.flush()
     order = [c for c in CAMERAS if c in out.cameras]
     if len(order) < 2:
         raise RecordingError(f"{path}: CameraInfo of fewer than two cameras; nothing to triangulate")

@@ -43,3 +43,9 @@ class FrameSetBuffer:
         while len(self._done) > self.max_sets:
             self._done.discard(min(self._done))
         return out
+
+    def flush(self) -> list[tuple[float, dict]]:
+        """Every pending frame set, oldest first (the end of a recording)."""
+        out = [(s, self.pending.pop(s)) for s in sorted(self.pending)]
+        self._done.update(s for s, _ in out)
+        return out
