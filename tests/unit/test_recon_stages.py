@@ -17,6 +17,7 @@ from services.recon.hand_model import (
     forward,
     forward_jacobian,
     joint_bounds,
+    rodrigues,
     rotvec,
 )
 from services.recon.objects import object_models, pose_objects, task_keypoint_names
@@ -160,8 +161,6 @@ def test_hand_leaving_the_rig_resets_the_fit_which_restarts_where_it_returns():
 
 
 def test_rotvec_inverts_rotation_near_half_turn():
-    from services.recon.hand_model import rodrigues
-
     for r in ([0.1, -0.2, 0.3], [0.0, 0.0, np.pi - 1e-4], [2.0, 1.0, -1.5]):
         R = rodrigues(np.array(r))
         np.testing.assert_allclose(rodrigues(rotvec(R)), R, atol=1e-6)
