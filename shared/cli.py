@@ -10,6 +10,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("deploy.supervisor:up_main", "run a deployment: router + every service, restarts, logs"),
     "status": ("deploy.supervisor:status_main", "list running services: pid, uptime, restarts, rates"),
     "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
+    "recon": ("services.recon.cli:main", "reconstruct a recording offline (live stages + trajectory refinement)"),
     "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
     "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
     "train": ("learning.cli:train_main", "train the policy from recordings or teacher demos"),

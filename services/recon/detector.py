@@ -30,10 +30,24 @@ def readout_window(info: object) -> tuple[int, int, int, int]:
     return int(r.x_offset), int(r.y_offset), int(r.width), int(r.height)
 
 
+@dataclass
+class View:
+    """One camera's part of a frame set, what an image-based detector reads."""
+
+    camera: str  # "cam0".."cam6"
+    model: CameraModel
+    image: np.ndarray  # (h, w, 3) uint8 RGB of the readout window (model.roi), not the full image
+
+
 class SimulatedDetector:
-    def __init__(self, pixel_noise: float = 1.0, dropout: float = 0.08, seed: int = 0) -> None:
+    """``outliers``: the fraction of detections replaced by a wrong pixel anywhere in the window
+    (a detector's confusions), which robust triangulation must reject."""
+
+    def __init__(self, pixel_noise: float = 1.0, dropout: float = 0.08, seed: int = 0,
+                 outliers: float = 0.0) -> None:
         self.pixel_noise = pixel_noise
         self.dropout = dropout
+        self.outliers = outliers
         self.rng = np.random.default_rng(seed)
 
     def detect(self, cameras: list[CameraModel], points: np.ndarray,
@@ -51,6 +65,9 @@ class SimulatedDetector:
             x0, y0, w, h = cam.roi or (0, 0, cam.width, cam.height)  # only what the readout window shows
             inside = (z > 0) & (pix[:, 0] >= x0) & (pix[:, 0] < x0 + w) & (pix[:, 1] >= y0) & (pix[:, 1] < y0 + h)
             kept = self.rng.random(N) >= self.dropout
+            if self.outliers > 0:
+                wrong = self.rng.random(N) < self.outliers
+                pix[wrong] = self.rng.uniform([x0, y0], [x0 + w, y0 + h], (int(wrong.sum()), 2))
             seen[c] = inside & kept & np.isfinite(pix).all(axis=1)
             uv[c] = pix
         if visible is not None:

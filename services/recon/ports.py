@@ -10,8 +10,10 @@ PORTS = Ports(
               "camera models"),
         Input("frame", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(1),
               "the first camera's image marks a triggered frame set", only=CAMERAS[0]),
+        Input("image", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(2 * len(CAMERAS)),
+              "every camera's JPEG readout window (the learned detector)"),
         Input("truth", "world/sim/truth", "xm_msgs/msg/GroundTruth", latest(64),
-              "the simulated detector projects it"),
+              "the simulated detector projects it (an option for experiments)"),
         Input("tactile", "glove/*/tactile", "xm_msgs/msg/Tactile", latest(2 * len(GLOVES)), "contact"),
     ),
     outputs=(

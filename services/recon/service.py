@@ -1,45 +1,114 @@
-"""recon node: on each synchronized frame set, detect 2-D keypoints per camera, triangulate, and
-publish the scene with the latest tactile region pressures of each glove."""
+"""recon node: on each synchronized frame set, detect 2-D keypoints per camera, reconstruct them
+in 3-D (robust triangulation, articulated hand fit, rigid objects; services/recon/pipeline.py) and
+publish the scene with the latest tactile region pressures of each glove.
+
+Two detectors: ``simulated`` projects the simulator's truth (a labelled option for experiments)
+on the first camera's image of each set; ``learned`` decodes every camera's JPEG window and runs
+the trained network (services/recon/learned_detector.py, imported only when chosen)."""
 
 from __future__ import annotations
 
 import collections
+import importlib
+import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from services.glove.layout import region_means
-from services.recon.detector import CameraModel, SimulatedDetector, readout_window
-from services.recon.scene import split_points, tactile_matrix
-from services.recon.triangulation import triangulate
+from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
+from services.recon.frameset import FrameSetBuffer
+from services.recon.pipeline import Reconstruction, Reconstructor
+from services.recon.scene import scene_message, tactile_matrix
 from shared import msgs
-from shared.demo import TACTILE_REGIONS
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
+DETECTORS = ("simulated", "learned")
+TRAIN_HINT = "train it with `xm detector label` then `xm detector train` (docs/perception.md)"
+
+
+def decode_window(data: bytes, model: CameraModel) -> np.ndarray | None:
+    """RGB image of a JPEG readout window, or None when it does not decode to the window's size."""
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        return None
+    _, _, w, h = model.roi or (0, 0, model.width, model.height)
+    if img.shape[:2] != (h, w):
+        return None
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 class ReconService:
     @dataclass
     class Params:
-        detector: str = "simulated"
-        pixel_noise: float = 1.0
+        detector: str = "simulated"  # "learned": the trained network on the images
+        task: str = "assembly"  # its object keypoints name the scene's objects (learned detector)
+        weights: str = ""  # the learned detector's weights; empty: its own default path
+        pixel_noise: float = 1.0  # simulated detector
         dropout: float = 0.08
+        outliers: float = 0.0
         seed: int = 0
+        gate_px: float = 6.0  # reprojection gate of the robust triangulation
+        fit_hands: bool = True  # articulated hand model (else the triangulated keypoints)
 
     def __init__(self, node: Node, params: Params) -> None:
-        if params.detector != "simulated":
-            raise ValueError(f"recon detector {params.detector!r}: only 'simulated' exists in this build")
+        if params.detector not in DETECTORS:
+            raise ValueError(f"recon detector {params.detector!r}: choose one of {', '.join(DETECTORS)}")
         self.node = node
-        self.detector = SimulatedDetector(params.pixel_noise, params.dropout, params.seed)
+        self.params = params
         self.cameras: dict[str, CameraModel] = {}
         self.truth: collections.deque = collections.deque(maxlen=64)  # (stamp, msg)
         self.tactile: dict[str, tuple[float, np.ndarray]] = {}
+        self.times: collections.deque = collections.deque(maxlen=200)  # per-stage seconds per frame set
+        self.frame_sets = 0
+        self.recon: Reconstructor | None = None
+        self.learned = None
         self.scene_pub = node.output("scene")
+        node.health_extra = self._health
         node.input("info", self.on_info)
-        node.input("truth", self.on_truth)
         node.input("tactile", self.on_tactile)
-        node.input("frame", self.on_frame)  # the first camera's image marks a triggered frame set
+        if params.detector == "simulated":
+            self.simulated = SimulatedDetector(params.pixel_noise, params.dropout, params.seed, params.outliers)
+            node.input("truth", self.on_truth)
+            node.input("frame", self.on_frame)  # the first camera's image marks a triggered frame set
+        else:
+            self.recon = Reconstructor(params.task, gate_px=params.gate_px, fit_hands=params.fit_hands)
+            self.learned = self._load_learned()
+            self.buffer = FrameSetBuffer()
+            if self.learned is not None:
+                node.input("image", self.on_image)
+                node.set_status("ok")
+
+    def _load_learned(self) -> object | None:
+        """The learned detector, or None (status says how to get it) when its module or weights are
+        missing: recon then publishes nothing rather than wrong scenes."""
+        try:
+            # Imported here: torch/onnx stay out of the simulated path and of builds without them.
+            module = importlib.import_module("services.recon.learned_detector")
+            cls = module.LearnedDetector
+            return cls(self.params.weights) if self.params.weights else cls()
+        except (ImportError, AttributeError) as exc:
+            msg = f"learned detector unavailable ({exc}); {TRAIN_HINT}"
+        except (FileNotFoundError, OSError, ValueError) as exc:
+            msg = f"learned detector weights missing or unreadable ({exc}); {TRAIN_HINT}"
+        self.node.stats.count("detector_unavailable")
+        self.node.log.error(msg)
+        self.node.set_status("error", msg)
+        return None
+
+    def _health(self) -> dict:
+        t = list(self.times)
+        stages = {k: round(1000 * float(np.median([x[k] for x in t])), 2) for k in (t[0] if t else {})}
+        out = {"detector": self.params.detector, "frame_sets": self.frame_sets, "stage_ms_median": stages}
+        if self.recon is not None:
+            out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
+            out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
+        if self.params.detector == "learned" and self.learned is not None:
+            out["partial_frame_sets"] = self.buffer.released_partial
+            out["late_images"] = self.buffer.dropped_stale
+        return out
 
     def on_info(self, msg, key: str) -> None:
         self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height,
@@ -52,25 +121,71 @@ class ReconService:
         pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
         self.tactile[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), region_means(pressure))
 
+    # --- simulated detector: projected truth ------------------------------------------------
     def on_frame(self, msg) -> None:
         stamp = msgs.stamp_seconds(msg.header.stamp)
         if not self.truth or len(self.cameras) < 2:
             return
         _, truth = min(self.truth, key=lambda st: abs(st[0] - stamp))
-        hand_names = list(truth.hand_names)
+        hand_names, object_names = list(truth.hand_names), list(truth.object_names)
+        if self.recon is None or self.recon.hand_names != hand_names or self.recon.object_names != object_names:
+            self.recon = Reconstructor(self.params.task, tuple(hand_names), self.params.gate_px,
+                                       fit_hands=self.params.fit_hands, object_names=object_names)
         points = np.concatenate([np.asarray(truth.hand_keypoints, float).reshape(-1, 3),
                                  np.asarray(truth.object_keypoints, float).reshape(-1, 3)])
         visible = np.concatenate([np.asarray(truth.hand_visible), np.asarray(truth.object_visible)]) \
             if len(truth.hand_visible) else None
-        cams = [self.cameras[c] for c in sorted(self.cameras)]
-        uv, seen = self.detector.detect(cams, points, visible)
-        tri, mask = triangulate(np.stack([c.P for c in cams]), uv, seen)
-        hands, hand_mask, objects, object_mask = split_points(tri, mask, len(hand_names))
+        names = sorted(self.cameras)
+        t0 = time.perf_counter()
+        uv, seen = self.simulated.detect([self.cameras[c] for c in names], points, visible)
+        detect_s = time.perf_counter() - t0
+        self._reconstruct(stamp, names, uv, seen.astype(float), {"detect": detect_s})
+
+    # --- learned detector: images -----------------------------------------------------------
+    def on_image(self, msg, key: str) -> None:
+        camera = key.split("/")[2]
+        stamp = msgs.stamp_seconds(msg.header.stamp)
+        for set_stamp, images in self.buffer.add(stamp, camera, bytes(msg.data), set(self.cameras)):
+            self._detect_images(set_stamp, images)
+
+    def _detect_images(self, stamp: float, images: dict[str, bytes]) -> None:
+        t0 = time.perf_counter()
+        views = []
+        for camera in sorted(images):
+            model = self.cameras.get(camera)
+            if model is None:
+                self.node.stats.count("image_without_info", camera)
+                continue
+            rgb = decode_window(images[camera], model)
+            if rgb is None:
+                self.node.stats.count("corrupt_jpeg", camera)
+                continue
+            views.append(View(camera, model, rgb))
+        t1 = time.perf_counter()
+        if len(views) < 2:
+            self.node.stats.count("too_few_cameras")
+            return
+        uv, confidence = self.learned.detect(views)
+        t2 = time.perf_counter()
+        if uv.shape != (len(views), self.recon.n_points, 2) or confidence.shape != uv.shape[:2]:
+            self.node.stats.count("detector_shape")
+            self.node.set_status("error", f"detector returned {uv.shape}, expected "
+                                          f"({len(views)}, {self.recon.n_points}, 2) for task {self.params.task}")
+            return
+        self._reconstruct(stamp, [v.camera for v in views], uv, confidence, {"decode": t1 - t0, "detect": t2 - t1})
+
+    # --- the 3-D stages and the scene ---------------------------------------------------------
+    def _reconstruct(self, stamp: float, cameras: list[str], uv: np.ndarray, confidence: np.ndarray,
+                     times: dict) -> None:
+        P = np.stack([self.cameras[c].P for c in cameras])
+        r: Reconstruction = self.recon.step(P, uv, confidence)
+        self.times.append({**times, **r.times})
+        self.frame_sets += 1
+        self.scene_pub.put(self._scene(stamp, r))
+
+    def _scene(self, stamp: float, r: Reconstruction) -> object:
+        hand_names = self.recon.hand_names
         fresh = {h: v for h, (t, v) in self.tactile.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
         tactile, tactile_mask = tactile_matrix(hand_names, fresh)
-        self.scene_pub.put(msgs.make(
-            "xm_msgs/msg/Scene", header=msgs.header(stamp, "world"), hand_names=hand_names,
-            hand_keypoints=hands.astype(np.float32).ravel(), hand_mask=hand_mask.ravel(),
-            object_names=list(truth.object_names), object_keypoints=objects.astype(np.float32).ravel(),
-            object_mask=object_mask.ravel(), tactile_regions=list(TACTILE_REGIONS),
-            tactile=tactile.ravel(), tactile_mask=tactile_mask.ravel()))
+        return scene_message(stamp, hand_names, r.hands, r.hand_mask, self.recon.object_names, r.objects,
+                             r.object_mask, tactile, tactile_mask)

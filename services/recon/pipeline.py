@@ -1,0 +1,70 @@
+"""The 3-D stages in order, without I/O: triangulate (robust) -> fit (articulated hands, rigid
+objects) -> scene arrays with masks. The service and the bench drive it per frame set."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.recon.hand_fit import FitConfig, HandTracker
+from services.recon.objects import ObjectSmoother, object_models, pose_objects, task_keypoint_names
+from services.recon.triangulation import triangulate_robust
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
+
+
+@dataclass
+class Reconstruction:
+    hands: np.ndarray  # (H,21,3), zero where masked
+    hand_mask: np.ndarray  # (H,21) uint8
+    hand_fitted: np.ndarray  # (H,) bool: the hand model produced the keypoints
+    objects: np.ndarray  # (K,3)
+    object_mask: np.ndarray  # (K,) uint8
+    object_posed: np.ndarray  # (objects,) bool: a rigid fit produced the object's keypoints
+    inliers: np.ndarray  # (C,N) views each triangulated point used
+    times: dict = field(default_factory=dict)  # seconds per stage
+
+
+class Reconstructor:
+    """Stateful across frame sets only through the hand trackers' windows and shapes."""
+
+    def __init__(self, task: str, hand_names: tuple[str, ...] = HAND_NAMES, gate_px: float = 6.0,
+                 fit: FitConfig | None = None, fit_hands: bool = True,
+                 object_names: list[str] | None = None) -> None:
+        """``object_names``: the keypoints the detector reports, when they are not the task's own
+        (then no rigid model applies and objects stay triangulated points)."""
+        self.hand_names = list(hand_names)
+        names = task_keypoint_names(task)
+        self.object_names = names if object_names is None else list(object_names)
+        self.models = object_models(task) if self.object_names == names else []
+        self.gate_px = gate_px
+        self.fit_hands = fit_hands
+        self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
+        self.smoother = ObjectSmoother()
+
+    @property
+    def n_points(self) -> int:
+        return len(self.hand_names) * KEYPOINTS_PER_HAND + len(self.object_names)
+
+    def step(self, P: np.ndarray, uv: np.ndarray, confidence: np.ndarray) -> Reconstruction:
+        """P (C,3,4) of the cameras present; uv (C,N,2) full-image pixels; confidence (C,N)."""
+        t0 = time.perf_counter()
+        pts, mask, inliers = triangulate_robust(P, uv, confidence, self.gate_px)
+        t1 = time.perf_counter()
+        views = inliers.sum(axis=0).astype(float)
+        H, nh = len(self.hand_names), len(self.hand_names) * KEYPOINTS_PER_HAND
+        hands = pts[:nh].reshape(H, KEYPOINTS_PER_HAND, 3).copy()
+        hand_mask = mask[:nh].reshape(H, KEYPOINTS_PER_HAND).copy()
+        fitted = np.zeros(H, bool)
+        for i, name in enumerate(self.hand_names):
+            if not self.fit_hands:
+                break
+            sl = slice(i * KEYPOINTS_PER_HAND, (i + 1) * KEYPOINTS_PER_HAND)
+            hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl])
+        t2 = time.perf_counter()
+        objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
+        objects = self.smoother.update(self.models, objects, posed, rms, used)
+        t3 = time.perf_counter()
+        return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers,
+                              {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})

@@ -1,0 +1,136 @@
+"""`xm recon REC.mcap -o OUT.mcap` on a small synthetic recording (services/recon/cli.py, offline.py)."""
+
+from __future__ import annotations
+
+import sys
+import types
+
+import cv2
+import numpy as np
+import pytest
+
+from services.recon.cli import SCENE_KEY, main
+from services.recon.hand_model import N_PARAMS
+from services.recon.objects import task_keypoint_names
+from services.recon.offline import fill_gaps
+from services.recon.triangulation import project
+from services.recorder.writer import McapRecorder, read_messages
+from services.world.model import camera_specs
+from services.world.sim import WorldSim
+from shared import msgs
+from shared.geometry import projection
+
+
+def _recording(path, frames: int = 16) -> np.ndarray:
+    """A teacher demonstration at 5 Hz: CameraInfo, truth and cam0's image per frame set."""
+    sim = WorldSim("assembly", seed=7311)
+    rec = McapRecorder(path)
+    truth = []
+    for f in range(frames):
+        sim.step(100)
+        t = 100.0 + 0.2 * f
+        names, objects = sim.object_keypoints()
+        hands = sim.hand_keypoints()
+        hv, ov = sim.visibility()
+        truth.append(hands.reshape(-1, 3))
+        header = msgs.header(t, "world")
+        rec.write("xm/world/sim/truth", "xm_msgs/msg/GroundTruth", msgs.serialize(msgs.make(
+            "xm_msgs/msg/GroundTruth", header=header, hand_names=["left", "right"],
+            hand_keypoints=hands.astype(np.float32).ravel(), hand_visible=np.asarray(hv, np.uint8).ravel(),
+            object_names=names, object_keypoints=objects.astype(np.float32).ravel(),
+            object_visible=np.asarray(ov, np.uint8), body_names=[], body_poses=np.zeros(0, np.float32),
+            contact_forces=np.zeros(12, np.float32))), int(t * 1e9))
+        for spec in camera_specs(256, 192):
+            rec.write(f"xm/camhub/{spec.name}/info", "sensor_msgs/msg/CameraInfo", msgs.serialize(msgs.make(
+                "sensor_msgs/msg/CameraInfo", header=msgs.header(t, spec.name), height=192, width=256,
+                distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
+                p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
+                roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
+                              do_rectify=False))), int(t * 1e9))
+        rec.write("xm/camhub/cam0/image", "sensor_msgs/msg/CompressedImage", msgs.serialize(msgs.make(
+            "sensor_msgs/msg/CompressedImage", header=msgs.header(t, "cam0"), format="jpeg",
+            data=np.zeros(4, np.uint8))), int(t * 1e9))
+    rec.close()
+    return np.stack(truth)
+
+
+def test_fill_gaps_interpolates_between_fits_and_holds_the_ends():
+    p = np.zeros((5, N_PARAMS))
+    p[1, :3], p[3, :3] = [0.0, 0.0, 0.2], [0.0, 0.0, 0.6]
+    p[1, 3], p[3, 3] = 1.0, 3.0
+    out = fill_gaps(p, np.array([False, True, False, True, False]))
+    np.testing.assert_allclose(out[:, 3], [1.0, 1.0, 2.0, 3.0, 3.0])
+    np.testing.assert_allclose(out[2, :3], [0.0, 0.0, 0.4], atol=1e-9)
+    with pytest.raises(ValueError):
+        fill_gaps(p, np.zeros(5, bool))
+
+
+def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
+    src, dst = tmp_path / "rec.mcap", tmp_path / "out.mcap"
+    truth = _recording(src)
+    assert main([str(src), "-o", str(dst), "--pixel-noise", "1.5", "--max-evaluations", "8"]) == 0
+    scenes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == SCENE_KEY]
+    assert len(scenes) == len(truth)
+    hands = np.stack([np.asarray(s.hand_keypoints).reshape(-1, 3) for s in scenes])
+    mask = np.stack([np.asarray(s.hand_mask) for s in scenes]).astype(bool)
+    assert np.isfinite(hands).all() and mask.mean() > 0.9
+    err = np.linalg.norm(hands - truth, axis=-1)[mask]
+    assert err.mean() < 0.010
+    kept = {s.key for s in read_messages(dst)}
+    assert "xm/world/sim/truth" in kept, "the rest of the recording is copied"
+
+
+def test_offline_recon_refuses_a_recording_without_cameras(tmp_path, capsys):
+    src = tmp_path / "empty.mcap"
+    McapRecorder(src).close()
+    assert main([str(src), "-o", str(tmp_path / "out.mcap")]) == 2
+    assert "CameraInfo" in capsys.readouterr().err
+
+
+def _image_recording(path, frames: int = 3) -> None:
+    """Every camera's JPEG per frame set (cam2's corrupt in the first), no truth."""
+    rec = McapRecorder(path)
+    ok, jpeg = cv2.imencode(".jpg", np.full((192, 256, 3), 80, np.uint8))
+    for f in range(frames):
+        t = 50.0 + 0.2 * f
+        for spec in camera_specs(256, 192):
+            rec.write(f"xm/camhub/{spec.name}/info", "sensor_msgs/msg/CameraInfo", msgs.serialize(msgs.make(
+                "sensor_msgs/msg/CameraInfo", header=msgs.header(t, spec.name), height=192, width=256,
+                distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
+                p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
+                roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
+                              do_rectify=False))), int(t * 1e9))
+            data = b"\xff\xd8broken" if (f == 0 and spec.name == "cam2") else jpeg.tobytes()
+            rec.write(f"xm/camhub/{spec.name}/image", "sensor_msgs/msg/CompressedImage", msgs.serialize(msgs.make(
+                "sensor_msgs/msg/CompressedImage", header=msgs.header(t, spec.name), format="jpeg",
+                data=np.frombuffer(data, np.uint8))), int(t * 1e9))
+    rec.close()
+
+
+def test_offline_recon_with_the_learned_detector_reads_images_only(tmp_path, monkeypatch, capsys):
+    points = np.random.default_rng(5).uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + 8, 3))
+
+    class LearnedDetector:
+        def detect(self, views):
+            uv, _ = project(np.stack([v.model.P for v in views]), points)
+            return uv, np.ones(uv.shape[:2])
+
+    module = types.ModuleType("services.recon.learned_detector")
+    module.LearnedDetector = LearnedDetector
+    monkeypatch.setitem(sys.modules, "services.recon.learned_detector", module)
+    src, dst = tmp_path / "rec.mcap", tmp_path / "out.mcap"
+    _image_recording(src)
+    assert main([str(src), "-o", str(dst), "--detector", "learned", "--no-refine"]) == 0
+    assert "1 corrupt JPEG" in capsys.readouterr().out
+    scenes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == SCENE_KEY]
+    assert len(scenes) == 3
+    assert list(scenes[0].object_names) == task_keypoint_names("assembly")
+    np.testing.assert_allclose(np.asarray(scenes[0].hand_keypoints).reshape(-1, 3), points[:42], atol=1e-3)
+
+
+def test_offline_recon_without_a_learned_detector_says_how_to_train(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "services.recon.learned_detector", None)
+    src = tmp_path / "rec.mcap"
+    _image_recording(src, frames=1)
+    assert main([str(src), "-o", str(tmp_path / "out.mcap"), "--detector", "learned"]) == 2
+    assert "xm detector train" in capsys.readouterr().err

@@ -1,0 +1,141 @@
+"""recon's service logic without a network: frame sets from per-camera images, the learned
+detector's path (decoding, a corrupt JPEG, a late camera, a missing detector), and the simulated
+path's fitted scene (services/recon/service.py, frameset.py)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import types
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+from services.recon.frameset import FrameSetBuffer
+from services.recon.objects import task_keypoint_names
+from services.recon.service import ReconService, decode_window
+from services.recon.triangulation import project
+from services.world.model import camera_specs
+from shared import msgs
+from shared.geometry import projection
+from shared.runtime.node import Stats
+
+
+class FakeNode:
+    """What ReconService uses of a Node: declared ports as handlers and a list of published messages."""
+
+    def __init__(self) -> None:
+        self.handlers: dict[str, object] = {}
+        self.published: list = []
+        self.stats = Stats()
+        self.log = logging.getLogger("test-recon")
+        self.status, self.message = "starting", ""
+        self.health_extra = None
+
+    def input(self, port: str, handler) -> None:
+        self.handlers[port] = handler
+
+    def output(self, port: str):
+        return SimpleNamespace(put=self.published.append)
+
+    def set_status(self, status: str, message: str = "") -> None:
+        self.status, self.message = status, message
+
+
+def _info(spec, stamp: float):
+    return msgs.make(
+        "sensor_msgs/msg/CameraInfo", header=msgs.header(stamp, spec.name), height=spec.height, width=spec.width,
+        distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
+        p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
+        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
+                      do_rectify=False))
+
+
+def _jpeg(spec, stamp: float, data: bytes | None = None):
+    if data is None:
+        ok, buf = cv2.imencode(".jpg", np.full((spec.height, spec.width, 3), 90, np.uint8))
+        data = buf.tobytes()
+    return msgs.make("sensor_msgs/msg/CompressedImage", header=msgs.header(stamp, spec.name), format="jpeg",
+                     data=np.frombuffer(data, np.uint8))
+
+
+def test_frame_sets_complete_partial_and_late():
+    buf = FrameSetBuffer(late_after=1)
+    cams = {"cam0", "cam1", "cam2"}
+    assert buf.add(1.0, "cam0", "a", cams) == []
+    assert buf.add(1.0, "cam1", "b", cams) == []
+    (stamp, images), = buf.add(1.0, "cam2", "c", cams)
+    assert stamp == 1.0 and set(images) == cams
+    buf.add(2.0, "cam0", "a", cams)
+    buf.add(2.0, "cam1", "b", cams)  # cam2 is late for 2.0
+    (stamp, images), = buf.add(3.0, "cam0", "a", cams)
+    assert stamp == 2.0 and set(images) == {"cam0", "cam1"} and buf.released_partial == 1
+    assert buf.add(2.0, "cam2", "c", cams) == [] and buf.dropped_stale == 1
+
+
+def test_decode_window_refuses_corrupt_and_wrong_size():
+    spec = camera_specs(64, 48)[0]
+    model = SimpleNamespace(roi=(8, 4, 32, 24), width=64, height=48)
+    ok, buf = cv2.imencode(".jpg", np.zeros((24, 32, 3), np.uint8))
+    assert decode_window(buf.tobytes(), model).shape == (24, 32, 3)
+    assert decode_window(b"\xff\xd8garbage", model) is None
+    ok, buf = cv2.imencode(".jpg", np.zeros((spec.height, spec.width, 3), np.uint8))
+    assert decode_window(buf.tobytes(), model) is None  # a full frame where a window was announced
+
+
+def test_learned_detector_missing_says_how_to_train_and_publishes_nothing(monkeypatch):
+    monkeypatch.setitem(sys.modules, "services.recon.learned_detector", None)  # import fails
+    node = FakeNode()
+    ReconService(node, ReconService.Params(detector="learned"))
+    assert node.status == "error" and "xm detector train" in node.message
+    assert "image" not in node.handlers and "truth" not in node.handlers, "no truth, and nothing to publish"
+    assert node.stats.errors["detector_unavailable"] == 1
+
+
+@pytest.fixture
+def learned(monkeypatch):
+    """A stand-in learned detector: projects fixed 3-D points, so the service path can be checked."""
+    rng = np.random.default_rng(3)
+    names = task_keypoint_names("assembly")
+    points = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + len(names), 3))
+    seen_views: list[list[str]] = []
+
+    class LearnedDetector:
+        def detect(self, views):
+            seen_views.append([v.camera for v in views])
+            assert all(v.image.shape == (v.model.height, v.model.width, 3) for v in views)
+            uv, _ = project(np.stack([v.model.P for v in views]), points)
+            return uv, np.ones(uv.shape[:2])
+
+    module = types.ModuleType("services.recon.learned_detector")
+    module.LearnedDetector = LearnedDetector
+    monkeypatch.setitem(sys.modules, "services.recon.learned_detector", module)
+    return points, seen_views
+
+
+def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras(learned):
+    points, seen_views = learned
+    node = FakeNode()
+    ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    assert node.status == "ok" and "truth" not in node.handlers
+    specs = camera_specs(64, 48)
+    for spec in specs:
+        node.handlers["info"](_info(spec, 0.0), f"xm/camhub/{spec.name}/info")
+    for spec in specs:  # frame set 1.0: cam3's JPEG is corrupt
+        node.handlers["image"](_jpeg(spec, 1.0, b"\xff\xd8bad" if spec.name == "cam3" else None),
+                               f"xm/camhub/{spec.name}/image")
+    assert len(node.published) == 1
+    assert node.stats.errors["corrupt_jpeg:cam3"] == 1
+    assert "cam3" not in seen_views[0] and len(seen_views[0]) == 6
+    for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 begins
+        node.handlers["image"](_jpeg(spec, 2.0), f"xm/camhub/{spec.name}/image")
+    node.handlers["image"](_jpeg(specs[0], 3.0), f"xm/camhub/{specs[0].name}/image")
+    assert len(node.published) == 2 and len(seen_views[1]) == 5
+    scene = node.published[-1]
+    assert list(scene.object_names) == task_keypoint_names("assembly"), "names from the task, not from truth"
+    hands = np.asarray(scene.hand_keypoints).reshape(-1, 3)
+    np.testing.assert_allclose(hands, points[:42], atol=1e-3)
+    assert np.isfinite(np.asarray(scene.object_keypoints)).all()
+    assert node.health_extra()["partial_frame_sets"] == 1
