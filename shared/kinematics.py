@@ -154,7 +154,7 @@ class RobotModel:
 
     @cached_property
     def _fk_function(self):
-        import casadi as ca
+        import casadi as ca  # heavy (about 0.5 s) and needed only by trajopt's symbolic FK
 
         q = ca.SX.sym("q", len(self.moving))
         M, c = self.coupling
@@ -196,7 +196,7 @@ def _joint_np(j: Joint, qi: float) -> np.ndarray:
 
 
 def _rotation_ca(axis: np.ndarray, qi):
-    import casadi as ca
+    import casadi as ca  # heavy: loaded only for symbolic FK
 
     K = ca.DM(_skew(axis))
     return ca.DM.eye(3) + ca.sin(qi) * K + (1 - ca.cos(qi)) * ca.mtimes(K, K)

@@ -81,7 +81,7 @@ def report(reference: np.ndarray, predicted: np.ndarray, response: np.ndarray) -
 def plot_fit(pressure: np.ndarray, response: np.ndarray, a: float, b: float, png_path: str | Path,
              title: str = "") -> None:
     """Scatter of measured response over reference pressure with the rational and linear fits (PNG)."""
-    import matplotlib
+    import matplotlib  # optional heavy dependency, loaded only to draw the plot
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from rosbags.highlevel import AnyReader
 
 from services.glove.calibration import Calibration, fit_linear, fit_rational, rational, report
 from services.glove.layout import CELL_MASK, CELL_REGION, pressure_from_forces, region_means
@@ -29,8 +30,6 @@ TRUTH = "xm/world/sim/truth"
 
 def load_pairs(path: Path, hand: str) -> tuple[np.ndarray, np.ndarray]:
     """(N,16,16) complex readings and (N,6) reference region forces of one hand."""
-    from rosbags.highlevel import AnyReader
-
     raw_key = f"xm/glove/{hand}/raw"
     readings, forces = [], []
     with AnyReader([path], default_typestore=msgs.typestore()) as reader:
@@ -149,7 +148,7 @@ def register_main(args: argparse.Namespace) -> int:
 
 
 def _plot(readings: np.ndarray, forces: np.ndarray, cal: Calibration, path: Path) -> None:
-    import matplotlib
+    import matplotlib  # optional heavy dependency, loaded only to draw the plot
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

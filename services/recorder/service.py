@@ -21,6 +21,7 @@ import zenoh
 from services.recorder.segments import SEGMENT_S, SegmentedRecorder, repair_cut_segments
 from services.recorder.writer import RecordingError, warm_up
 from shared import keys, msgs
+from shared.config import load_deployment
 from shared.runtime import Node, Subscription, fifo
 from shared.runtime.logs import fields
 
@@ -236,8 +237,6 @@ def _deployment_name(path: str) -> str:
     if not path:
         return ""
     try:
-        from shared.config import load_deployment
-
         return load_deployment(path).name
     except Exception:  # the runtime already validated it; metadata is best effort
         return Path(path).stem

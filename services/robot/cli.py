@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from services.robot.repeatability import run
+
 THESIS = {"Y": (0.03, 0.009), "Z": (0.05, 0.015), "Wrist": (0.014, 0.0047), "Gripper": (0.02, 0.0065),
           "X, Y, Z": (0.07, 0.023)}
 
@@ -17,8 +19,6 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--seed", type=int, default=0)
     rep.add_argument("--out", default="runs/repeatability.json")
     args = parser.parse_args(argv)
-    from services.robot.repeatability import run
-
     results = run(args.seed)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from tqdm import tqdm
 
 from services.robot.board_sim import BoardSim
 from services.world.sim import WorldSim
@@ -82,7 +83,6 @@ class Rig:
 
 
 def run(seed: int = 0, progress: bool = True) -> list[dict]:
-    from tqdm import tqdm
 
     rng = np.random.default_rng(seed)
     rig = Rig(seed)
