@@ -18,65 +18,17 @@ executing trajectory, which the receding-horizon caller shifts by the elapsed kn
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
+from services.trajopt.calls import BUFFERED_QP, BufferedFunction, OrdinaryCall, qp_options
 from services.trajopt.collision import CollisionModel
+from services.trajopt.config import TrajoptConfig, TrajoptInputError, TrajoptResult
 from shared.kinematics import RobotModel
 from shared.robots.registry import REGISTRY
 
-TABLE = ((0.0, 0.0, -1.0), 0.0)  # N . p <= P - r  <=>  z >= r
 OCP_SOLVERS = ("hpipm", "fatrop")  # QP solvers that need (and exploit) the stage-wise layout
-
-
-class TrajoptInputError(ValueError):
-    """The executing trajectory or the goals have the wrong shape."""
-
-
-@dataclass
-class TrajoptConfig:
-    knots: int = 20
-    fixed_knots: int = 2
-    point_map: dict[str, str] | None = None  # plan point -> robot frame; None: the description's point_map
-    point_weights: dict[str, float] = field(default_factory=dict)  # plan point -> weight (default 1)
-    trust_region: float = 0.1  # rad or m per SQP iteration (7.18)
-    max_iterations: int = 2  # per control cycle; the next cycle continues from this one (warm start)
-    step_tolerance: float = 1e-4  # stop when no joint moves more than this in an iteration
-    damping: float = 1e-3  # added to the Gauss-Newton Hessian
-    model_tolerance: float = 1e-2  # or when the QP model predicted the new cost (relative to the decrease)
-    accel_time: float = 0.1  # acceleration limit = velocity limit / accel_time (7.19)
-    smooth_weight: float = 1e-3  # weight of squared accelerations * dt^2 (keeps H well conditioned)
-    planes: list[tuple[tuple[float, float, float], float]] = field(default_factory=lambda: [TABLE])  # (7.20)
-    sphere_radii: dict[str, float] | None = None  # keypoint frame -> sphere radius; None: 5 mm on every keypoint
-    collision_pairs: list[tuple[str, str]] | None = None  # link pairs (7.21); None: the description's
-    margin: float = 0.005  # minimum distance between shapes of a pair
-    near: float = 0.02  # covering-sphere gap under which GJK/EPA computes the exact separation
-    contact_slots: int = 4  # separating-plane rows per knot, given to the closest shape pairs
-    pose_mean: dict[str, float] = field(default_factory=dict)  # 7.22: joint -> mean (services/trajopt/hand_prior)
-    pose_std: dict[str, float] = field(default_factory=dict)
-    pose_weight: float = 0.0
-    qp_solver: str = "ipqp"
-    qp_options: dict = field(default_factory=dict)
-    violation_tolerance: float = 1e-3  # a result violating a constraint by more is rejected
-    reach_padding: float = 0.02  # goals this far outside the sampled workspace box are unreachable
-    # Plans keep this far inside the URDF joint limits: wider than the robot service's soft-limit margin
-    # (services/robot/safety.py), so the robot never clamps a plan and tracking overshoot stays inside.
-    limit_margin_m: float = 0.003  # prismatic joints
-    limit_margin_rad: float = 0.015  # revolute joints
-
-
-@dataclass
-class TrajoptResult:
-    q: np.ndarray  # (knots, n joints), full joint order (mimic joints included)
-    status: str  # solved | max_iterations | unreachable | infeasible | qp_failed | bad_input
-    ok: bool
-    solve_time_s: float
-    iterations: int
-    max_violation: float
-    reason: str = ""
-    cost: float = float("nan")
 
 
 def default_point_map(model: RobotModel) -> dict[str, str]:
@@ -90,84 +42,6 @@ def default_pairs(model: RobotModel) -> list[tuple[str, str]]:
     desc = REGISTRY.get(model.name)
     links = set(model.links)
     return [p for p in (desc.collision_pairs if desc else ()) if p[0] in links and p[1] in links]
-
-
-def qp_options(name: str) -> dict:
-    """Quiet, non-throwing options per CasADi conic plugin (the ones compared in docs/trajopt.md)."""
-    common = {"error_on_fail": False}
-    specific = {
-        "ipqp": {"print_iter": False, "print_header": False, "print_info": False, "constr_viol_tol": 1e-6,
-                 "dual_inf_tol": 1e-6},
-        "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
-        "osqp": {"osqp": {"verbose": False, "eps_abs": 1e-7, "eps_rel": 1e-7, "polish": True, "max_iter": 20000},
-                 "warm_start_primal": True, "warm_start_dual": True},
-        "hpipm": {"hpipm": {"mode": "robust"}},
-        "daqp": {},
-        "proxqp": {},
-        "highs": {"highs": {"output_flag": False}},
-    }
-    return {**common, **specific.get(name, {})}
-
-
-class BufferedFunction:
-    """A CasADi function called through its buffer interface: inputs and outputs are preallocated
-    nonzero vectors (numpy arrays the function reads and writes in place). An ordinary call
-    converts every argument to a DM and every output back, about 0.25 ms per call of the SQP
-    function here, more than evaluating it. ``args`` and ``res`` may be re-pointed (``bind_arg``,
-    ``bind_res``) at another function's arrays, so one function's output feeds the next one's input
-    without a copy."""
-
-    def __init__(self, f: ca.Function) -> None:
-        self.f = f
-        self.args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
-        self.res = [np.zeros(f.nnz_out(i)) for i in range(f.n_out())]
-        self._buf, self._eval = f.buffer()  # the buffer holds raw pointers: the arrays live in self
-        for i, a in enumerate(self.args):
-            self._buf.set_arg(i, memoryview(a))
-        for i, r in enumerate(self.res):
-            self._buf.set_res(i, memoryview(r))
-
-    def bind_arg(self, i: int, array: np.ndarray) -> None:
-        assert array.dtype == np.float64 and array.flags.c_contiguous and array.size == self.f.nnz_in(i)
-        self.args[i] = array
-        self._buf.set_arg(i, memoryview(array))
-
-    def bind_res(self, i: int, array: np.ndarray) -> None:
-        assert array.dtype == np.float64 and array.flags.c_contiguous and array.size == self.f.nnz_out(i)
-        self.res[i] = array
-        self._buf.set_res(i, memoryview(array))
-
-    def __call__(self, *args) -> list[np.ndarray]:
-        """Copy the given inputs (dense values or nonzeros, in input order; None keeps what the
-        input array holds), evaluate, and return the output arrays (overwritten by the next call)."""
-        for dst, src in zip(self.args, args, strict=False):
-            if src is not None:
-                dst[...] = src
-        self._eval()
-        return self.res
-
-    def stats(self) -> dict:
-        return self._buf.stats()
-
-
-class OrdinaryCall(BufferedFunction):
-    """The same interface, evaluated by an ordinary call (DM in, DM out): for QP plugins that
-    misbehave across buffered calls (HPIPM's stage-wise QPs fail from the second solve on)."""
-
-    def __call__(self, *args) -> list[np.ndarray]:
-        for dst, src in zip(self.args, args, strict=False):
-            if src is not None:
-                dst[...] = src
-        out = self.f(*[ca.DM(self.f.sparsity_in(i), a) for i, a in enumerate(self.args)])
-        for dst, r in zip(self.res, out, strict=True):
-            dst[...] = np.asarray(ca.DM(r).nonzeros())
-        return self.res
-
-    def stats(self) -> dict:
-        return self.f.stats()
-
-
-BUFFERED_QP = ("ipqp",)  # plugins checked to give the ordinary call's results through buffers
 
 
 class TrajectoryOptimizer:

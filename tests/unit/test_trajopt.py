@@ -135,7 +135,7 @@ def test_buffered_calls_give_the_values_of_ordinary_calls(workcell):
     into each other (H, gradient and G written into the QP's inputs): same values as plain calls."""
     import casadi as ca
 
-    from services.trajopt.optimizer import BufferedFunction
+    from services.trajopt.calls import BufferedFunction
 
     model, opt = workcell
     rng = np.random.default_rng(3)
