@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("services.policy.evaluate:main", "Table 7.1 evaluation against the baselines"),
     "glove": ("services.glove.cli:main", "glove tools: calibrate, register"),
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
+    "detector": ("perception.cli:main", "2-D keypoint detector: label, train, eval"),
 }
 
 
