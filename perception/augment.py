@@ -80,7 +80,8 @@ def occluders(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         if rng.random() < 0.5:
             cv2.rectangle(out, (int(x - cw // 2), int(y - ch // 2)), (int(x + cw // 2), int(y + ch // 2)), col, -1)
         else:
-            cv2.ellipse(out, (int(x), int(y)), (int(cw // 2), int(ch // 2)), float(rng.uniform(0, 180)), 0, 360, col, -1)
+            angle = float(rng.uniform(0, 180))
+            cv2.ellipse(out, (int(x), int(y)), (int(cw // 2), int(ch // 2)), angle, 0, 360, col, -1)
     return out
 
 

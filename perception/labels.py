@@ -105,7 +105,8 @@ def read_coco(path: Path) -> tuple[str, list[Frame]]:
     for cat in want:
         got = by_name.get(cat["name"])
         if got is None or list(got["keypoints"]) != cat["keypoints"]:
-            raise ValueError(f"{path}: category {cat['name']!r} missing or with other keypoints than {cat['keypoints']}")
+            raise ValueError(f"{path}: category {cat['name']!r} missing or with other keypoints than "
+                             f"{cat['keypoints']}")
         offsets[got["id"]] = start
         start += len(cat["keypoints"])
     frames, index = [], {}

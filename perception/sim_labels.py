@@ -127,6 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         folder = Path(a.out) / name
         n = make_set(folder, a.task, [int(s) for s in seeds.split(",")], frames, width, height, a.full_every,
-                     f"simulated stand-in for hand labels ({name}, seeds {seeds})", rng_seed=0 if name == "train" else 1)
+                     f"simulated stand-in for hand labels ({name}, seeds {seeds})",
+                     rng_seed=0 if name == "train" else 1)
         print(f"{folder}/labels.json: {n} window images, {len(names)} keypoints each")
     return 0

@@ -87,30 +87,34 @@ def net_to_full(uv: np.ndarray, scale: float, roi: tuple[int, int, int, int] | N
     return (np.asarray(uv, float) + 0.5) / scale - 0.5 + np.array([x0, y0], float)
 
 
-def peaks(heatmaps: np.ndarray, radius: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel peak of each heatmap (..., H, W): the maximum, refined by the heatmap-weighted
-    centroid of the (2 radius + 1)^2 neighbourhood (values below zero ignored). Returns uv (..., 2)
-    in heatmap pixels and the peak value (...) as the confidence."""
+def peaks(heatmaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel peak of each heatmap (..., H, W): the maximum pixel, refined per axis by the
+    parabola through the logarithms of it and its two neighbours (exact for a Gaussian peak, the
+    training target's shape). Returns uv (..., 2) in heatmap pixels and the fitted peak's height
+    (...) as the confidence."""
     hm = np.asarray(heatmaps, np.float32)
     lead, (H, W) = hm.shape[:-2], hm.shape[-2:]
     flat = hm.reshape(-1, H, W)
-    idx = flat.reshape(len(flat), -1).argmax(axis=1)
-    py, px = np.divmod(idx, W)
-    offs = np.arange(-radius, radius + 1)
-    ys = np.clip(py[:, None] + offs[None, :], 0, H - 1)  # (n, k)
-    xs = np.clip(px[:, None] + offs[None, :], 0, W - 1)
-    patch = flat[np.arange(len(flat))[:, None, None], ys[:, :, None], xs[:, None, :]]  # (n, k, k)
-    wgt = np.maximum(patch, 0.0)
-    # Clipped indices at the border repeat the edge pixel: weight them out so the centroid stays unbiased.
-    valid = ((py[:, None] + offs) >= 0) & ((py[:, None] + offs) < H)
-    valid = valid[:, :, None] & (((px[:, None] + offs) >= 0) & ((px[:, None] + offs) < W))[:, None, :]
-    wgt = wgt * valid
-    total = wgt.sum(axis=(1, 2))
-    safe = np.where(total > 1e-12, total, 1.0)
-    u = np.where(total > 1e-12, (wgt * xs[:, None, :]).sum(axis=(1, 2)) / safe, px)
-    v = np.where(total > 1e-12, (wgt * ys[:, :, None]).sum(axis=(1, 2)) / safe, py)
-    conf = flat[np.arange(len(flat)), py, px]
-    return np.stack([u, v], -1).reshape(*lead, 2), conf.reshape(lead)
+    n = np.arange(len(flat))
+    py, px = np.divmod(flat.reshape(len(flat), -1).argmax(axis=1), W)
+    conf = flat[n, py, px]
+    uv = np.stack([px, py], -1).astype(float)
+    log_peak = np.zeros(len(flat))  # the fitted peak's height over the maximum pixel's, in logs
+    for axis, (pos, size) in enumerate(((px, W), (py, H))):
+        inner = (pos > 0) & (pos < size - 1)
+        lo, hi = np.clip(pos - 1, 0, size - 1), np.clip(pos + 1, 0, size - 1)
+        if axis == 0:
+            a, b = flat[n, py, lo], flat[n, py, hi]
+        else:
+            a, b = flat[n, lo, px], flat[n, hi, px]
+        floor = np.maximum(conf, 1e-12) * 1e-6  # keeps the logs finite where a neighbour is ~0
+        la, lc, lb = (np.log(np.maximum(v, floor)) for v in (a, conf, b))
+        curv = la - 2 * lc + lb
+        step = np.where(curv < -1e-9, 0.5 * (la - lb) / np.where(curv < -1e-9, curv, -1.0), 0.0)
+        step = np.where(inner & (conf > 0), np.clip(step, -0.5, 0.5), 0.0)
+        uv[:, axis] += step
+        log_peak += np.maximum(0.5 * (lb - la) * step + 0.5 * curv * step**2, 0.0)
+    return uv.reshape(*lead, 2), (conf * np.exp(log_peak)).reshape(lead)
 
 
 @dataclass
@@ -122,14 +126,14 @@ class View:
     image: np.ndarray
 
 
-class WeightsMissing(FileNotFoundError):
+class WeightsMissingError(FileNotFoundError):
     pass
 
 
 def load_meta(folder: Path) -> dict:
     path = Path(folder) / "meta.json"
     if not path.exists():
-        raise WeightsMissing(f"no detector weights in {folder} (meta.json missing); {TRAIN_HINT}")
+        raise WeightsMissingError(f"no detector weights in {folder} (meta.json missing); {TRAIN_HINT}")
     return json.loads(path.read_text())
 
 
@@ -156,7 +160,7 @@ class LearnedDetector:
             self._session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
         else:
             if not weights.exists():
-                raise WeightsMissing(f"no detector weights at {weights}; {TRAIN_HINT}")
+                raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
             self.net = UNet(len(self.names))
             self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
             self.net.eval()
