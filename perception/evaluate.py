@@ -12,6 +12,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from perception.labels import Frame, keypoint_classes
@@ -53,7 +54,27 @@ def metrics(uv: np.ndarray, conf: np.ndarray, truth: np.ndarray, vis: np.ndarray
     return out
 
 
-def evaluate(weights: Path, labels: Path, runtime: str = "auto") -> dict:
+def draw(frames: list[Frame], images: list[np.ndarray], uv: np.ndarray, conf: np.ndarray, path: Path,
+         count: int = 7, zoom: int = 3) -> None:
+    """A sheet of held-out windows: labels (green: visible, blue: occluded) and detections at or
+    above the threshold (red), joined to their label by a line."""
+    tiles = []
+    for fr, img, u, c in list(zip(frames, images, uv, conf, strict=True))[:count]:
+        tile = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2BGR), None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+        off = np.array(fr.roi[:2], float)
+        to_px = lambda p: tuple(int(round(v)) for v in (np.asarray(p) + 0.5) * zoom - 0.5)  # noqa: E731
+        for k in range(len(fr.uv)):
+            if fr.visibility[k]:
+                cv2.circle(tile, to_px(fr.uv[k]), 3, (0, 200, 0) if fr.visibility[k] == 2 else (255, 120, 0), -1)
+            if c[k] >= THRESHOLD:
+                if fr.visibility[k]:
+                    cv2.line(tile, to_px(fr.uv[k]), to_px(u[k] - off), (0, 0, 255), 1)
+                cv2.drawMarker(tile, to_px(u[k] - off), (0, 0, 255), cv2.MARKER_CROSS, 7, 1)
+        tiles.append(cv2.resize(tile, (288, 216)))
+    cv2.imwrite(str(path), np.hstack(tiles))
+
+
+def evaluate(weights: Path, labels: Path, runtime: str = "auto", png: Path | None = None) -> dict:
     det = LearnedDetector(weights, runtime=runtime)
     task, frames, images = load_set(labels)
     if det.meta["task"] != task:
@@ -68,6 +89,8 @@ def evaluate(weights: Path, labels: Path, runtime: str = "auto") -> dict:
     uv, conf = np.concatenate(uv), np.concatenate(conf)
     truth = np.stack([fr.uv + [fr.roi[0], fr.roi[1]] for fr in frames])
     vis = np.stack([fr.visibility for fr in frames])
+    if png is not None:
+        draw(frames, images, uv, conf, png)
     return {"labels": str(labels), "images": len(frames), "runtime": det.runtime, "threshold": THRESHOLD,
             "pck_px": PCK_PX, "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images",
                                                                         "input_size", "device")},
@@ -81,8 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "eval"), help="held-out labelled set")
     p.add_argument("--runtime", default="auto", choices=("auto", "onnx", "torch"))
     p.add_argument("--out", default=".bench/detector.json")
+    p.add_argument("--png", help="also draw the first held-out windows with labels and detections to this PNG")
     a = p.parse_args(argv)
-    result = evaluate(Path(a.weights), Path(a.labels), a.runtime)
+    result = evaluate(Path(a.weights), Path(a.labels), a.runtime, Path(a.png) if a.png else None)
     print(f"held-out set {a.labels}: {result['images']} window images, runtime {result['runtime']}, detector "
           f"trained {result['trained']['iterations']} iterations / {result['trained']['train_seconds']} s")
     print(f"{'class':>7} {'labelled':>8} {'mean px':>8} {'median':>7} {'PCK@5':>6} {'det vis':>8} {'det occ':>8} "

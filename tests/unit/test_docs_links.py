@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted([ROOT / "README.md", ROOT / "hdl" / "README.md", *(ROOT / "docs").rglob("*.md")])
 # Top-level folders whose paths the docs cite; generated folders (runs/, .bench/) are not checked.
-TRACKED_ROOTS = ("services", "shared", "docs", "deploy", "bench", "tests", "hdl", "learning", "evaluation",
+TRACKED_ROOTS = ("services", "shared", "docs", "deploy", "bench", "tests", "hdl", "learning", "evaluation", "perception",
                  "calibration")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\s]+)`")
