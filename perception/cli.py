@@ -14,10 +14,14 @@ SUBCOMMANDS = {
 
 def main(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in SUBCOMMANDS:
-        print("usage: xm detector {label,train,eval} [options]\n")
+        asked = not argv or argv[0] in ("-h", "--help")
+        out = sys.stdout if asked else sys.stderr
+        if not asked:
+            print(f"xm detector: unknown subcommand {argv[0]!r}", file=out)
+        print("usage: xm detector {label,train,eval} [options]\n", file=out)
         for name, (_, text) in SUBCOMMANDS.items():
-            print(f"  {name:<6} {text}")
-        return 0 if not argv or argv[0] in ("-h", "--help") else 2
+            print(f"  {name:<6} {text}", file=out)
+        return 0 if asked else 2
     module, func = SUBCOMMANDS[argv[0]][0].split(":")
     return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
 

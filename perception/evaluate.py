@@ -59,7 +59,9 @@ def draw(frames: list[Frame], images: list[np.ndarray], uv: np.ndarray, conf: np
     """A sheet of held-out windows: labels (green: visible, blue: occluded) and detections at or
     above the threshold (red), joined to their label by a line."""
     tiles = []
-    for fr, img, u, c in list(zip(frames, images, uv, conf, strict=True))[:count]:
+    rows = list(zip(frames, images, uv, conf, strict=True))
+    windows = [r for r in rows if tuple(r[0].roi[2:]) != tuple(r[0].full_size)]  # windows show the hands large
+    for fr, img, u, c in (windows or rows)[:count]:
         tile = cv2.resize(cv2.cvtColor(img, cv2.COLOR_RGB2BGR), None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
         off = np.array(fr.roi[:2], float)
         to_px = lambda p: tuple(int(round(v)) for v in (np.asarray(p) + 0.5) * zoom - 0.5)  # noqa: E731
