@@ -23,7 +23,7 @@ from torch import nn
 from services.recon.detector import CameraModel
 
 DEFAULT_WEIGHTS_DIR = Path("runs/detector")
-INPUT_SIZE = (96, 72)  # network input (width, height): the live rig's windows (256x192 frames) at about native scale
+INPUT_SIZE = (64, 48)  # network input (width, height): fits the P6 budget on 2 cores (bench/detector.py)
 TRAIN_HINT = "train them with `xm detector label && xm detector train`"
 
 
