@@ -52,22 +52,27 @@ def time_detect(det: LearnedDetector, views: list[View], repeats: int) -> list[f
 
 
 def runtimes(folder: Path, threads: int, compile_too: bool) -> dict:
-    """name -> a detector whose ``heatmaps`` runs through that runtime."""
-    eager = LearnedDetector(folder, runtime="torch")
-    out = {"torch eager": eager}
-    example = torch.zeros(7, 3, eager.size[1], eager.size[0])
-    with torch.inference_mode():
-        scripted = torch.jit.freeze(torch.jit.trace(eager.net, example).eval())
-    jit = LearnedDetector(folder, runtime="torch")
-    jit.heatmaps = lambda b: _run(scripted, b)
-    out["torchscript (frozen)"] = jit
+    """name -> a function making a detector whose ``heatmaps`` runs through that runtime; each is
+    made just before it is timed, so no runtime's threads or compile workers idle beside another's."""
+    def scripted() -> LearnedDetector:
+        det = LearnedDetector(folder, runtime="torch")
+        example = torch.zeros(7, 3, det.size[1], det.size[0])
+        with torch.inference_mode():
+            graph = torch.jit.freeze(torch.jit.trace(det.net, example).eval())
+        det.heatmaps = lambda b: _run(graph, b)
+        return det
+
+    def compiled() -> LearnedDetector:
+        det = LearnedDetector(folder, runtime="torch")
+        net = torch.compile(det.net, dynamic=False)
+        det.heatmaps = lambda b: _run(net, b)
+        return det
+
+    out = {"torch eager": lambda: LearnedDetector(folder, runtime="torch"), "torchscript (frozen)": scripted}
     if compile_too:
-        compiled_net = torch.compile(eager.net, dynamic=False)
-        comp = LearnedDetector(folder, runtime="torch")
-        comp.heatmaps = lambda b: _run(compiled_net, b)
-        out["torch.compile"] = comp
+        out["torch.compile"] = compiled
     if (folder / "model.onnx").exists():
-        out["onnxruntime"] = LearnedDetector(folder, runtime="onnx", threads=threads)
+        out["onnxruntime"] = lambda: LearnedDetector(folder, runtime="onnx", threads=threads)
     return out
 
 
@@ -96,12 +101,14 @@ def main() -> None:
         save(UNet(len(names)), "assembly", INPUT_SIZE, [], 0.0, folder, {})
     views = frame_set(Path(args.labels))
     rows = {}
-    for name, det in runtimes(folder, args.threads, not args.no_compile).items():
+    for name, make in runtimes(folder, args.threads, not args.no_compile).items():
         try:
+            det = make()
             t = time_detect(det, views, args.repeats)
         except Exception as exc:  # torch.compile needs a C++ toolchain; a runtime that fails is reported, not fatal
             print(f"{name}: unavailable ({type(exc).__name__}: {str(exc)[:200]})")
             continue
+        del det
         rows[name] = {"median_ms": round(1e3 * float(np.median(t)), 1),
                       "p90_ms": round(1e3 * float(np.quantile(t, 0.9)), 1)}
     base = rows["torch eager"]["median_ms"]

@@ -157,10 +157,15 @@ class LearnedDetector:
 
             opts = ort.SessionOptions()
             opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
+            # Trained weights and activations hold denormal floats, which the CPU computes slowly.
+            opts.add_session_config_entry("session.set_denormal_as_zero", "1")
+            # Idle threads sleep rather than spin: recon shares two cores with the other services.
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
             self._session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
         else:
             if not weights.exists():
                 raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
+            torch.set_flush_denormal(True)  # denormal weights and activations slow CPU convolutions many times
             self.net = UNet(len(self.names))
             self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
             self.net.eval()
