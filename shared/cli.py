@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "glove": ("services.glove.cli:main", "glove tools: calibrate, register"),
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
     "calibrate": ("calibration.cli:main", "calibrate the camera rig with a ChArUco board (report beside the file)"),
+    "detector": ("perception.cli:main", "2-D keypoint detector: label, train, eval"),
 }
 
 

@@ -1,0 +1,138 @@
+"""The learned keypoint detector's inference time per 7-camera frame set (thesis 5.6, P6 budget:
+detection + reconstruction <= 50 ms median on 2 cores), through four CPU runtimes: torch eager
+(the baseline), TorchScript (traced and frozen), torch.compile (inductor) and ONNX Runtime.
+
+A frame set is the first seven window images of the held-out labelled set (``xm detector label``),
+or, without one, seven 80x72 windows of noise; the timed call is the whole ``detect``: letterbox,
+network, sub-pixel peaks, mapping to full-image pixels. Weights from runs/detector when trained,
+else random ones (inference time does not depend on their values). Medians of wall time with
+``--threads`` intra-op threads, ratios against eager measured in the same run. The machine is
+shared: figures are noisy. Writes ``speed`` into .bench/detector.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+import torch  # noqa: E402
+
+from perception.labels import keypoint_names  # noqa: E402
+from perception.train import load_set, save  # noqa: E402
+from services.recon.detector import CameraModel  # noqa: E402
+from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, INPUT_SIZE, LearnedDetector, UNet, View  # noqa: E402
+
+
+def frame_set(labels: Path) -> list[View]:
+    if (labels / "labels.json").exists():
+        _, frames, images = load_set(labels)
+        return [View(fr.camera, CameraModel(np.zeros((3, 4)), *fr.full_size, tuple(fr.roi)), img)
+                for fr, img in list(zip(frames, images, strict=True))[:7]]
+    rng = np.random.default_rng(0)
+    return [View(f"cam{i}", CameraModel(np.zeros((3, 4)), 256, 192, (80, 60, 80, 72)),
+                 rng.integers(0, 256, (72, 80, 3), np.uint8)) for i in range(7)]
+
+
+def time_detect(det: LearnedDetector, views: list[View], repeats: int) -> list[float]:
+    det.detect(views)  # warm-up: allocations, first-call graph work
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        det.detect(views)
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def runtimes(folder: Path, threads: int, compile_too: bool) -> dict:
+    """name -> a function making a detector whose ``heatmaps`` runs through that runtime; each is
+    made just before it is timed, so no runtime's threads or compile workers idle beside another's."""
+    def scripted() -> LearnedDetector:
+        det = LearnedDetector(folder, runtime="torch")
+        example = torch.zeros(7, 3, det.size[1], det.size[0])
+        with torch.inference_mode():
+            graph = torch.jit.freeze(torch.jit.trace(det.net, example).eval())
+        det.heatmaps = lambda b: _run(graph, b)
+        return det
+
+    def compiled() -> LearnedDetector:
+        det = LearnedDetector(folder, runtime="torch")
+        net = torch.compile(det.net, dynamic=False)
+        det.heatmaps = lambda b: _run(net, b)
+        return det
+
+    out = {"torch eager": lambda: LearnedDetector(folder, runtime="torch"), "torchscript (frozen)": scripted}
+    if compile_too:
+        out["torch.compile"] = compiled
+    if (folder / "model.onnx").exists():
+        out["onnxruntime"] = lambda: LearnedDetector(folder, runtime="onnx", threads=threads)
+    return out
+
+
+def _run(fn, batch: np.ndarray) -> np.ndarray:
+    with torch.inference_mode():
+        return fn(torch.from_numpy(batch)).numpy()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR))
+    parser.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "eval"))
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--no-compile", action="store_true", help="skip torch.compile (its compile takes minutes)")
+    parser.add_argument("--out", default=".bench/detector.json")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    folder = Path(args.weights)
+    trained = (folder / "weights.pt").exists() and (folder / "meta.json").exists()
+    tmp = None
+    if not trained:
+        tmp = tempfile.TemporaryDirectory()
+        folder = Path(tmp.name)
+        names = keypoint_names("assembly")
+        save(UNet(len(names)), "assembly", INPUT_SIZE, [], 0.0, folder, {})
+    views = frame_set(Path(args.labels))
+    rows = {}
+    for name, make in runtimes(folder, args.threads, not args.no_compile).items():
+        try:
+            det = make()
+            t = time_detect(det, views, args.repeats)
+        except Exception as exc:  # torch.compile needs a C++ toolchain; a runtime that fails is reported, not fatal
+            print(f"{name}: unavailable ({type(exc).__name__}: {str(exc)[:200]})")
+            continue
+        del det
+        rows[name] = {"median_ms": round(1e3 * float(np.median(t)), 1),
+                      "p90_ms": round(1e3 * float(np.quantile(t, 0.9)), 1)}
+    base = rows["torch eager"]["median_ms"]
+    for r in rows.values():
+        r["speedup_vs_eager"] = round(base / r["median_ms"], 2)
+    fastest = min(rows, key=lambda k: rows[k]["median_ms"])
+    default = LearnedDetector(folder).runtime
+    print(f"detect() on one frame set of {len(views)} windows (input {INPUT_SIZE[0]}x{INPUT_SIZE[1]}, "
+          f"{args.threads} threads, {'trained' if trained else 'random'} weights); medians of {args.repeats}")
+    print(f"{'runtime':>22} {'median ms':>10} {'p90 ms':>8} {'x eager':>8}")
+    for name, r in rows.items():
+        print(f"{name:>22} {r['median_ms']:>10} {r['p90_ms']:>8} {r['speedup_vs_eager']:>8}")
+    print(f"fastest: {fastest}; LearnedDetector's default runtime here: {default}")
+    out = Path(args.out)
+    doc = json.loads(out.read_text()) if out.exists() else {}
+    doc["speed"] = {"views": len(views), "input_size": list(INPUT_SIZE), "threads": args.threads,
+                    "weights": "trained" if trained else "random", "repeats": args.repeats, "runtimes": rows,
+                    "fastest": fastest, "default_runtime": default, "p6_budget_ms": 50.0}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    print(f"wrote {out}")
+    if tmp is not None:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,166 @@
+"""``xm detector train``: the U-Net of services/recon/learned_detector.py on a labelled set
+(perception/labels.py), with augmentation (perception/augment.py), Adam and a cosine learning
+rate, under a wall-clock budget. Writes weights.pt (a state dict, loaded with
+``weights_only=True``), meta.json, loss.png and model.onnx (for ONNX Runtime) to the output
+folder."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import cv2
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from perception.augment import AugmentParams, sample  # noqa: E402
+from perception.labels import Frame, keypoint_names, read_coco  # noqa: E402
+from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, INPUT_SIZE, UNet  # noqa: E402
+
+SIGMA = 1.5  # heatmap Gaussian, network pixels
+FOREGROUND_WEIGHT = 30.0  # heatmap pixels near a keypoint weigh this much more: most of a map is empty
+
+
+def load_set(folder: Path) -> tuple[str, list[Frame], list[np.ndarray]]:
+    task, frames = read_coco(folder / "labels.json")
+    images = []
+    for fr in frames:
+        img = cv2.imread(str(folder / fr.file_name), cv2.IMREAD_COLOR)
+        if img is None:
+            raise FileNotFoundError(f"{folder / fr.file_name}: missing or unreadable image")
+        images.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+    return task, frames, images
+
+
+def heatmap_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return ((pred - target) ** 2 * (1.0 + FOREGROUND_WEIGHT * target)).mean()
+
+
+def batch(frames: list[Frame], images: list[np.ndarray], size: tuple[int, int], n: int, aug: AugmentParams,
+          rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    xs, ys = [], []
+    for i in rng.integers(0, len(frames), n):
+        x, y = sample(images[i], frames[i].uv, frames[i].visibility, size, SIGMA, aug, rng)
+        xs.append(x)
+        ys.append(y)
+    return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys))
+
+
+def train(frames: list[Frame], images: list[np.ndarray], n_keypoints: int, size: tuple[int, int] = INPUT_SIZE,
+          iters: int = 100_000, minutes: float = 10.0, batch_size: int = 8, lr: float = 2e-3, seed: int = 0,
+          aug: AugmentParams | None = None, progress: bool = True, device: str = "cpu") -> tuple[UNet, list[float],
+                                                                                                   float]:
+    """Trains until ``iters`` iterations or ``minutes`` of wall time; returns the net, the loss per
+    iteration and the seconds spent."""
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    aug = aug or AugmentParams()
+    net = UNet(n_keypoints).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    losses: list[float] = []
+    start = time.monotonic()
+    budget = minutes * 60.0
+    bar = tqdm(total=iters if iters < 100_000 else None, desc="train", unit="it", disable=not progress)
+    net.train()
+    for it in range(iters):
+        elapsed = time.monotonic() - start
+        if elapsed > budget:
+            break
+        # Cosine decay over whichever ends first: the iterations or the time budget.
+        frac = max(it / iters, elapsed / budget)
+        for g in opt.param_groups:
+            g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(frac, 1.0)))
+        x, y = batch(frames, images, size, batch_size, aug, rng)
+        loss = heatmap_loss(net(x.to(device)), y.to(device))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        bar.update(1)
+        bar.set_postfix(loss=f"{np.mean(losses[-20:]):.4f}", lr=f"{opt.param_groups[0]['lr']:.1e}")
+    bar.close()
+    net.eval()
+    return net.cpu(), losses, time.monotonic() - start
+
+
+def plot_losses(losses: list[float], path: Path) -> None:
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(losses, lw=0.6, alpha=0.5, label="batch")
+    k = max(1, len(losses) // 50)
+    if len(losses) >= k:
+        smooth = np.convolve(losses, np.ones(k) / k, mode="valid")
+        ax.plot(np.arange(len(smooth)) + k - 1, smooth, lw=1.5, label=f"mean of {k}")
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("weighted heatmap MSE")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def export_onnx(net: UNet, size: tuple[int, int], path: Path) -> bool:
+    """The graph for ONNX Runtime (any batch size); False when the onnx package is missing."""
+    try:
+        import onnx  # noqa: F401  (optional: only needed to write the graph)
+    except ImportError:
+        return False
+    dummy = torch.zeros(1, 3, size[1], size[0])
+    torch.onnx.export(net, dummy, str(path), input_names=["image"], output_names=["heatmaps"],
+                      dynamic_axes={"image": {0: "views"}, "heatmaps": {0: "views"}}, dynamo=False)
+    return True
+
+
+def save(net: UNet, task: str, size: tuple[int, int], losses: list[float], seconds: float, out: Path,
+         extra: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    torch.save(net.state_dict(), out / "weights.pt")
+    meta = {"task": task, "keypoints": keypoint_names(task), "input_size": list(size), "sigma": SIGMA,
+            "iterations": len(losses), "train_seconds": round(seconds, 1),
+            "final_loss": float(np.mean(losses[-20:])) if losses else None, **extra}
+    (out / "meta.json").write_text(json.dumps(meta, indent=1))
+    plot_losses(losses, out / "loss.png")
+    onnx_path = out / "model.onnx"
+    onnx_path.unlink(missing_ok=True)  # never leave a graph of other weights beside these
+    export_onnx(net, size, onnx_path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="xm detector train", description=__doc__.splitlines()[0])
+    p.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "train"), help="labelled set folder")
+    p.add_argument("--out", default=str(DEFAULT_WEIGHTS_DIR))
+    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
+    p.add_argument("--iters", type=int, default=100_000)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--size", default=f"{INPUT_SIZE[0]}x{INPUT_SIZE[1]}", help="network input WxH (multiples of 8)")
+    p.add_argument("--device", default="cpu", help="torch device (cpu; cuda where one exists)")
+    a = p.parse_args(argv)
+    size = tuple(int(v) for v in a.size.split("x"))
+    if len(size) != 2 or any(v % 8 for v in size):
+        p.error("--size: WxH, both multiples of 8")
+    torch.set_num_threads(a.threads)
+    folder = Path(a.labels)
+    if not (folder / "labels.json").exists():
+        print(f"no labelled set at {folder}; make one with `xm detector label`")
+        return 2
+    task, frames, images = load_set(folder)
+    names = keypoint_names(task)
+    print(f"{len(frames)} labelled images of task {task!r}, {len(names)} keypoints, input {size}")
+    net, losses, seconds = train(frames, images, len(names), size, a.iters, a.minutes, a.batch, a.lr, a.seed,
+                                 device=a.device)
+    save(net, task, size, losses, seconds, Path(a.out),
+         {"labels": str(folder), "images": len(frames), "batch": a.batch, "lr": a.lr, "threads": a.threads,
+          "device": a.device})
+    print(f"{len(losses)} iterations in {seconds:.0f} s, loss {losses[0]:.4f} -> {np.mean(losses[-20:]):.4f}; "
+          f"wrote {a.out}/weights.pt, meta.json, loss.png, model.onnx")
+    return 0

@@ -1,0 +1,204 @@
+"""LEARNED 2-D keypoint detector (thesis 5.6): a U-Net predicts one heatmap per keypoint in each
+camera's readout window; a sub-pixel peak per heatmap gives the keypoint's pixel and confidence.
+
+The network sees only images. Each view's window image (CameraInfo.roi) is letterboxed into the
+network's fixed input (scaled to fit, padded bottom/right), the peaks are mapped back through the
+letterbox and the window offset to full-image pixels, so recon triangulates with the full-image
+projection matrices. Weights come from ``xm detector train`` (perception/); inference runs through
+ONNX Runtime when the trained graph was exported (the fastest CPU runtime measured by
+bench/detector.py), otherwise through torch.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from services.recon.detector import CameraModel
+
+DEFAULT_WEIGHTS_DIR = Path("runs/detector")
+INPUT_SIZE = (64, 48)  # network input (width, height): fits the P6 budget on 2 cores (bench/detector.py)
+TRAIN_HINT = "train them with `xm detector label && xm detector train`"
+
+
+def _conv(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class UNet(nn.Module):
+    """Twelve 3x3 convolutions, 32 -> 64 -> 128 -> 256 channels and back to 32, ReLU, max pooling,
+    skip connections by concatenation, then a 1x1 convolution to one heatmap per keypoint at the
+    input's resolution. Input height and width must be multiples of 8 (three poolings)."""
+
+    def __init__(self, keypoints: int) -> None:
+        super().__init__()
+        self.keypoints = keypoints
+        self.enc0 = nn.Sequential(_conv(3, 32), _conv(32, 32))
+        self.enc1 = nn.Sequential(_conv(32, 64), _conv(64, 64))
+        self.enc2 = nn.Sequential(_conv(64, 128), _conv(128, 128))
+        self.bottom = nn.Sequential(_conv(128, 256), _conv(256, 256))
+        self.dec2 = _conv(256 + 128, 128)
+        self.dec1 = _conv(128 + 64, 64)
+        self.dec0 = nn.Sequential(_conv(64 + 32, 32), _conv(32, 32))
+        self.head = nn.Conv2d(32, keypoints, 1)
+        self.pool = nn.MaxPool2d(2)
+        self.up = nn.Upsample(scale_factor=2, mode="nearest")
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        e0 = self.enc0(x)
+        e1 = self.enc1(self.pool(e0))
+        e2 = self.enc2(self.pool(e1))
+        b = self.bottom(self.pool(e2))
+        d2 = self.dec2(torch.cat([self.up(b), e2], 1))
+        d1 = self.dec1(torch.cat([self.up(d2), e1], 1))
+        d0 = self.dec0(torch.cat([self.up(d1), e0], 1))
+        return self.head(d0)
+
+
+def to_input(images: list[np.ndarray], size: tuple[int, int] = INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """Letterboxes RGB uint8 images (H, W, 3) into a float batch (B, 3, h, w) in [0, 1]; returns it
+    and each image's scale (network pixels per image pixel)."""
+    w, h = size
+    batch = np.zeros((len(images), 3, h, w), np.float32)
+    scales = np.zeros(len(images))
+    for i, img in enumerate(images):
+        s = min(w / img.shape[1], h / img.shape[0])
+        nw, nh = max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s))
+        small = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+        batch[i, :, :nh, :nw] = small.transpose(2, 0, 1) / 255.0
+        scales[i] = s
+    return batch, scales
+
+
+def image_to_net(uv: np.ndarray, scale: float) -> np.ndarray:
+    """Window pixel -> network pixel (pixel centres at integers on both sides)."""
+    return (np.asarray(uv, float) + 0.5) * scale - 0.5
+
+
+def net_to_full(uv: np.ndarray, scale: float, roi: tuple[int, int, int, int] | None) -> np.ndarray:
+    """Network pixel -> full-image pixel: undo the letterbox, then add the window's offset."""
+    x0, y0 = (roi[0], roi[1]) if roi else (0, 0)
+    return (np.asarray(uv, float) + 0.5) / scale - 0.5 + np.array([x0, y0], float)
+
+
+def peaks(heatmaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel peak of each heatmap (..., H, W): the maximum pixel, refined per axis by the
+    parabola through the logarithms of it and its two neighbours (exact for a Gaussian peak, the
+    training target's shape). Returns uv (..., 2) in heatmap pixels and the fitted peak's height
+    (...) as the confidence."""
+    hm = np.asarray(heatmaps, np.float32)
+    lead, (H, W) = hm.shape[:-2], hm.shape[-2:]
+    flat = hm.reshape(-1, H, W)
+    n = np.arange(len(flat))
+    py, px = np.divmod(flat.reshape(len(flat), -1).argmax(axis=1), W)
+    conf = flat[n, py, px]
+    uv = np.stack([px, py], -1).astype(float)
+    log_peak = np.zeros(len(flat))  # the fitted peak's height over the maximum pixel's, in logs
+    for axis, (pos, size) in enumerate(((px, W), (py, H))):
+        inner = (pos > 0) & (pos < size - 1)
+        lo, hi = np.clip(pos - 1, 0, size - 1), np.clip(pos + 1, 0, size - 1)
+        if axis == 0:
+            a, b = flat[n, py, lo], flat[n, py, hi]
+        else:
+            a, b = flat[n, lo, px], flat[n, hi, px]
+        floor = np.maximum(conf, 1e-12) * 1e-6  # keeps the logs finite where a neighbour is ~0
+        la, lc, lb = (np.log(np.maximum(v, floor)) for v in (a, conf, b))
+        curv = la - 2 * lc + lb
+        step = np.where(curv < -1e-9, 0.5 * (la - lb) / np.where(curv < -1e-9, curv, -1.0), 0.0)
+        step = np.where(inner & (conf > 0), np.clip(step, -0.5, 0.5), 0.0)
+        uv[:, axis] += step
+        log_peak += np.maximum(0.5 * (lb - la) * step + 0.5 * curv * step**2, 0.0)
+    return uv.reshape(*lead, 2), (conf * np.exp(log_peak)).reshape(lead)
+
+
+@dataclass
+class View:
+    """One camera's frame as recon holds it: the name, the camera model (full-image P, size, window)
+    and the decoded RGB window image (H, W, 3) uint8 whose size equals the window's."""
+    camera: str
+    model: CameraModel
+    image: np.ndarray
+
+
+class WeightsMissingError(FileNotFoundError):
+    pass
+
+
+def load_meta(folder: Path) -> dict:
+    path = Path(folder) / "meta.json"
+    if not path.exists():
+        raise WeightsMissingError(f"no detector weights in {folder} (meta.json missing); {TRAIN_HINT}")
+    return json.loads(path.read_text())
+
+
+class LearnedDetector:
+    """Loads the trained network from ``folder`` (meta.json, weights.pt, optional model.onnx) and
+    detects every keypoint in every view: ``detect(views) -> (uv (C, N, 2), confidence (C, N))`` in
+    full-image pixels, N = len(self.names)."""
+
+    def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2) -> None:
+        folder = Path(folder)
+        self.meta = load_meta(folder)
+        self.names: list[str] = list(self.meta["keypoints"])
+        self.size = tuple(self.meta["input_size"])
+        self.sigma = float(self.meta.get("sigma", 1.5))
+        onnx_path, weights = folder / "model.onnx", folder / "weights.pt"
+        if runtime == "auto":
+            runtime = "onnx" if onnx_path.exists() and _has_onnxruntime() else "torch"
+        self.runtime = runtime
+        if runtime == "onnx":
+            import onnxruntime as ort  # optional fast runtime: only when the graph was exported
+
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
+            # Trained weights and activations hold denormal floats, which the CPU computes slowly.
+            opts.add_session_config_entry("session.set_denormal_as_zero", "1")
+            # Idle threads sleep rather than spin: recon shares two cores with the other services.
+            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            self._session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+        else:
+            if not weights.exists():
+                raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
+            torch.set_flush_denormal(True)  # denormal weights and activations slow CPU convolutions many times
+            self.net = UNet(len(self.names))
+            self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+            self.net.eval()
+
+    def heatmaps(self, batch: np.ndarray) -> np.ndarray:
+        if self.runtime == "onnx":
+            return self._session.run(None, {"image": batch})[0]
+        with torch.inference_mode():
+            return self.net(torch.from_numpy(batch)).numpy()
+
+    def detect(self, views: list[View]) -> tuple[np.ndarray, np.ndarray]:
+        images = []
+        for v in views:
+            img = np.asarray(v.image)
+            x0, y0, w, h = v.model.roi or (0, 0, v.model.width, v.model.height)
+            if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+                raise ValueError(f"camera {v.camera}: expected an RGB uint8 image (H, W, 3), got {img.dtype} "
+                                 f"{img.shape}")
+            if img.shape[:2] != (h, w):
+                raise ValueError(f"camera {v.camera}: image is {img.shape[1]}x{img.shape[0]} but its window "
+                                 f"(roi) is {w}x{h}")
+            images.append(img)
+        if not images:
+            return np.zeros((0, len(self.names), 2)), np.zeros((0, len(self.names)))
+        batch, scales = to_input(images, self.size)
+        uv_net, conf = peaks(self.heatmaps(batch))
+        uv = np.stack([net_to_full(uv_net[i], scales[i], v.model.roi) for i, v in enumerate(views)])
+        return uv, np.clip(conf, 0.0, 1.0)
+
+
+def _has_onnxruntime() -> bool:
+    try:
+        import onnxruntime  # noqa: F401  (optional dependency probe)
+    except ImportError:
+        return False
+    return True
