@@ -33,8 +33,8 @@ CLAMP_TOLERANCE = 1e-4  # m or rad: smaller corrections are float32 rounding, no
 # Soft limits: the host commands no closer to a URDF limit than this, so that tracking overshoot and
 # the board's brake zone (services/robot/board_sim.py) never reach the hard stop. Trajopt plans with a
 # wider margin (services/trajopt/optimizer.py), so a plan never meets the host's clamp.
-SOFT_MARGIN_M = 0.002
-SOFT_MARGIN_RAD = 0.01
+SOFT_MARGIN_M = 0.0006
+SOFT_MARGIN_RAD = 0.003
 # Plain ints: comparing arrays with IntEnum members is slow, and this runs every control tick.
 _BRAKE, _POSITION, _VELOCITY, _EFFORT, _IMPEDANCE, _PNEUMATIC = (int(m) for m in Mode)
 

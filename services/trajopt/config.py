@@ -41,8 +41,8 @@ class TrajoptConfig:
     reach_padding: float = 0.02  # goals this far outside the sampled workspace box are unreachable
     # Plans keep this far inside the URDF joint limits: wider than the robot service's soft-limit margin
     # (services/robot/safety.py), so the robot never clamps a plan and tracking overshoot stays inside.
-    limit_margin_m: float = 0.003  # prismatic joints
-    limit_margin_rad: float = 0.015  # revolute joints
+    limit_margin_m: float = 0.001  # prismatic joints
+    limit_margin_rad: float = 0.005  # revolute joints
 
 
 @dataclass
