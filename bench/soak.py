@@ -33,6 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # runnable as a script from anywhere
 
+from deploy.supervisor import query_json  # noqa: E402
 from shared import keys  # noqa: E402
 from shared.runtime import open_client  # noqa: E402
 
@@ -88,14 +89,7 @@ class Monitor:
             return times[i - 1] if i else None
 
     def health(self, selector: str, timeout: float = 1.0) -> list[dict]:
-        out = []
-        for reply in self.session.get(selector, timeout=timeout):
-            if reply.ok is not None:
-                try:
-                    out.append(json.loads(reply.ok.payload.to_bytes()))
-                except ValueError:
-                    pass
-        return out
+        return query_json(self.session, selector, timeout)
 
     def children(self) -> list[dict]:
         sup = self.health("xm/deploy/supervisor/@health")
