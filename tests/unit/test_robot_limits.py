@@ -72,8 +72,8 @@ def workcell():
 def test_measured_positions_stay_inside_for_goals_at_and_beyond_every_limit(workcell, beyond):
     """Every joint of the workcell, to each end of its range and ``beyond`` past it (m or rad), at the
     velocity limit: the encoders never report a position more than 0.1 mm (or mrad) outside the URDF
-    limits (beyond one LSB), and MuJoCo's joint never presses further into its hard stop (after the first 0.2 s, which leave the home pose
-    on the lower stops of the Z axes and fingers)."""
+    limits (beyond one LSB), and MuJoCo's joint never presses further into its hard stop (after the
+    first 0.2 s, which leave the home pose on the lower stops of the Z axes and fingers)."""
     sim = workcell
     model = sim.robot
     hard, soft = Limits.from_model(model), soft_limits(model)
