@@ -27,6 +27,14 @@ from services.recon.learned_detector import (
 )
 
 
+@pytest.fixture(autouse=True)
+def denormals_restored():
+    """The detector flushes denormals to zero for speed (process-wide in a recon service); the tests
+    that follow in this process (hypothesis refuses to run in that mode) get normal floats back."""
+    yield
+    torch.set_flush_denormal(False)
+
+
 def gaussians(centres: np.ndarray, size: tuple[int, int], sigma: float) -> np.ndarray:
     ys, xs = np.mgrid[:size[1], :size[0]]
     return np.exp(-((xs[None] - centres[:, 0, None, None]) ** 2 + (ys[None] - centres[:, 1, None, None]) ** 2)
