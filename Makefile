@@ -48,7 +48,7 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	mkdir -p .bench
-	for b in bench/*.py; do [ $$b = bench/soak.py ] && continue; echo "== $$b"; PYTHONPATH=. $(BIN)/python $$b || exit 1; done
+	for b in bench/[!_]*.py; do [ $$b = bench/soak.py ] && continue; echo "== $$b"; PYTHONPATH=. $(BIN)/python $$b || exit 1; done
 
 SOAK_MINUTES ?= 60
 soak: $(STAMP)
