@@ -223,19 +223,27 @@ def sim_workcell(tmp: Path, timeout: float = 90.0) -> Iterator[dict]:
     text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
     deployment = tmp / "sim.toml"
     deployment.write_text(text)
-    log = (tmp / "up.log").open("w")
-    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"],
-                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     registered = {s.key for s in keys.REGISTRY}
+    with xm_up(deployment, tmp / "up.log") as proc:
 
-    def missing() -> set[str]:
-        reports = query_router(router, "xm/**/@health") if proc.poll() is None else []
-        return registered - {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
+        def missing() -> set[str]:
+            reports = query_router(router, "xm/**/@health") if proc.poll() is None else []
+            return registered - {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
 
-    try:
         wait_until(lambda: not missing(), timeout, lambda: f"the workcell to publish every registered key; missing "
                    f"{sorted(missing())}; log: {(tmp / 'up.log').read_text()[-3000:]}", period=1.0)
         yield {"router": router, "deployment": deployment, "tmp": tmp, "proc": proc}
+
+
+@contextlib.contextmanager
+def xm_up(deployment: Path, log_path: Path, *flags: str) -> Iterator[subprocess.Popen]:
+    """``xm up <deployment> --quiet <flags>`` in its own process group, output to ``log_path``;
+    SIGINT (then SIGKILL) to the whole group on exit."""
+    log = log_path.open("w")
+    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet", *flags],
+                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        yield proc
     finally:
         os.killpg(proc.pid, signal.SIGINT)
         try:

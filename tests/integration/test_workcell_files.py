@@ -4,12 +4,6 @@ would be replayed. Every camera must publish its images and CameraInfo from the 
 
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import time
 import tomllib
 
 import cv2
@@ -19,7 +13,7 @@ import pytest
 from services.world.render import SceneRenderer, snapshot
 from services.world.sim import WorldSim
 from shared import calibration, keys
-from tests.conftest import ROOT, free_endpoint, free_port, write_deployment
+from tests.conftest import ROOT, free_endpoint, free_port, query_router, wait_until, write_deployment, xm_up
 
 pytestmark = pytest.mark.slow
 FRAME_SETS = 4
@@ -59,19 +53,6 @@ def record_session(tmp, width: int, height: int) -> list[str]:
     return paths
 
 
-def health(router: str) -> list[dict]:
-    from shared.runtime import open_client
-
-    try:
-        session = open_client(router)
-    except Exception:  # router not up yet
-        return []
-    try:
-        return [json.loads(r.ok.payload.to_bytes()) for r in session.get("xm/**/@health", timeout=3.0) if r.ok]
-    finally:
-        session.close()
-
-
 def test_workcell_deployment_runs_its_cameras_from_recorded_files(tmp_path):
     spec = tomllib.loads((ROOT / "deploy/workcell.toml").read_text())
     services = spec["services"]
@@ -87,29 +68,17 @@ def test_workcell_deployment_runs_its_cameras_from_recorded_files(tmp_path):
     services["recorder"]["main"]["directory"] = str(tmp_path / "recordings")
     router = free_endpoint()
     deployment = write_deployment(tmp_path / "workcell.toml", router, services, clock=spec["deployment"]["clock"])
-    log = (tmp_path / "up.log").open("w")
-    proc = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet"], cwd=ROOT,
-                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     camera_keys = {s.key for s in keys.REGISTRY if s.service == "camhub"}
-    try:
-        deadline, reports, published, started = time.time() + 120, [], set(), set()
-        while time.time() < deadline and proc.poll() is None:
-            reports = health(router)
-            published = {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
-            started = {r["service"] for r in reports}
-            if camera_keys <= published and set(services) <= started:
-                break
-            time.sleep(2)
-        else:
-            pytest.fail(f"cameras not publishing: {sorted(camera_keys - published)}; services without @health: "
-                        f"{sorted(set(services) - started)}; log: {(tmp_path / 'up.log').read_text()[-3000:]}")
+
+    def up() -> list[dict] | None:
+        """The health reports once every camera publishes and every service answers."""
+        reports = query_router(router, "xm/**/@health")
+        published = {k for r in reports for k, hz in r.get("published_hz", {}).items() if hz > 0}
+        return reports if camera_keys <= published and set(services) <= {r["service"] for r in reports} else None
+
+    with xm_up(deployment, tmp_path / "up.log"):
+        reports = wait_until(up, 120, lambda: f"every camera publishing and every service answering @health; "
+                             f"log: {(tmp_path / 'up.log').read_text()[-3000:]}", period=2.0)
         camhub = next(r for r in reports if r["service"] == "camhub")
         assert camhub["source"] == "files" and camhub["intrinsics"] == f"calibration {tmp_path / 'rig.json'}"
         assert all(c["status"] == "ok" for c in camhub["cameras"].values()), camhub["cameras"]
-    finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-        log.close()
