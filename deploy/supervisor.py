@@ -245,9 +245,10 @@ def up_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--open", action="store_true", help="open the dashboard in a browser if there is a screen")
     parser.add_argument("--quiet", action="store_true", help="logs only to files, not the console")
-    parser.add_argument("--standby", action="store_true",
+    parser.add_argument("--standby", action=argparse.BooleanOptionalAction, default=True,
                         help="keep an imported spare process per service that takes over at once when the "
-                        "service dies (faster recovery, about twice the memory)")
+                        "service dies (default: on; a cold restart of a service takes several seconds on "
+                        "a busy host, see docs/benchmarks.md; spares cost about twice the memory)")
     args = parser.parse_args(argv)
     try:
         deployment = load_deployment(args.deployment)

@@ -28,7 +28,7 @@ from services.recorder.writer import (
     is_complete,
     repair,
 )
-from shared.recording_files import segment_key, segment_path
+from shared.recording_files import recording_segments, segment_key, segment_path
 
 SEGMENT_S = 60.0
 log = logging.getLogger("xm")
@@ -38,7 +38,8 @@ class SegmentedRecorder:
     """``McapRecorder``'s interface over a recording split into segments (``segment_s`` <= 0: one file)."""
 
     def __init__(self, path: str | Path, metadata: dict[str, Any] | None = None, segment_s: float = SEGMENT_S,
-                 flush_s: float = FLUSH_S, chunk_bytes: int = CHUNK_BYTES, validate: bool = True) -> None:
+                 flush_s: float = FLUSH_S, chunk_bytes: int = CHUNK_BYTES, validate: bool = True,
+                 first_index: int = 0) -> None:
         self.path = Path(path)
         if not self.path.name.endswith(".mcap"):
             raise RecordingError(f"{self.path}: a recording's file name ends in .mcap")
@@ -52,7 +53,8 @@ class SegmentedRecorder:
         self.started = time.monotonic()
         self.closed = False
         self._summary: Summary | None = None
-        self._open(0, time.monotonic())
+        self._index = first_index  # > 0: a recording resumed after a crash goes on in its next segment
+        self._open(first_index, time.monotonic())
 
     def _open(self, index: int, now: float) -> None:
         path = segment_path(self.path, index)
@@ -62,6 +64,7 @@ class SegmentedRecorder:
                 "segment_s": str(self.segment_s)}
         self.current = McapRecorder(path, meta, **self._options)
         self.segments.append(path)
+        self._index = index
         self._opened = now
 
     @property
@@ -87,7 +90,7 @@ class SegmentedRecorder:
         self._done["bytes"] += done.bytes
         self._done["chunks"] += done.chunks
         self._done["durable"] += done.durable
-        self._open(len(self.segments), now)
+        self._open(self._index + 1, now)
         return True
 
     def maybe_flush(self, now: float | None = None) -> bool:
@@ -118,6 +121,12 @@ class SegmentedRecorder:
                                     time.monotonic() - self.started, self._done["chunks"], self.rates(),
                                     self._done["durable"])
         return self._summary
+
+
+def next_segment_index(path: str | Path) -> int:
+    """The index the next segment of the recording whose first segment is ``path`` gets (0: none yet)."""
+    existing = [segment_key(p)[1] for p in recording_segments(path) if p.exists()]
+    return max(existing) + 1 if existing else 0
 
 
 def repair_cut_segments(directory: str | Path) -> list[dict]:

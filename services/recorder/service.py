@@ -4,12 +4,17 @@ Subscriptions are lossless FIFOs of raw payloads; each key's type comes from the
 Keys with an `@` chunk (health, liveliness, commands) are never recorded; unregistered keys and
 payloads that do not decode as their key's type are counted in @health and skipped. A recording
 is written in segments of ``segment_s`` (services/recorder/segments.py); at start the service
-repairs the segments in its directory that a crash left cut.
+repairs the segments in its directory that a crash left cut. A recording in progress is noted in
+``<directory>/.recording-<instance>.json`` until it is stopped: a recorder that finds the note at
+start (it was killed while recording) resumes that recording in its next segment at once, so a
+crash of the recorder costs the recording only the recorder's own restart.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
+import os
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -18,7 +23,7 @@ from typing import Any, ClassVar
 
 import zenoh
 
-from services.recorder.segments import SEGMENT_S, SegmentedRecorder, repair_cut_segments
+from services.recorder.segments import SEGMENT_S, SegmentedRecorder, next_segment_index, repair_cut_segments
 from services.recorder.writer import RecordingError, warm_up
 from shared import keys, msgs
 from shared.config import load_deployment
@@ -63,11 +68,11 @@ class Recording:
     """One open recording: a lossless raw subscription feeding a writer, flushed by a timer."""
 
     def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any],
-                 segment_s: float = SEGMENT_S) -> None:
+                 segment_s: float = SEGMENT_S, first_index: int = 0) -> None:
         self.node = node
         self.pattern = check_pattern(pattern)
         warm_up(registered_types())  # cached: costs only the first time in a process
-        self.writer = SegmentedRecorder(path, {**metadata, "keys": pattern}, segment_s)
+        self.writer = SegmentedRecorder(path, {**metadata, "keys": pattern}, segment_s, first_index=first_index)
         self.unknown: Counter[str] = Counter()
         self.malformed: Counter[str] = Counter()
         self.write_errors = 0
@@ -149,8 +154,11 @@ class RecorderService:
         self.recording: Recording | None = None
         self.last: dict | None = None
         self.repaired: list[dict] = []
+        self.resumed: dict | None = None
         self.deployment_name = _deployment_name(self.deployment)
+        self.note = Path(params.directory) / f".recording-{node.instance}.json"
         warm_up(registered_types())  # now, not while the first messages of a recording queue up
+        self._resume()
         node.queryable("start", self.cmd_start)
         node.queryable("stop", self.cmd_stop)
         node.queryable("status", self.cmd_status)
@@ -179,14 +187,43 @@ class RecorderService:
         meta = {"deployment": self.deployment_name, "deployment_file": self.deployment,
                 "recorder": f"{self.node.service}/{self.node.instance}", "clock": self.node.clock.mode}
         self.recording = Recording(self.node, path, pattern, meta, self.p.segment_s)
+        write_note(self.note, {"path": str(path), "keys": pattern, "metadata": meta})
         self.node.set_status("ok", f"recording to {path}")
         self.node.log.info("recording started", extra=fields(path=str(path), keys=pattern))
         return {"ok": True, "path": str(path)}
+
+    def _resume(self) -> None:
+        """Go on with the recording a killed recorder left noted, in its next segment."""
+        try:
+            note = json.loads(self.note.read_text())
+            path, pattern, meta = Path(note["path"]), str(note["keys"]), dict(note["metadata"])
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            self.node.stats.count("bad_recording_note")
+            self.node.log.warning("unreadable note of a recording in progress: not resumed",
+                                  extra=fields(note=str(self.note), error=str(exc)[:200]))
+            self.note.unlink(missing_ok=True)
+            return
+        index = next_segment_index(path)
+        try:
+            self.recording = Recording(self.node, path, pattern, {**meta, "resumed": "true"}, self.p.segment_s,
+                                       first_index=index)
+        except (OSError, ValueError) as exc:  # RecordingError is a ValueError
+            self.node.stats.count("recording_not_resumed")
+            self.node.set_status("error", f"cannot resume the recording {path}: {exc}")
+            self.note.unlink(missing_ok=True)
+            return
+        self.resumed = {"path": str(path), "segment": index, "at_ns": time.time_ns()}
+        self.node.stats.count("recording_resumed")
+        self.node.set_status("ok", f"recording to {path} (resumed after a restart, segment {index})")
+        self.node.log.warning("recording resumed after a restart", extra=fields(path=str(path), segment=index))
 
     async def cmd_stop(self, _req: dict) -> dict:
         if self.recording is None:
             return {"ok": False, "error": "not recording", "last": self.last}
         recording, self.recording = self.recording, None
+        self.note.unlink(missing_ok=True)
         try:
             self.last = await recording.stop()
         except (OSError, RecordingError) as exc:
@@ -205,7 +242,8 @@ class RecorderService:
         rec = self.recording.summary() if self.recording else None
         return {"recording": rec is not None, "path": rec["path"] if rec else None,
                 "messages": rec["messages"] if rec else {}, "bytes": rec["bytes"] if rec else 0,
-                "dropped": dropped(self.node.stats.errors), "last": self.last, "repaired_at_start": self.repaired}
+                "dropped": dropped(self.node.stats.errors), "last": self.last, "repaired_at_start": self.repaired,
+                "resumed_at_start": self.resumed}
 
     async def run(self) -> None:
         """Repair what a crash left cut in the directory (off the loop: commands are served meanwhile)."""
@@ -215,8 +253,17 @@ class RecorderService:
     async def close(self) -> None:
         if self.recording is not None:
             recording, self.recording = self.recording, None
+            self.note.unlink(missing_ok=True)  # a clean shutdown ends the recording; only a crash resumes it
             self.last = await recording.stop()
             self.node.log.info("recording closed at shutdown", extra=fields(path=self.last["path"]))
+
+
+def write_note(path: Path, note: dict) -> None:
+    """Write the note of a recording in progress atomically (a crash mid-write leaves the old one)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(note))
+    os.replace(tmp, path)
 
 
 def dropped(errors: Counter[str]) -> dict[str, Any]:

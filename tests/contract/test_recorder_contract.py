@@ -203,6 +203,46 @@ def test_kill_9_keeps_every_closed_segment_readable_and_a_restart_repairs_the_op
         svc.stop()
 
 
+def test_a_recorder_killed_while_recording_resumes_the_recording_in_its_next_segment(router, tmp_path):
+    """The restarted recorder goes on with the recording it was killed in (a new segment beside the
+    cut one, which it repairs); a stop ends it, and the next start does not resume anything."""
+    svc, session = start_recorder(router, tmp_path)
+    first = tmp_path / "recs" / "kept.mcap"
+    try:
+        assert query_json(session, f"{REC}/@cmd/start", {"path": str(first)})[0]["ok"], svc.output()
+        for i in range(20):
+            session.put("xm/clock", clock(i))
+        durable = lambda: query_json(session, f"{REC}/@cmd/status")[0]["current"]["durable_messages"]  # noqa: E731
+        assert wait_for(lambda: durable() == 20, 10), svc.output()
+        svc.kill()
+    finally:
+        svc.stop()
+    svc, session = start_recorder(router, tmp_path)
+    try:
+        resumed = health(session)["resumed_at_start"]
+        assert resumed and resumed["path"] == str(first) and resumed["segment"] == 1, health(session)
+        assert health(session)["recording"] and health(session)["path"] == str(first)
+        for i in range(20, 30):
+            session.put("xm/clock", clock(i))
+        assert wait_for(lambda: health(session)["messages"].get("xm/clock") == 10, 10), health(session)
+        stopped = query_json(session, f"{REC}/@cmd/stop")[0]
+        assert stopped["ok"] and stopped["segments"] == [str(tmp_path / "recs" / "kept.seg0001.mcap")], stopped
+        assert wait_for(lambda: health(session)["repaired_at_start"], 10), svc.output()
+        segments = recording_segments(first)
+        assert [is_complete(s) for s in segments] == [True, True]
+        with AnyReader(segments, default_typestore=msgs.typestore()) as reader:
+            got = [msgs.deserialize(raw, "rosgraph_msgs/msg/Clock").clock.sec for _, _, raw in reader.messages()]
+        assert got == list(range(30))
+        assert not list((tmp_path / "recs").glob(".recording-*"))
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
+    svc, session = start_recorder(router, tmp_path)
+    try:
+        assert health(session)["resumed_at_start"] is None and not health(session)["recording"]
+    finally:
+        svc.stop()
+
+
 def _publish_until(session, stop: threading.Event) -> None:
     i = 0
     while not stop.is_set():
