@@ -67,8 +67,16 @@ def private_deployment(src: Path, tmp: Path) -> tuple[Path, str]:
 class Monitor:
     """Arrival times (monotonic) of every key, and @health queries, over one client session."""
 
-    def __init__(self, router: str) -> None:
-        self.session = open_client(router)
+    def __init__(self, router: str, timeout: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout
+        while True:  # the supervisor's router takes a few seconds to listen on a busy host
+            try:
+                self.session = open_client(router)
+                break
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.5)
         self.arrivals: dict[str, list[float]] = defaultdict(list)
         self._lock = threading.Lock()
         self._sub = self.session.declare_subscriber("xm/**", self._on)
@@ -293,6 +301,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="`xm up --standby`: an imported spare per service takes over (default: on)")
     parser.add_argument("--deployment", default=str(ROOT / "deploy/sim.toml"))
     parser.add_argument("--seed", type=int, default=0, help="which services are killed, in which order")
+    parser.add_argument("--each", action="store_true",
+                        help="kill every service once, in the deployment's order, instead of at random "
+                        "(a per-service recovery table: with --no-standby, cold restarts)")
     parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
                         help="a service not publishing again this long after its kill is stuck")
     parser.add_argument("--out", default=str(ROOT / ".bench/soak.json"))
@@ -343,8 +354,10 @@ def main(argv: list[str] | None = None) -> int:
                 next_rss = now + 10.0
             if now >= next_kill and now + 15 < end:
                 children = [c for c in monitor.children() if c.get("pid")]
+                if args.each:
+                    children = children[len(report["kills"]):len(report["kills"]) + 1]
                 if children:
-                    child = rng.choice(children)
+                    child = children[0] if args.each else rng.choice(children)
                     brakes["recovering"] = child["service"] in ("world", "robot", "trajopt", "policy", "recon",
                                                                 "camhub")
                     kill = measure_kill(monitor, child, args.stuck_after)

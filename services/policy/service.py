@@ -76,7 +76,7 @@ class PolicyService:
             node.set_status("degraded", "; ".join(self.fallback))
         self.scene = None
         self.fresh_scene = False
-        self.episode: tuple[int, float] | None = None  # (demo index, start time)
+        self.episode: tuple[int | None, float] | None = None  # (demo index, start time)
         self.pub = node.output("plan")
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
@@ -122,6 +122,9 @@ class PolicyService:
         self.fresh_scene = True
 
     def on_session(self, msg) -> None:
+        if self.episode is not None and self.episode[0] is None:  # begun from a scene: its time stands
+            self.episode = (msg.demo, self.episode[1])
+            return
         if self.episode is None or self.episode[0] != msg.demo:
             self.episode = (msg.demo, msgs.stamp_seconds(msg.header.stamp))
             if self.naive is not None:
@@ -163,7 +166,9 @@ class PolicyService:
                               np.repeat(seen[None], steps, axis=0))
                 continue
             if self.episode is None:
-                continue
+                # A restarted policy replays from its first scene rather than wait up to a second
+                # for the world's session message; the session adopts this start (on_session).
+                self.episode = (None, t)
             hands = np.where(obs.hand_mask[..., None], obs.hands, np.nan).reshape(1, -1)
             objects = np.where(obs.object_mask[:, None], obs.objects, np.nan).reshape(1, -1)
             try:
