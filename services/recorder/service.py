@@ -148,6 +148,11 @@ class RecorderService:
         keys: str = "xm/**"  # default pattern of @cmd/start
         segment_s: float = SEGMENT_S  # length of a recording's MCAP segments (<= 0: one file)
 
+    @classmethod
+    def prepare(cls, _params: Params) -> None:
+        """A standby spare generates the decoders before it takes over (~0.7 s off a restart)."""
+        warm_up(registered_types())
+
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.p = params

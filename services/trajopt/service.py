@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -33,21 +34,35 @@ class TrajoptService:
         prior_task: str = "assembly"
         prior_demos: int = 2
 
-    def __init__(self, node: Node, params: Params) -> None:
-        self.node = node
-        self.p = params
-        self.model = load_robot(params.robot)
+    _prepared: ClassVar[dict[str, tuple]] = {}  # a standby spare's optimizer, by its params
+
+    @classmethod
+    def prepare(cls, params: Params) -> None:
+        """A standby spare builds its optimizer before it takes over (most of trajopt's start)."""
+        cls._prepared[repr(params)] = cls._build(params)
+
+    @staticmethod
+    def _build(params: Params) -> tuple:
+        model = load_robot(params.robot)
         desc = describe(params.robot)
         mean, std = {}, {}
         if desc.finger_flexion and params.pose_weight > 0:
             mean, std = teacher_prior(desc.finger_flexion, params.prior_task, params.prior_demos,
                                       HAND_NAMES.index(desc.finger_hand))
+        opt = TrajectoryOptimizer(model, TrajoptConfig(
+            knots=params.knots, fixed_knots=params.fixed_knots, max_iterations=params.max_iterations,
+            pose_mean=mean, pose_std=std, pose_weight=params.pose_weight if mean else 0.0))
+        return model, mean, opt
+
+    def __init__(self, node: Node, params: Params) -> None:
+        self.node = node
+        self.p = params
+        built = self._prepared.pop(repr(params), None) or self._build(params)
+        self.model, mean, self.opt = built
+        if mean:
             node.log.info("hand-pose prior (7.22) over %d joints from %d %s demonstrations, weight %g", len(mean),
                           params.prior_demos, params.prior_task, params.pose_weight)
         self.pose_prior = bool(mean)
-        self.opt = TrajectoryOptimizer(self.model, TrajoptConfig(
-            knots=params.knots, fixed_knots=params.fixed_knots, max_iterations=params.max_iterations,
-            pose_mean=mean, pose_std=std, pose_weight=params.pose_weight if mean else 0.0))
         self.dt = params.horizon_s / params.knots
         self.plan = None
         self.state: np.ndarray | None = None

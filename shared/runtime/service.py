@@ -11,7 +11,9 @@ its ``ports.py`` declares ``PORTS`` (shared/ports.py), and its ``__main__.py`` c
 
 With ``--standby`` the process stops after its imports and waits for a line on stdin before it
 connects: the supervisor keeps such a spare per service and hands over to it when the service
-dies, so a restart skips the interpreter's start and the imports.
+dies, so a restart skips the interpreter's start and the imports. A service class may also
+define ``prepare(params)`` (a classmethod): work that needs no connection (decoders, solvers),
+which a spare does before it waits, so the takeover skips it too.
 """
 
 from __future__ import annotations
@@ -94,10 +96,22 @@ def process_age() -> float | None:
     return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
 
 
+def prepare_spare(service: str, cls: type, deployment_path: str, instance: str) -> None:
+    """``cls.prepare(params)`` ahead of a takeover; a failure is left to the real start to report."""
+    if not hasattr(cls, "prepare"):
+        return
+    try:
+        params = load_deployment(deployment_path).service_params(cls.Params, service, instance)
+        cls.prepare(params)
+    except Exception as exc:  # the service's own start meets the same problem and reports it
+        print(f"standby: prepare failed ({exc!r}); the service does it when it starts", file=sys.stderr)
+
+
 def service_main(service: str, cls: type, argv: list[str] | None = None) -> None:
     args = parse_args(service, argv)
     woken_at = None
     if args.standby:
+        prepare_spare(service, cls, args.deployment, args.instance)
         if not sys.stdin.readline():  # EOF: the supervisor is gone, nobody needs this spare
             return
         woken_at = time.monotonic()
