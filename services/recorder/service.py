@@ -30,7 +30,7 @@ from shared.config import load_deployment
 from shared.runtime import Node, Subscription, fifo
 from shared.runtime.logs import fields
 
-FLUSH_CHECK_S = 0.25
+FLUSH_CHECK_S = 0.1
 DROP_KINDS = ("unregistered_key", "bad_payload", "write_error", "queue_overflow")
 
 
