@@ -302,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hog", action=argparse.BooleanOptionalAction, default=True,
                         help="run one CPU-bound process beside the cell (default: on)")
     parser.add_argument("--standby", action=argparse.BooleanOptionalAction, default=True,
-                        help="`xm up --standby`: an imported spare per service takes over (default: on)")
+                        help="an imported spare per service takes over, as in `xm up` (default: on; "
+                        "--no-standby: cold restarts)")
     parser.add_argument("--deployment", default=str(ROOT / "deploy/sim.toml"))
     parser.add_argument("--seed", type=int, default=0, help="which services are killed, in which order")
     parser.add_argument("--each", action="store_true",
@@ -318,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     up_log = (tmp / "up.log").open("w")
     up = subprocess.Popen([sys.executable, "-m", "shared.cli", "up", str(deployment), "--quiet",
-                           *(["--standby"] if args.standby else [])], cwd=ROOT,
+                           "--standby" if args.standby else "--no-standby"], cwd=ROOT,
                           stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
     procs = [up]
     report: dict = {"deployment": str(args.deployment), "minutes": args.minutes, "kill_every_s": args.kill_every,

@@ -5,7 +5,7 @@ as ``python -m services.<name>``; its output is
 prefixed and collected (console + ``<run_dir>/logs/<name>-<instance>.log``). A process that
 dies is restarted with exponential backoff; liveliness tokens tell who is up. Each child is
 "starting" (first start, no token yet), "restarting" (dead, waiting out its backoff),
-"recovering" (restarted, no token yet) or "ok" (``xm status``). With ``--standby`` every child
+"recovering" (restarted, no token yet) or "ok" (``xm status``). Unless ``--no-standby``, every child
 has a spare: a process of the same service that has done its imports and waits
 (``--standby``); when the child dies the spare takes over at once, and a new spare is started a
 few seconds later, off the recovery's critical path. Ctrl-C stops everything: SIGTERM, a grace
