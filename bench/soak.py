@@ -373,21 +373,13 @@ def main(argv: list[str] | None = None) -> int:
                     service, instance = kill["service"].split("/")
                     kill["ready_after_start_s"] = ready_after_start(tmp / "run" / "logs" / f"{service}-{instance}.log")
                     report["kills"].append(kill)
+                    save(Path(args.out), {**report, "partial": True, "rss": dict(rss)})  # kept if the run dies
                     print(f"[{kill['t']:7.1f} s] kill -9 {kill['service']}: "
                           f"{'STUCK' if kill['stuck'] else str(kill['recovered_s']) + ' s'}", flush=True)
                 next_kill = now + args.kill_every
             time.sleep(0.2)
         stop.set()
         sampler.join(2)
-        stopped = recorder_cmd(monitor, "stop", {})
-        gaps = recording_gaps(mcap, report["kills"])
-        for kill, g, b in zip(report["kills"], gaps["per_kill"], gaps["beyond_normal"], strict=True):
-            kill["recording_gap_s"] = g
-            kill["recording_gap_beyond_normal_s"] = b
-        segments = recording_segments(mcap)
-        report["recording"] = {"messages": gaps["messages"], "cut": gaps["cut"], "segments": len(segments),
-                               "bytes": sum(p.stat().st_size for p in segments), "stopped": stopped.get("ok"),
-                               "normal_spacing_s": gaps["normal_spacing_s"]}
         report["loadavg"] = rss.pop("_loadavg")
         brakes.pop("t0")
         brakes.pop("recovering")
@@ -398,6 +390,19 @@ def main(argv: list[str] | None = None) -> int:
             k: h.get(k) for k in ("status", "message", "errors", "rejected", "dropped", "clock_jumps")}
             for h in monitor.health("xm/**/@health", 2.0)}
         report["loadavg_end"] = os.getloadavg()
+        try:  # an hour of kills is worth keeping even if the recording cannot be analysed
+            stopped = recorder_cmd(monitor, "stop", {})
+            gaps = recording_gaps(mcap, report["kills"])
+            for kill, g, b in zip(report["kills"], gaps["per_kill"], gaps["beyond_normal"], strict=True):
+                kill["recording_gap_s"] = g
+                kill["recording_gap_beyond_normal_s"] = b
+            segments = recording_segments(mcap)
+            report["recording"] = {"messages": gaps["messages"], "cut": gaps["cut"], "segments": len(segments),
+                                   "bytes": sum(p.stat().st_size for p in segments), "stopped": stopped.get("ok"),
+                                   "normal_spacing_s": gaps["normal_spacing_s"]}
+        except Exception as exc:
+            report["recording_error"] = repr(exc)
+            print(f"recording not analysed: {exc!r} (it is in {tmp}/recordings)", file=sys.stderr)
         report["summary"] = summarize(report)
     finally:
         for p in reversed(procs):
@@ -413,12 +418,17 @@ def main(argv: list[str] | None = None) -> int:
         up_log.close()
         if monitor is not None:
             monitor.close()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(report, indent=1))
-    print(json.dumps(report["summary"], indent=1))
-    print(f"wrote {out} (logs in {tmp})")
+    save(Path(args.out), report)
+    print(json.dumps(report.get("summary"), indent=1))
+    print(f"wrote {args.out} (logs in {tmp})")
     return 0
+
+
+def save(out: Path, report: dict) -> None:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    os.replace(tmp, out)
 
 
 def summarize(report: dict) -> dict:
