@@ -126,12 +126,14 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
-def wait_up(monitor: Monitor, timeout: float) -> bool:
+def wait_up(monitor: Monitor, timeout: float, spares: bool = False) -> bool:
+    """Every registered key publishing, and with ``spares`` every service's spare imported and prepared."""
     deadline = time.monotonic() + timeout
     wanted = {s.key for s in keys.REGISTRY}
     while time.monotonic() < deadline:
         now = time.monotonic()
-        if all((t := monitor.last_before(k, now)) is not None and now - t < 2.0 for k in wanted):
+        if all((t := monitor.last_before(k, now)) is not None and now - t < 2.0 for k in wanted) and (
+                not spares or all(c.get("spare_ready") for c in monitor.children())):
             return True
         time.sleep(0.5)
     return False
@@ -329,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         time.sleep(1.0)
         monitor = Monitor(router)
-        if not wait_up(monitor, 180):
+        if not wait_up(monitor, 300, spares=args.standby):
             print(f"the cell did not come up; see {tmp}/up.log", file=sys.stderr)
             return 1
         if args.hog:

@@ -31,6 +31,7 @@ import zenoh
 from shared.config import ConfigError, Deployment, load_deployment
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
+from shared.runtime.service import STANDBY_READY
 from shared.wiring import bind, edges, start_order
 
 BACKOFF_START_S = 0.5
@@ -60,6 +61,7 @@ class Child:
     log_tasks: list[asyncio.Task] = field(default_factory=list)
     spare: asyncio.subprocess.Process | None = None  # imported, waiting on stdin (--standby)
     spare_log_tasks: list[asyncio.Task] = field(default_factory=list)
+    spare_ready_pid: int | None = None  # the spare that said it finished importing and preparing
 
     @property
     def name(self) -> str:
@@ -185,7 +187,7 @@ class Supervisor:
             *cmd, *(["--standby"] if spare else []), stdin=asyncio.subprocess.PIPE if spare else None,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT, env=env, start_new_session=True)
         logfile = (self.log_dir / f"{child.service}-{child.instance}.log").open("a")
-        return proc, [asyncio.ensure_future(self._pump(child, proc.stdout, logfile))]
+        return proc, [asyncio.ensure_future(self._pump(child, proc.stdout, logfile, proc.pid if spare else None))]
 
     async def _spare_later(self, child: Child) -> None:
         await asyncio.sleep(SPARE_DELAY_S)
@@ -193,11 +195,13 @@ class Supervisor:
             return
         child.spare, child.spare_log_tasks = await self._spawn(child, spare=True)
 
-    async def _pump(self, child: Child, stream: asyncio.StreamReader, logfile) -> None:
+    async def _pump(self, child: Child, stream: asyncio.StreamReader, logfile, spare_pid: int | None = None) -> None:
         prefix = f"{child.name:<16}| "
         try:
             while line := await stream.readline():
                 text = line.decode(errors="replace").rstrip()
+                if spare_pid is not None and text == STANDBY_READY:
+                    child.spare_ready_pid = spare_pid
                 logfile.write(text + "\n")
                 logfile.flush()
                 if not self.quiet:
@@ -234,6 +238,7 @@ class Supervisor:
             "uptime_s": round(now - c.started_at, 1) if c.proc and c.proc.returncode is None else 0.0,
             "restarts": c.restarts, "alive": c.alive, "last_exit": c.last_exit, "state": c.state,
             "spare_pid": c.spare.pid if c.spare is not None and c.spare.returncode is None else None,
+            "spare_ready": c.spare is not None and c.spare.returncode is None and c.spare_ready_pid == c.spare.pid,
         } for c in self.children]}
 
 

@@ -33,6 +33,8 @@ from shared.runtime.node import Node
 from shared.runtime.zsession import EndpointError, open_client
 from shared.wiring import bind
 
+STANDBY_READY = "standby: imported and prepared, waiting"
+
 
 def parse_args(service: str, argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog=f"python -m services.{service}",
@@ -112,6 +114,7 @@ def service_main(service: str, cls: type, argv: list[str] | None = None) -> None
     woken_at = None
     if args.standby:
         prepare_spare(service, cls, args.deployment, args.instance)
+        print(STANDBY_READY, flush=True)  # the supervisor reports the spare ready from here on
         if not sys.stdin.readline():  # EOF: the supervisor is gone, nobody needs this spare
             return
         woken_at = time.monotonic()

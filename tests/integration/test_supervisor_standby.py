@@ -30,7 +30,7 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
                 sup = query_json(session, "xm/deploy/supervisor/@health")
                 return sup[0]["children"][0] if sup else None
 
-            first = wait_for(lambda: (c := child()) and c["spare_pid"] and c["state"] == "ok" and c, 60)
+            first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
             assert first, (tmp_path / "up.log").read_text()
             assert first["spare_pid"] != first["pid"]
             os.kill(first["pid"], signal.SIGKILL)
@@ -40,6 +40,7 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
             assert health and health[0]["pid"] == first["spare_pid"] and health[0]["status"] == "ok"
             again = wait_for(lambda: (c := child()) and c["spare_pid"] not in (None, first["spare_pid"]) and c, 30)
             assert again, "no new spare after the takeover"
+            assert wait_for(lambda: (c := child()) and c["spare_ready"], 30), "the new spare never said it was ready"
             assert "from its spare" in (tmp_path / "up.log").read_text()
         finally:
             if session is not None:
