@@ -317,7 +317,7 @@ def status_main(argv: list[str] | None = None) -> int:
         print(json.dumps(reports, indent=2))
         return 0
     health = {(r["service"], r["instance"]): r for r in reports}
-    print(f"{'service':<18}{'pid':>8}{'uptime':>9}{'restarts':>9}  {'state':<11}{'status':<9} "
+    print(f"{'service':<18}{'pid':>8}{'uptime':>9}{'restarts':>9}  {'state':<11}{'spare':<8}{'status':<9} "
           f"rates (Hz) / rejected, dropped / errors")
     for child in sup["children"]:
         h = health.get((child["service"], child["instance"]), {})
@@ -328,8 +328,9 @@ def status_main(argv: list[str] | None = None) -> int:
         if state == "ok" and status == "starting":  # token up, still loading
             state = "recovering" if child["restarts"] else "starting"
         name = f"{child['service']}/{child['instance']}"
+        spare = "ready" if child.get("spare_ready") else "loading" if child.get("spare_pid") else "-"
         print(f"{name:<18}{child['pid'] or '-':>8}{child['uptime_s']:>8.0f}s{child['restarts']:>9}  "
-              f"{state:<11}{status:<9} {rates}{counted(h)}{'  ! ' + errors if errors else ''}")
+              f"{state:<11}{spare:<8}{status:<9} {rates}{counted(h)}{'  ! ' + errors if errors else ''}")
     return 0
 
 
