@@ -11,7 +11,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from services.recorder.segments import SegmentedRecorder, repair_cut_segments
+from services.recorder.segments import SegmentedRecorder, next_segment_index, repair_cut_segments
 from services.recorder.writer import is_complete, read_messages
 from shared import msgs
 from shared.recording_files import recording_segments, segment_path
@@ -102,3 +102,20 @@ def test_a_segment_being_written_is_not_repaired(tmp_path):
     assert repair_cut_segments(tmp_path) == []
     rec.close()
     assert is_complete(rec.path)
+
+
+def test_a_resumed_recording_goes_on_after_its_last_segment(tmp_path):
+    first = tmp_path / "r.mcap"
+    assert next_segment_index(first) == 0
+    rec = SegmentedRecorder(first, segment_s=0)
+    rec.write(KEY, TACTILE, tactile(0))
+    rec.close()
+    assert next_segment_index(first) == 1
+    resumed = SegmentedRecorder(first, segment_s=10.0, first_index=next_segment_index(first))
+    resumed.write(KEY, TACTILE, tactile(1))
+    assert resumed.maybe_rotate(now=resumed._opened + 10.0)  # the next one after the resumed segment
+    resumed.write(KEY, TACTILE, tactile(2))
+    resumed.close()
+    assert [p.name for p in resumed.segments] == ["r.seg0001.mcap", "r.seg0002.mcap"]
+    assert rosbags_sequences(recording_segments(first)) == [0, 1, 2]
+    assert next_segment_index(first) == 3
