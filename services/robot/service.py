@@ -18,6 +18,7 @@ import numpy as np
 
 from services.robot.driver import BoardDriver
 from services.robot.safety import (
+    WATCHDOG_TIMEOUT_S,
     CommandRejectedError,
     board_limits,
     check_finite,
@@ -34,6 +35,10 @@ from shared.realtime import raise_priority, raise_process_priority
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
+GAPS_KEPT = 100
+# A gap this long may brake a board that hears commands up to 1 ms late (USB; the simulated board's
+# arrival stamps, services/world/arrival_stamper.py).
+GAP_NEAR_WATCHDOG_S = WATCHDOG_TIMEOUT_S - 0.001
 VELOCITY_SLACK = 1.1  # trajectory time runs at most this much faster than wall time (CommandClock)
 
 
@@ -91,14 +96,16 @@ class RobotService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_config = -np.inf
-        self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0, "configs": 0,
+        self.gaps_after: list[int] = []  # the last command's sequence before each recent gap near the watchdog's
+        self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0,
+                       "gaps_over_watchdog": 0, "configs": 0,
                        "errors": 0}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state,
-                                     "command_stream": dict(self.stream),
+                                     "command_stream": {**self.stream, "gaps_after": self.gaps_after},
                                      "command_clock_jumps": self.command_clock.jumps}
 
     def _reject(self, reason: str) -> None:
@@ -146,6 +153,9 @@ class RobotService:
             elapsed, last = now - last, now
             self.stream["ticks"] += 1
             self.stream["max_gap_ms"] = max(self.stream["max_gap_ms"], elapsed * 1e3)
+            self.stream["gaps_over_watchdog"] += elapsed > WATCHDOG_TIMEOUT_S
+            if elapsed > GAP_NEAR_WATCHDOG_S:  # the board may brake: say after which command (bench/robot.py)
+                self.gaps_after = (self.gaps_after + [self.driver.sequence - 1])[-GAPS_KEPT:]
             try:
                 self._command_tick(elapsed, now)
             except Exception as exc:  # a bug in one tick must not stop the stream (the board would brake)
