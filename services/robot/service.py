@@ -183,9 +183,11 @@ class RobotService:
         except CommandRejectedError as exc:
             self._reject(str(exc))
             goal, velocity = self.target, np.zeros(len(self.target))
-        # The rate limit runs on trajectory time (at most VELOCITY_SLACK x the wall time): a trajectory
-        # within the velocity limit is never clamped because the time between two commands jittered.
-        self.target, reasons = limit_step(goal, self.target, self.limits, advanced)
+        # The rate limit allows what the axes can move in the time since the last command: the wall
+        # time, or the trajectory time when it catches up (at most VELOCITY_SLACK x the wall time), so a
+        # trajectory within the velocity limit is never clamped because the time between two commands
+        # jittered, nor a re-plan's small step while trajectory time waits for a late clock.
+        self.target, reasons = limit_step(goal, self.target, self.limits, max(advanced, elapsed))
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)

@@ -73,9 +73,9 @@ def clamps_following(use_command_clock: bool) -> int:
     clock, target, clamps = CommandClock(max_rate=VELOCITY_SLACK), start.copy(), 0
     times = command_times(0.5, seed=1)
     for t, e in zip(times, np.diff(times, prepend=-COMMAND_PERIOD), strict=True):
-        if use_command_clock:
+        if use_command_clock:  # as RobotService._command_tick
             t_traj, advanced = clock.advance(staircase(t), e)
-            dt = advanced
+            dt = max(advanced, e)
         else:  # sampling at the deployment clock itself, rate-limited on wall time
             t_traj, dt = staircase(t), e
         goal, _ = follower.sample(t_traj)
@@ -87,6 +87,34 @@ def clamps_following(use_command_clock: bool) -> int:
 def test_a_trajectory_within_the_velocity_limit_is_never_clamped():
     assert clamps_following(use_command_clock=False) > 10  # the staircase clock: the cause
     assert clamps_following(use_command_clock=True) == 0
+
+
+def test_a_replan_while_trajectory_time_waits_for_a_late_clock_is_not_clamped():
+    """The world runs late: its clock stands still, trajectory time stops within max_lead_s of it, and
+    the planner's next trajectory differs from the last by a fraction of a millimetre at that time
+    (another knot grid). Moving there within what the axes can do in the wall time is no clamp;
+    a re-plan that jumps further than that still is."""
+    model = load_robot("workcell")
+    limits = soft_limits(model)
+    start = (limits.lower + limits.upper) / 2
+    follower = TrajectoryFollower(model.joint_names)
+    assert follower.load(trajectory(model.joint_names, start, np.zeros(len(start)), 1.0), 0.0) is None
+    clock, target = CommandClock(max_rate=VELOCITY_SLACK), start.copy()
+    counts = []
+    for offset in (0.3, 3.0):  # of what the axes may move in one command period
+        replan = trajectory(model.joint_names, target + offset * limits.velocity * COMMAND_PERIOD,
+                            np.zeros(len(start)), 1.0)
+        clamps = 0
+        for k in range(50):  # the clock stands at 0.1 s
+            t_traj, advanced = clock.advance(0.1, COMMAND_PERIOD)
+            if k == 40:
+                assert advanced == 0.0 and t_traj == 0.1 + clock.max_lead_s, "trajectory time waits for the clock"
+                assert follower.load(replan, 0.1) is None
+            goal, _ = follower.sample(t_traj)
+            target, reasons = limit_step(goal, target, limits, max(advanced, COMMAND_PERIOD))
+            clamps += "velocity_limit" in reasons
+        counts.append(clamps)
+    assert counts[0] == 0 and counts[1] > 0
 
 
 def test_after_the_clock_was_held_up_trajectory_time_catches_up_at_most_10_percent_fast():
