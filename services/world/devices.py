@@ -181,7 +181,7 @@ class BoardDevice:
         self._inbox: collections.deque[tuple[float, object]] = collections.deque()
         self._stamped = bytearray()
         self.horizon: float | None = None  # wall time up to which every byte the host wrote has arrived
-        self._kick_floor = float("-inf")  # simulated times of kicks never go backward (a re-paced map)
+        self._kick: tuple[float, float] | None = None  # the last command's (board time, wall stamp)
         self.waits = 0  # steps held back for the wire
         self._last_stamp = float("-inf")  # stamp of the latest bytes from the host
         fds = [self.pty.master, self.pty.slave]
@@ -193,7 +193,7 @@ class BoardDevice:
     def restart_schedule(self) -> None:
         """The simulated time restarted."""
         self.board.restart_clock()
-        self._kick_floor = float("-inf")
+        self._kick = None
 
     def _drain_stamper(self) -> None:
         """Commands the stamper read, with their arrival times, into the inbox."""
@@ -242,12 +242,10 @@ class BoardDevice:
             t_arrival, msg = inbox[0]
             at = sim.time
             if sim_time_of is not None:
-                at = sim_time_of(t_arrival)
-                if at > sim.time and now - t_arrival < self.MAX_HOLD_S:
+                if sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
                     break
-                at = min(max(at, self._kick_floor), sim.time)
+                at = self._kick_time(t_arrival, sim_time_of, sim.time)
             inbox.popleft()
-            self._kick_floor = at
             self.board.receive(msg, at)
         if sim_time_of is not None and self._undecided(sim.time, sim_time_of, now):
             self.waits += 1
@@ -260,6 +258,19 @@ class BoardDevice:
             self.pty.write(robot_board.encode_feedback(feedback))
             self.feedback_frames += 1
         return True
+
+    def _kick_time(self, stamp: float, sim_time_of: Callable[[float], float], now_sim: float) -> float:
+        """The board time a command stamped ``stamp`` kicks the watchdog: the previous kick plus the
+        host's own spacing since the previous command, so that a world re-pacing its map (it fell
+        far behind) moves no command onto another's time; never before the previous kick or 0,
+        never after the current step (a command the world could not yet hand over)."""
+        if self._kick is None:
+            at = sim_time_of(stamp)
+        else:
+            at = self._kick[0] + sim_time_of(stamp) - sim_time_of(self._kick[1])
+        at = min(max(at, self._kick[0] if self._kick else 0.0, 0.0), now_sim)
+        self._kick = (at, stamp)
+        return at
 
     def _undecided(self, t: float, sim_time_of: Callable[[float], float], now: float) -> bool:
         """The watchdog would expire at ``t`` on the commands that arrived, but the host may have
