@@ -141,6 +141,7 @@ class RobotService:
             raise_process_priority("robot", self.node.log)
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
+        last_sent: float | None = None
         while not self._stop.is_set():
             next_t += period
             delay = next_t - time.monotonic()
@@ -153,14 +154,26 @@ class RobotService:
             elapsed, last = now - last, now
             self.stream["ticks"] += 1
             self.stream["max_gap_ms"] = max(self.stream["max_gap_ms"], elapsed * 1e3)
-            self.stream["gaps_over_watchdog"] += elapsed > WATCHDOG_TIMEOUT_S
-            if elapsed > GAP_NEAR_WATCHDOG_S:  # the board may brake: say after which command (bench/robot.py)
-                self.gaps_after = (self.gaps_after + [self.driver.sequence - 1])[-GAPS_KEPT:]
+            sequence = self.driver.sequence
             try:
                 self._command_tick(elapsed, now)
             except Exception as exc:  # a bug in one tick must not stop the stream (the board would brake)
                 self.stream["errors"] += 1
                 self.node.log.exception("command tick failed: %r", exc)
+            if self.driver.sequence != sequence:  # sent: the gap the board sees is between the writes
+                sent = time.monotonic()
+                if last_sent is not None:
+                    self._count_gap(sent - last_sent, sequence - 1)
+                last_sent = sent
+            else:
+                last_sent = None  # no feedback, no commands: the board brakes, as it should
+
+    def _count_gap(self, gap: float, before: int) -> None:
+        """A gap between two commands written: over the watchdog timeout it is counted, near it the
+        sequence of the command before it is kept (bench/robot.py tells the board's brakes apart)."""
+        self.stream["gaps_over_watchdog"] += gap > WATCHDOG_TIMEOUT_S
+        if gap > GAP_NEAR_WATCHDOG_S:
+            self.gaps_after = (self.gaps_after + [before])[-GAPS_KEPT:]
 
     def _command_tick(self, elapsed: float, now: float | None = None) -> None:
         """One command, ``elapsed`` wall seconds after the previous one."""

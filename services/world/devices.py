@@ -184,6 +184,8 @@ class BoardDevice:
         self._kick: tuple[float, float] | None = None  # the last command's (board time, wall stamp)
         self.waits = 0  # steps held back for the wire
         self._last_stamp = float("-inf")  # stamp of the latest bytes from the host
+        self._batch: list = []  # frames since the last horizon, and when the last of them was read
+        self._batch_upper = float("-inf")
         fds = [self.pty.master, self.pty.slave]
         self._stamper = subprocess.Popen([sys.executable, str(STAMPER), *map(str, fds)],
                                          pass_fds=fds, stdout=subprocess.PIPE,
@@ -215,21 +217,30 @@ class BoardDevice:
         del buf[:at]
 
     def arrived(self, data: bytes, t_wall: float) -> None:
-        """Bytes from the host, written by ``t_wall`` (monotonic seconds) and after the horizon and the
-        previous bytes. Several frames in one read mean the stamper itself could not run for a while
-        (the host never sends a burst): they are spread evenly over what is known of when they were
-        written, the kindest reading of the evidence, so a stamper held up by the host's scheduler
-        shows no gap the host may not have left; one frame after a silence keeps its silence."""
-        msgs = self.decoder.feed(data)
-        lower = max(self._last_stamp, self.horizon if self.horizon is not None else float("-inf"))
-        span = t_wall - lower if np.isfinite(lower) and lower < t_wall else 0.0
-        for i, msg in enumerate(msgs):
-            self._inbox.append((t_wall - span * (len(msgs) - 1 - i) / len(msgs), msg))
-        self._last_stamp = max(self._last_stamp, t_wall)
+        """Bytes from the host, written after the horizon and by ``t_wall`` (monotonic seconds). Their
+        frames wait for the next horizon (``heard_until``): every frame between two horizons was
+        written between them, and several frames there mean the stamper itself could not run for a
+        while (the host never sends a burst), so they are spread evenly over what is known of when
+        they were written, the kindest reading of the evidence: a stamper held up by the host's
+        scheduler shows no gap the host may not have left, and one frame after a silence keeps it."""
+        self._batch += self.decoder.feed(data)
+        self._batch_upper = t_wall
 
     def heard_until(self, t_wall: float) -> None:
         """Every byte the host wrote before ``t_wall`` (monotonic seconds) has arrived."""
+        self._release_batch()
         self.horizon = t_wall if self.horizon is None else max(self.horizon, t_wall)
+
+    def _release_batch(self) -> None:
+        batch, upper = self._batch, self._batch_upper
+        if not batch:
+            return
+        lower = max(self._last_stamp, self.horizon if self.horizon is not None else float("-inf"))
+        span = upper - lower if np.isfinite(lower) and lower < upper else 0.0
+        for i, msg in enumerate(batch):
+            self._inbox.append((upper - span * (len(batch) - 1 - i) / len(batch), msg))
+        self._last_stamp = max(self._last_stamp, upper)
+        self._batch = []
 
     def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> bool:
         """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
@@ -238,6 +249,8 @@ class BoardDevice:
         whether the watchdog expires at this step (the caller waits and calls again)."""
         self._drain_stamper()
         inbox, now = self._inbox, time.monotonic() if now is None else now
+        if self._batch and now - self._batch_upper >= self.MAX_HOLD_S:  # no horizon comes (a dead stamper)
+            self._release_batch()
         while inbox:
             t_arrival, msg = inbox[0]
             at = sim.time

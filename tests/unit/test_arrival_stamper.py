@@ -51,9 +51,9 @@ def frame(seq: int, n: int) -> bytes:
     return rb.encode_command(rb.CommandFrame(seq, np.full(n, rb.Mode.POSITION, np.uint8), *np.zeros((5, n))))
 
 
-def run(tmp_path, deliveries: list[tuple[float, float, list[int], float]], until: float) -> BoardDevice:
+def run(tmp_path, deliveries: list[tuple[float, float, list[int], float | None]], until: float) -> BoardDevice:
     """The host writes command ``k`` at ``k * PERIOD``; the pty delivers them as ``deliveries``
-    (delivered at, stamp, commands, horizon after them); the world steps simulated time along the
+    (delivered at, stamp, commands, horizon after them or None); the world steps simulated time along the
     wall time, asking again while ``step`` holds it back, up to ``until``. Returns the device (closed).
     Times count from ``base``, past every real probe of the device's own stamper (no host writes to
     its pty, so it only reports horizons, all earlier)."""
@@ -68,7 +68,8 @@ def run(tmp_path, deliveries: list[tuple[float, float, list[int], float]], until
                 _, stamp, seqs, horizon = pending.pop(0)
                 if seqs:
                     device.arrived(b"".join(frame(k, len(names)) for k in seqs), base + stamp)
-                device.heard_until(base + horizon)
+                if horizon is not None:
+                    device.heard_until(base + horizon)
             if sim.time <= wall and device.step(sim, lambda w: w - base, now=base + wall):
                 sim.time += DT
             else:  # paced to the wall time, or held back: time passes
@@ -92,8 +93,8 @@ def test_a_pty_that_holds_commands_back_starves_no_watchdog(tmp_path):
     deliveries = prompt(range(10))
     # the pty stalls for 50 ms: commands 10-21 arrive together, each bounded by a probe in flight
     deliveries += [(0.095, 0.04 + 0.004 * i + 0.001, [10 + i], 0.04 + 0.004 * i) for i in range(12)]
-    # the stamper itself was held up for 40 ms: commands 22-31 in one read, no probe between them
-    deliveries += [(0.128, 0.128, list(range(22, 32)), 0.128)]
+    # the stamper itself was held up for 40 ms: commands 22-31 in two reads, no probe among them
+    deliveries += [(0.128, 0.128, list(range(22, 26)), None), (0.1281, 0.1281, list(range(26, 32)), 0.1281)]
     deliveries += prompt(range(32, 100))
     device = run(tmp_path, deliveries, until=0.4)
     assert device.board.counters["commands"] == 100

@@ -4,6 +4,8 @@ at their arrival time so the watchdog sees the host's real gaps."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from services.robot.safety import limit_step, soft_limits
@@ -153,18 +155,20 @@ def test_commands_reach_the_simulated_board_at_their_arrival_time(tmp_path):
     names = load_robot("workcell").joint_names
     n = len(names)
     results = {}
+    base = time.monotonic() + 1000.0  # past every horizon of the device's own stamper (no host writes to it)
     for mapped in (True, False):
         device = BoardDevice(str(tmp_path / f"board-{mapped}"), names)
         sim = StalledSim(n)
         command = rb.CommandFrame(0, np.full(n, rb.Mode.POSITION, np.uint8), *np.full((5, n), 0.0))
         try:
             for seq in range(300):  # 1.2 s of commands
-                wall = seq * COMMAND_PERIOD
+                wall = base + seq * COMMAND_PERIOD
                 command.sequence = seq
                 device.arrived(rb.encode_command(command), wall)
+                device.heard_until(wall)  # the stamper's next probe
                 if seq % 25 == 24:  # the world wakes up and catches up to the wall time, a tick ahead
-                    while sim.time < wall + TICK:
-                        device.step(sim, (lambda w: w + TICK) if mapped else None, now=wall)
+                    while sim.time < wall - base + TICK:
+                        device.step(sim, (lambda w: w - base + TICK) if mapped else None, now=wall)
                         sim.time += sim.physics_dt
             results[mapped] = device.board.counters["brake_events"]
         finally:
