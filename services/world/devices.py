@@ -218,28 +218,37 @@ class BoardDevice:
 
     def arrived(self, data: bytes, t_wall: float) -> None:
         """Bytes from the host, written after the horizon and by ``t_wall`` (monotonic seconds). Their
-        frames wait for the next horizon (``heard_until``): every frame between two horizons was
-        written between them, and several frames there mean the stamper itself could not run for a
-        while (the host never sends a burst), so they are spread evenly over what is known of when
-        they were written, the kindest reading of the evidence: a stamper held up by the host's
-        scheduler shows no gap the host may not have left, and one frame after a silence keeps it."""
+        frames wait for the next horizon (``heard_until``), which closes what is known of when they
+        were written (``_release_batch``)."""
         self._batch += self.decoder.feed(data)
         self._batch_upper = t_wall
 
     def heard_until(self, t_wall: float) -> None:
         """Every byte the host wrote before ``t_wall`` (monotonic seconds) has arrived."""
-        self._release_batch()
+        self._release_batch(t_wall)
         self.horizon = t_wall if self.horizon is None else max(self.horizon, t_wall)
 
-    def _release_batch(self) -> None:
+    def _release_batch(self, closing: float | None = None) -> None:
+        """The frames read since the last horizon, into the inbox with their write times. Each was
+        written after the previous frame and the last horizon, and by its read's stamp; where that
+        leaves room (the stamper itself could not run for a while, and read a backlog) they are placed
+        evenly between the previous frame and the closing horizon, inside those bounds: the kindest
+        reading of the evidence, so a gap the host may not have left shows nowhere, while one the
+        probes prove (no frame between two horizons more than 10 ms apart) still does."""
         batch, upper = self._batch, self._batch_upper
         if not batch:
             return
         lower = max(self._last_stamp, self.horizon if self.horizon is not None else float("-inf"))
-        span = upper - lower if np.isfinite(lower) and lower < upper else 0.0
-        for i, msg in enumerate(batch):
-            self._inbox.append((upper - span * (len(batch) - 1 - i) / len(batch), msg))
-        self._last_stamp = max(self._last_stamp, upper)
+        if not np.isfinite(lower) or lower >= upper:
+            stamps = [upper] * len(batch)
+        else:
+            prev = self._last_stamp if np.isfinite(self._last_stamp) else lower
+            end = max(upper, closing if closing is not None else upper)
+            stamps = [min(max(prev + (end - prev) * (i + 1) / (len(batch) + 1), lower), upper)
+                      for i in range(len(batch))]
+        for stamp, msg in zip(stamps, batch, strict=True):
+            self._inbox.append((stamp, msg))
+        self._last_stamp = stamps[-1]
         self._batch = []
 
     def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> bool:
