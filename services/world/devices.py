@@ -159,9 +159,10 @@ class BoardDevice:
     at the first step of a burst: the gaps between them in simulated time would differ from the
     real ones and the 10 ms watchdog would brake although the host never paused. So a helper
     process (services/world/arrival_stamper.py) stamps each read from the host with when the host
-    wrote it (at most one probe period late), and ``step`` hands each command to the board at the
-    step whose simulated time matches (``sim_time_of``, the world's wall -> simulated time map),
-    kicking the watchdog at that time.
+    wrote it (at most one probe period late; frames of a backlog the stamper read late are placed by
+    ``_release_batch``), and ``step`` hands each command to the board at the step whose simulated
+    time matches (``sim_time_of``, the world's wall -> simulated time map), kicking the watchdog at
+    the previous kick plus the host's own spacing (``_kick_time``).
 
     The pty's own transfer can hold the host's bytes back far longer than 10 ms on a busy host (the
     stamper says why); a real board's UART sees them within about a millisecond. So once a command
