@@ -118,6 +118,9 @@ def run_once(seconds: float, load: int, speed: float) -> dict:
             "host_gaps_over_10ms_per_min": (after_r["command_stream"]["gaps_over_watchdog"]
                                             - before_r["command_stream"]["gaps_over_watchdog"]) / minutes,
             "stop_brake": stop_brake,
+            # trajectory time snapped to a clock that jumped (a world stalled for over 0.5 s, then caught
+            # up): the setpoint jumps with it, and the host rightly clamps the chase to the velocity limit
+            "command_clock_jumps": after_r["command_clock_jumps"] - before_r["command_clock_jumps"],
             "limit_brakes_per_min": (board(after_w)["limit_brakes"] - board(before_w)["limit_brakes"]) / minutes,
             "clamped_velocity_limit_per_min": (err(after_r, "clamped_velocity_limit")
                                                - err(before_r, "clamped_velocity_limit")) / minutes,
@@ -178,7 +181,8 @@ def line(r: dict) -> str:
             f"{b.get('after_last_command_ms', float('nan')):.1f} ms board time,"
             f" limit brakes {r['limit_brakes_per_min']:.1f}/min, clamps "
             f"velocity {r['clamped_velocity_limit_per_min']:.1f}/min position {r['clamped_position_limit_per_min']:.1f}"
-            f"/min; command stream {s['priority']}, longest gap {s['max_gap_ms']:.1f} ms, {s['late_ticks']} late "
+            f"/min ({r['command_clock_jumps']} trajectory-time jumps); command stream {s['priority']}, "
+            f"longest gap {s['max_gap_ms']:.1f} ms, {s['late_ticks']} late "
             f"ticks; world real-time ratio {r['world_realtime_ratio']}; load avg {r['loadavg_1min_end']:.1f}")
 
 
