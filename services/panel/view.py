@@ -110,6 +110,40 @@ def tactile_image(pressure: Sequence[float], mask: Sequence[int] | None = None, 
     return np.kron(rgb, np.ones((scale, scale, 1), np.uint8))
 
 
+def tactile_mesh_arrays(hand_names: Sequence[str], vertex_count: int, vertices: Sequence[float],
+                        faces: Sequence[int], pressure: Sequence[float]
+                        ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """TactileMesh fields -> per hand (name, vertices (N,3) float32, faces (F,3) int, pressure (N,))."""
+    names, n = list(hand_names), int(vertex_count)
+    h = len(names)
+    v, p, f = np.asarray(vertices, np.float32), np.asarray(pressure, np.float32), np.asarray(faces, np.int64)
+    if v.size != h * n * 3 or p.size != h * n:
+        raise ViewError(f"tactile mesh has {v.size} vertex values and {p.size} pressures, "
+                        f"expected {h}*{n}*3 and {h}*{n}")
+    if h == 0:
+        return []
+    if f.size % (3 * h):
+        raise ViewError(f"tactile mesh has {f.size} face indices: not {h} hands of triangles")
+    f = f.reshape(h, -1, 3)
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise ViewError(f"tactile mesh face index outside 0..{n - 1}")
+    v, p = v.reshape(h, n, 3), p.reshape(h, n)
+    return [(names[i], v[i], f[i], p[i]) for i in range(h)]
+
+
+def tactile_mesh_colors(pressure: Sequence[float], sensed: Sequence[int], base: tuple[int, int, int],
+                        vmax: float = 30.0) -> np.ndarray:
+    """(N,3) uint8 vertex colours: sensed vertices on the heatmaps' inferno scale (0-vmax kPa),
+    the rest in the hand's colour."""
+    p = np.asarray(pressure, float)
+    s = np.asarray(sensed, bool)
+    if s.shape != p.shape:
+        raise ViewError(f"tactile mesh has {s.size} sensed flags for {p.size} vertices")
+    level = np.clip(np.nan_to_num(p) / vmax, 0.0, 1.0)
+    rgb = colormaps["inferno"](level)[:, :3] * 255
+    return np.where(s[:, None], rgb, np.asarray(base, float)[None, :]).round().astype(np.uint8)
+
+
 # --- robot --------------------------------------------------------------------------------
 
 def joint_vector(model_names: Sequence[str], names: Sequence[str], positions: Sequence[float]) -> np.ndarray:
