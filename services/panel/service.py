@@ -31,7 +31,7 @@ from shared.runtime import EndpointError, Node
 RECORDER = "xm/recorder/main/@cmd"
 FRAME_SIZE = 0.8  # the aluminium frame around the table, metres (services/world/model.py)
 FRAME_HEIGHT = 0.8
-TACTILE_MESH_STALE_S = 1.0  # a hand's tactile mesh is hidden when recon has not sent it for this long
+TACTILE_MESH_STALE_S = 2.0  # a hand's tactile mesh is hidden when recon has not sent it for this long
 
 
 class PanelService:
@@ -65,6 +65,7 @@ class PanelService:
         self._frustum_p: dict[str, tuple] = {}
         self._logged: set[str] = set()
         self._mesh_seen: dict[str, float] = {}  # hand -> when its tactile mesh was last drawn
+        self._mesh_view: tuple[np.ndarray, np.ndarray] | None = None  # camera facing the most pressed hand
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
@@ -127,7 +128,7 @@ class PanelService:
         self.plan = sc.add_line_segments("/plan", np.zeros((1, 2, 3)), view.PLAN_COLOR, thickness=0.003,
                                          visible=False)
         self.frustums: dict[str, Any] = {}
-        self.tactile_meshes: dict[str, Any] = {}  # hand -> GLB handle (replaced on every draw)
+        self.tactile_meshes: dict[str, Any] = {}  # hand -> GLB handle (its data replaced on every draw)
 
     def _build_gui(self) -> None:
         gui = self.server.gui
@@ -137,6 +138,8 @@ class PanelService:
         with gui.add_folder("Tactile"):
             blank = view.tactile_image(np.zeros(256), scale=8)
             self.tactile_images = {h: gui.add_image(blank, label=f"{h} glove", format="png") for h in GLOVES}
+            look = gui.add_button("Look at the gloved hand")
+            look.on_click(self._look_at_glove)
         with gui.add_folder("Camera"):
             dropdown = gui.add_dropdown("camera", list(CAMERAS), initial_value=self.camera_choice)
             dropdown.on_update(lambda _e: setattr(self, "camera_choice", dropdown.value))
@@ -149,6 +152,13 @@ class PanelService:
             stop.on_click(lambda _e: self._recorder("stop", {}))
         with gui.add_folder("Services"):
             self.status_md = gui.add_markdown("querying `xm/**/@health`...")
+
+    def _look_at_glove(self, event: Any) -> None:
+        """viser worker thread: moves the clicking browser's camera to the palm side of the hand
+        whose tactile mesh carries the most pressure (it only reads the tuple the loop replaces)."""
+        pose = self._mesh_view
+        if pose is not None and event.client is not None:
+            event.client.camera.position, event.client.camera.look_at = pose
 
     def _recorder(self, verb: str, request: dict) -> None:
         """viser worker thread: a blocking query is fine here."""
@@ -279,12 +289,19 @@ class PanelService:
         """Each gloved hand's surface, coloured by pressure; hidden once recon stops sending it."""
         if msg is not None:
             sensed = np.asarray(msg.sensed, np.uint8)
-            hands = view.tactile_mesh_arrays(msg.hand_names, msg.vertex_count, msg.vertices, msg.faces, msg.pressure)
+            hands = view.tactile_mesh_arrays(msg.hand_names, msg.vertex_count, msg.vertices, msg.faces, msg.pressure,
+                                             sensed)
+            if hands:
+                _, verts, _, _ = max(hands, key=lambda h: float(np.sum(h[3])))
+                self._mesh_view = view.palm_side_view(verts, sensed)
             for name, verts, faces, pressure in hands:
                 colors = view.tactile_mesh_colors(pressure, sensed, view.HAND_COLORS.get(name, (200, 200, 200)))
                 glb = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False).export(
                     file_type="glb", include_normals=True)  # with normals: shaded smooth, not flat
-                self.tactile_meshes[name] = self.server.scene.add_glb(f"/hands/{name}_tactile", glb)
+                if name in self.tactile_meshes:  # in place: the browser keeps the node (and its shadow)
+                    self.tactile_meshes[name].glb_data = glb
+                else:
+                    self.tactile_meshes[name] = self.server.scene.add_glb(f"/hands/{name}_tactile", glb)
                 self._mesh_seen[name] = now
         for name, handle in self.tactile_meshes.items():
             fresh = now - self._mesh_seen.get(name, -np.inf) < TACTILE_MESH_STALE_S

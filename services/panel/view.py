@@ -111,15 +111,18 @@ def tactile_image(pressure: Sequence[float], mask: Sequence[int] | None = None, 
 
 
 def tactile_mesh_arrays(hand_names: Sequence[str], vertex_count: int, vertices: Sequence[float],
-                        faces: Sequence[int], pressure: Sequence[float]
+                        faces: Sequence[int], pressure: Sequence[float], sensed: Sequence[int] | None = None
                         ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
-    """TactileMesh fields -> per hand (name, vertices (N,3) float32, faces (F,3) int, pressure (N,))."""
+    """TactileMesh fields -> per hand (name, vertices (N,3) float32, faces (F,3) int, pressure (N,));
+    ``sensed``, when given, must have one flag per vertex."""
     names, n = list(hand_names), int(vertex_count)
     h = len(names)
     v, p, f = np.asarray(vertices, np.float32), np.asarray(pressure, np.float32), np.asarray(faces, np.int64)
     if v.size != h * n * 3 or p.size != h * n:
         raise ViewError(f"tactile mesh has {v.size} vertex values and {p.size} pressures, "
                         f"expected {h}*{n}*3 and {h}*{n}")
+    if sensed is not None and len(sensed) != n:
+        raise ViewError(f"tactile mesh has {len(sensed)} sensed flags for {n} vertices")
     if h == 0:
         return []
     if f.size % (3 * h):
@@ -142,6 +145,18 @@ def tactile_mesh_colors(pressure: Sequence[float], sensed: Sequence[int], base: 
     level = np.clip(np.nan_to_num(p) / vmax, 0.0, 1.0)
     rgb = colormaps["inferno"](level)[:, :3] * 255
     return np.where(s[:, None], rgb, np.asarray(base, float)[None, :]).round().astype(np.uint8)
+
+
+def palm_side_view(vertices: np.ndarray, sensed: Sequence[int], distance: float = 0.35
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point) facing a hand's sensors: the sensors sit on the palm side,
+    so the camera stands off the mesh's centre toward their mean, a little raised."""
+    v = np.asarray(vertices, float)
+    centre = v.mean(axis=0)
+    s = np.asarray(sensed, bool)
+    toward = v[s].mean(axis=0) - centre if s.any() else np.zeros(3)
+    toward = toward / max(np.linalg.norm(toward), 1e-9) + np.array([0.0, 0.0, 0.3])
+    return centre + distance * toward / np.linalg.norm(toward), centre
 
 
 # --- robot --------------------------------------------------------------------------------
