@@ -147,16 +147,20 @@ def tactile_mesh_colors(pressure: Sequence[float], sensed: Sequence[int], base: 
     return np.where(s[:, None], rgb, np.asarray(base, float)[None, :]).round().astype(np.uint8)
 
 
-def palm_side_view(vertices: np.ndarray, sensed: Sequence[int], distance: float = 0.35
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(camera position, look-at point) facing a hand's sensors: the sensors sit on the palm side,
-    so the camera stands off the mesh's centre toward their mean, a little raised."""
+def palm_side_view(vertices: np.ndarray, sensed: Sequence[int], distance: float = 0.3,
+                   elevation_deg: float = 35.0) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point) for a hand's sensors: the camera stands off the mesh's centre
+    on the side the sensors face (they sit on the palm side), ``elevation_deg`` above the table's
+    plane, so a palm turned down is seen from the side rather than from under the table."""
     v = np.asarray(vertices, float)
     centre = v.mean(axis=0)
     s = np.asarray(sensed, bool)
-    toward = v[s].mean(axis=0) - centre if s.any() else np.zeros(3)
-    toward = toward / max(np.linalg.norm(toward), 1e-9) + np.array([0.0, 0.0, 0.3])
-    return centre + distance * toward / np.linalg.norm(toward), centre
+    toward = (v[s].mean(axis=0) - centre)[:2] if s.any() else np.zeros(2)
+    if np.linalg.norm(toward) < 1e-6:  # facing straight up or down: the dashboard's default side
+        toward = np.array([1.0, -1.0])
+    e = np.radians(elevation_deg)
+    direction = np.append(np.cos(e) * toward / np.linalg.norm(toward), np.sin(e))
+    return centre + distance * direction, centre
 
 
 # --- robot --------------------------------------------------------------------------------

@@ -87,7 +87,9 @@ class TactileProjector:
     def __init__(self, tmpl: Template | None = None) -> None:
         self.template = tmpl or template()
         self.rc, self.region, self.sensed = vertex_coordinates(self.template)
-        self.pad = {k: padding_indices(k) for k in np.unique(self.region[self.sensed])}
+        # Per sensor: its vertices, their (row, col) and the padding of its copy of the matrix.
+        self.sensors = [(np.flatnonzero(self.region == k), self.rc[self.region == k].T, padding_indices(k))
+                        for k in np.unique(self.region[self.sensed])]
 
     def sample(self, pressure: np.ndarray) -> np.ndarray:
         """Per-vertex pressure (N,) float32 from a ROWS x COLS frame (kPa); 0 where nothing senses."""
@@ -98,9 +100,8 @@ class TactileProjector:
         if not np.isfinite(p).all():
             raise ValueError("tactile frame has non-finite values")
         out = np.zeros(self.template.n_vertices, np.float32)
-        for k, idx in self.pad.items():
-            sel = self.region == k
-            out[sel] = map_coordinates(p[idx[0], idx[1]], self.rc[sel].T, order=3, mode="nearest")
+        for vertices, coords, pad in self.sensors:
+            out[vertices] = map_coordinates(p[pad[0], pad[1]], coords, order=3, mode="nearest")
         return out
 
     def hand(self, keypoints: np.ndarray, side: str, pressure: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
