@@ -148,18 +148,18 @@ def tactile_mesh_colors(pressure: Sequence[float], sensed: Sequence[int], base: 
 
 
 def palm_side_view(vertices: np.ndarray, sensed: Sequence[int], distance: float = 0.3,
-                   elevation_deg: float = 35.0) -> tuple[np.ndarray, np.ndarray]:
-    """(camera position, look-at point) for a hand's sensors: the camera stands off the mesh's centre
-    on the side the sensors face (they sit on the palm side), ``elevation_deg`` above the table's
-    plane, so a palm turned down is seen from the side rather than from under the table."""
+                   elevation_deg: tuple[float, float] = (-45.0, 60.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point) facing a hand's sensors: the camera stands off the mesh's
+    centre on the side the sensors face (they sit on the palm side), its elevation above the
+    table's plane held within ``elevation_deg`` (a palm turned down is seen obliquely from below)."""
     v = np.asarray(vertices, float)
     centre = v.mean(axis=0)
     s = np.asarray(sensed, bool)
-    toward = (v[s].mean(axis=0) - centre)[:2] if s.any() else np.zeros(2)
-    if np.linalg.norm(toward) < 1e-6:  # facing straight up or down: the dashboard's default side
-        toward = np.array([1.0, -1.0])
-    e = np.radians(elevation_deg)
-    direction = np.append(np.cos(e) * toward / np.linalg.norm(toward), np.sin(e))
+    toward = v[s].mean(axis=0) - centre if s.any() else np.zeros(3)
+    toward /= max(np.linalg.norm(toward), 1e-12)
+    horizontal = toward[:2] if np.linalg.norm(toward[:2]) > 1e-6 else np.array([1.0, -1.0])  # the default side
+    e = np.clip(np.arcsin(np.clip(toward[2], -1.0, 1.0)), *np.radians(elevation_deg))
+    direction = np.append(np.cos(e) * horizontal / np.linalg.norm(horizontal), np.sin(e))
     return centre + distance * direction, centre
 
 

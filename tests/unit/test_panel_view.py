@@ -94,17 +94,16 @@ def test_tactile_mesh_colors_heat_the_sensed_vertices_only():
         view.tactile_mesh_colors([1.0, 2.0], [1], base)
 
 
-def test_palm_side_view_faces_the_sensors_from_above_the_table():
+def test_palm_side_view_faces_the_sensors():
     verts = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1], [0.1, 0.0, 0.1],
-                      [0.05, 0.02, 0.05], [0.05, 0.02, 0.06]]) + [0.2, 0.1, 0.3]  # sensors toward +y
-    position, target = view.palm_side_view(verts, [0, 0, 0, 0, 1, 1], distance=0.4, elevation_deg=30.0)
+                      [0.05, 0.02, 0.05], [0.05, 0.02, 0.05]]) + [0.2, 0.1, 0.3]  # sensors toward +y
+    position, target = view.palm_side_view(verts, [0, 0, 0, 0, 1, 1], distance=0.4)
     np.testing.assert_allclose(target, verts.mean(axis=0))
-    offset = position - target
-    np.testing.assert_allclose(offset, 0.4 * np.array([0.0, np.cos(np.pi / 6), 0.5]), atol=1e-9)
+    np.testing.assert_allclose(position - target, [0.0, 0.4, 0.0], atol=1e-9)
     down = np.array([[0.0, 0.0, 0.3], [0.1, 0.0, 0.3], [0.0, 0.1, 0.3], [0.1, 0.1, 0.3],
-                     [0.05, 0.05, 0.28], [0.05, 0.05, 0.28]])  # flat, palm down: from above, the default side
-    position, target = view.palm_side_view(down, [0, 0, 0, 0, 1, 1])
-    assert position[2] > target[2] and position[0] > target[0] and position[1] < target[1]
+                     [0.05, 0.05, 0.28], [0.05, 0.05, 0.28]])  # flat, palm down: from below at 45 degrees
+    position, target = view.palm_side_view(down, [0, 0, 0, 0, 1, 1], distance=0.4)
+    np.testing.assert_allclose(position - target, 0.4 * np.array([0.5, -0.5, -np.sqrt(0.5)]), atol=1e-9)
 
 
 def test_camera_frustum_recovers_the_pose_and_fov_from_projection():
