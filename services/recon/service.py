@@ -198,8 +198,10 @@ class ReconService:
                              r.object_mask, tactile, tactile_mask)
 
     def _tactile_mesh(self, stamp: float, r: Reconstruction) -> None:
+        t0 = time.perf_counter()
         fresh = {h: p for h, (t, p) in self.pressure.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
         msg, skipped = self.projector.message(stamp, self.recon.hand_names, r.hands, r.hand_mask, fresh)
+        self.times[-1]["tactile_mesh"] = time.perf_counter() - t0  # a stage of @health's stage_ms_median
         for hand, why in skipped.items():  # keypoints missing, or a bad glove frame
             self.node.stats.count(f"tactile_mesh_{why}", hand)
         if msg is not None:

@@ -246,3 +246,4 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
     palm = TactileProjector().region == PALM_REGION
     assert (values[palm] > 1.0).all() and (values[~palm] == 0).all()
     np.testing.assert_allclose(verts, pose(kp[21:], "right"), atol=2e-3)  # from the triangulated keypoints
+    assert "tactile_mesh" in node.health_extra()["stage_ms_median"]
