@@ -125,9 +125,15 @@ def test_the_pressed_finger_lights_where_it_is_on_the_posed_hand(projector, side
     little = np.linalg.norm(lit - kp[17:21].mean(axis=0), axis=1).mean()
     index = np.linalg.norm(lit - kp[5:9].mean(axis=0), axis=1).mean()
     assert little < 0.5 * index
-    R, frames = bone_frames(kp, side)
-    palmar = -frames[4, :, :, 2].mean(axis=0)  # the little finger's palm side
-    assert ((lit - kp[17:21].mean(axis=0)) @ palmar).mean() > 0.003
+    axis = kp[17] - kp[0]
+    curl = kp[20] - kp[17] - (kp[20] - kp[17]) @ axis / (axis @ axis) * axis  # fingers curl toward the palm
+    assert ((lit - kp[17:21].mean(axis=0)) @ curl).mean() > 0, "the sensor sits on the side the finger curls to"
+    t = projector.template
+    palm, back = projector.region == PALM_REGION, (t.chain == PALM) & (t.offset[:, 2] > 0)
+    axis = kp[9] - kp[0]
+    curl = kp[12] - kp[9] - (kp[12] - kp[9]) @ axis / (axis @ axis) * axis  # the middle finger's
+    assert (verts[palm].mean(axis=0) - verts[back].mean(axis=0)) @ curl / np.linalg.norm(curl) > 0.01, \
+        "the palm sensor faces the way the fingers curl, the back of the hand the other way"
 
 
 def test_palm_rows_run_from_the_wrist_and_columns_from_the_little_finger(projector):
