@@ -18,5 +18,7 @@ PORTS = Ports(
     ),
     outputs=(
         Output("scene", "xm_msgs/msg/Scene", 5.0, "reconstructed keypoints"),
+        Output("tactile_mesh", "xm_msgs/msg/TactileMesh", 5.0,
+               "each gloved hand's surface mesh with its pressure per vertex (thesis 5.7)"),
     ),
 )

@@ -1,6 +1,7 @@
 """recon node: on each synchronized frame set, detect 2-D keypoints per camera, reconstruct them
 in 3-D (robust triangulation, articulated hand fit, rigid objects; services/recon/pipeline.py) and
-publish the scene with the latest tactile region pressures of each glove.
+publish the scene with the latest tactile region pressures of each glove, and each gloved hand's
+surface mesh with the glove's pressure projected onto it (services/recon/tactile_projection.py).
 
 Two detectors: ``simulated`` projects the simulator's truth (a labelled option for experiments)
 on the first camera's image of each set; ``learned`` decodes every camera's JPEG window and runs
@@ -21,6 +22,7 @@ from services.recon.detector import CameraModel, SimulatedDetector, View, readou
 from services.recon.frameset import FrameSetBuffer
 from services.recon.pipeline import Reconstruction, Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
+from services.recon.tactile_projection import TactileProjector
 from shared import msgs
 from shared.runtime import Node
 
@@ -61,11 +63,14 @@ class ReconService:
         self.cameras: dict[str, CameraModel] = {}
         self.truth: collections.deque = collections.deque(maxlen=64)  # (stamp, msg)
         self.tactile: dict[str, tuple[float, np.ndarray]] = {}
+        self.pressure: dict[str, tuple[float, np.ndarray]] = {}  # the newest 16x16 frame per glove
+        self.projector = TactileProjector()
         self.times: collections.deque = collections.deque(maxlen=200)  # per-stage seconds per frame set
         self.frame_sets = 0
         self.recon: Reconstructor | None = None
         self.learned = None
         self.scene_pub = node.output("scene")
+        self.mesh_pub = node.output("tactile_mesh")
         node.health_extra = self._health
         node.input("info", self.on_info)
         node.input("tactile", self.on_tactile)
@@ -120,6 +125,7 @@ class ReconService:
     def on_tactile(self, msg) -> None:
         pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
         self.tactile[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), region_means(pressure))
+        self.pressure[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), pressure)
 
     # --- simulated detector: projected truth ------------------------------------------------
     def on_frame(self, msg) -> None:
@@ -182,6 +188,7 @@ class ReconService:
         self.times.append({**times, **r.times})
         self.frame_sets += 1
         self.scene_pub.put(self._scene(stamp, r))
+        self._tactile_mesh(stamp, r)
 
     def _scene(self, stamp: float, r: Reconstruction) -> object:
         hand_names = self.recon.hand_names
@@ -189,3 +196,13 @@ class ReconService:
         tactile, tactile_mask = tactile_matrix(hand_names, fresh)
         return scene_message(stamp, hand_names, r.hands, r.hand_mask, self.recon.object_names, r.objects,
                              r.object_mask, tactile, tactile_mask)
+
+    def _tactile_mesh(self, stamp: float, r: Reconstruction) -> None:
+        t0 = time.perf_counter()
+        fresh = {h: p for h, (t, p) in self.pressure.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
+        msg, skipped = self.projector.message(stamp, self.recon.hand_names, r.hands, r.hand_mask, fresh)
+        self.times[-1]["tactile_mesh"] = time.perf_counter() - t0  # a stage of @health's stage_ms_median
+        for hand, why in skipped.items():  # keypoints missing, or a bad glove frame
+            self.node.stats.count(f"tactile_mesh_{why}", hand)
+        if msg is not None:
+            self.mesh_pub.put(msg)
