@@ -23,6 +23,7 @@ class Reconstruction:
     object_mask: np.ndarray  # (K,) uint8
     object_posed: np.ndarray  # (objects,) bool: a rigid fit produced the object's keypoints
     inliers: np.ndarray  # (C,N) views each triangulated point used
+    triangulated: np.ndarray  # (N,3) the robust triangulation before the fits, zero where masked
     times: dict = field(default_factory=dict)  # seconds per stage
 
 
@@ -66,5 +67,5 @@ class Reconstructor:
         objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
         objects = self.smoother.update(self.models, objects, posed, rms, used)
         t3 = time.perf_counter()
-        return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers,
+        return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,
                               {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})

@@ -2,9 +2,10 @@
 in 3-D (robust triangulation, articulated hand fit, rigid objects; services/recon/pipeline.py) and
 publish the scene with the latest tactile region pressures of each glove.
 
-Two detectors: ``simulated`` projects the simulator's truth (a labelled option for experiments)
-on the first camera's image of each set; ``learned`` decodes every camera's JPEG window and runs
-the trained network (services/recon/learned_detector.py, imported only when chosen)."""
+Two detectors: ``learned`` (the default) decodes every camera's JPEG window and runs the trained
+network (services/recon/learned_detector.py, imported only when chosen; the weights ship in
+models/detector/); ``simulated`` projects the simulator's truth on the first camera's image of
+each set, an option for experiments and the only one that subscribes to the truth."""
 
 from __future__ import annotations
 
@@ -22,11 +23,17 @@ from services.recon.frameset import FrameSetBuffer
 from services.recon.pipeline import Reconstruction, Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
 from shared import msgs
+from shared.demo import KEYPOINTS_PER_HAND
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
 DETECTORS = ("simulated", "learned")
-TRAIN_HINT = "train it with `xm detector label` then `xm detector train` (docs/perception.md)"
+TRAIN_HINT = "regenerate it with `make detector` (xm detector label, xm detector train; docs/perception.md)"
+
+
+def keypoint_names(recon: Reconstructor) -> list[str]:
+    """The detector channels recon expects: ``hand/0..20`` per hand, then the task's object keypoints."""
+    return [f"{h}/{k}" for h in recon.hand_names for k in range(KEYPOINTS_PER_HAND)] + list(recon.object_names)
 
 
 def decode_window(data: bytes, model: CameraModel) -> np.ndarray | None:
@@ -43,7 +50,7 @@ def decode_window(data: bytes, model: CameraModel) -> np.ndarray | None:
 class ReconService:
     @dataclass
     class Params:
-        detector: str = "simulated"  # "learned": the trained network on the images
+        detector: str = "learned"  # the trained network on the images; "simulated": projected truth (experiments)
         task: str = "assembly"  # its object keypoints name the scene's objects (learned detector)
         weights: str = ""  # the learned detector's weights; empty: its own default path
         pixel_noise: float = 1.0  # simulated detector
@@ -88,11 +95,17 @@ class ReconService:
             # Imported here: torch/onnx stay out of the simulated path and of builds without them.
             module = importlib.import_module("services.recon.learned_detector")
             cls = module.LearnedDetector
-            return cls(self.params.weights) if self.params.weights else cls()
+            detector = cls(self.params.weights) if self.params.weights else cls()
         except (ImportError, AttributeError) as exc:
             msg = f"learned detector unavailable ({exc}); {TRAIN_HINT}"
         except (FileNotFoundError, OSError, ValueError) as exc:
             msg = f"learned detector weights missing or unreadable ({exc}); {TRAIN_HINT}"
+        else:
+            expected = keypoint_names(self.recon)
+            if list(detector.names) == expected:
+                return detector
+            msg = (f"the learned detector's {len(detector.names)} keypoints are not task {self.params.task!r}'s "
+                   f"{len(expected)} in recon's order (weights of another task?); {TRAIN_HINT}")
         self.node.stats.count("detector_unavailable")
         self.node.log.error(msg)
         self.node.set_status("error", msg)

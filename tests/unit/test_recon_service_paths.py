@@ -98,11 +98,13 @@ def test_learned_detector_missing_says_how_to_train_and_publishes_nothing(monkey
 def learned(monkeypatch):
     """A stand-in learned detector: projects fixed 3-D points, so the service path can be checked."""
     rng = np.random.default_rng(3)
-    names = task_keypoint_names("assembly")
-    points = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + len(names), 3))
+    names_ = task_keypoint_names("assembly")
+    points = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + len(names_), 3))
     seen_views: list[list[str]] = []
 
     class LearnedDetector:
+        names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + names_
+
         def detect(self, views):
             seen_views.append([v.camera for v in views])
             assert all(v.image.shape == (v.model.height, v.model.width, 3) for v in views)
@@ -139,3 +141,10 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     np.testing.assert_allclose(hands, points[:42], atol=1e-3)
     assert np.isfinite(np.asarray(scene.object_keypoints)).all()
     assert node.health_extra()["partial_frame_sets"] == 1
+
+
+def test_learned_weights_of_other_keypoints_are_refused(learned):
+    sys.modules["services.recon.learned_detector"].LearnedDetector.names = ["left/0", "right/0"]
+    node = FakeNode()
+    ReconService(node, ReconService.Params(detector="learned"))
+    assert node.status == "error" and "make detector" in node.message and "image" not in node.handlers
