@@ -127,6 +127,12 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
     return out
 
 
+def first_frames(s: Session, n: int) -> Session:
+    """The session's first ``n`` frame sets."""
+    return Session(s.seed, s.truth[:n], s.present[:n], s.uv[:n], s.conf[:n], s.live[:n], s.sim_live[:n],
+                   s.sim_uv[:n], s.sim_seen[:n])
+
+
 def errors(recs: list[Reconstruction], s: Session) -> dict:
     """Per keypoint errors (m) of what recon reported, and the shares reported."""
     hand, obj, cover_h, cover_o = [], [], [], []

@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a sc
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # its helper module
 
 import _recon_images as images  # noqa: E402
+import _recon_live  # noqa: E402
 
 from services.camhub.camera_info import encode_jpeg  # noqa: E402
 from services.recon.detector import CameraModel, SimulatedDetector  # noqa: E402
@@ -209,14 +210,15 @@ def run_images(args: argparse.Namespace) -> dict:
         print("learned, offline:", images.dump(out["learned_offline"]))
     n_an = min(args.anipose_sessions, len(sessions))
     if n_an:
-        res = images.anipose(sessions[:n_an], P, 256, 192, Path(args.anipose_python))
+        cut = [images.first_frames(s, args.anipose_frames) for s in sessions[:n_an]]
+        res = images.anipose(cut, P, 256, 192, Path(args.anipose_python))
         if isinstance(res, str):
             out["aniposelib"] = {"not_run": res}
         else:
-            row = {"sessions": n_an}
+            row = {"sessions": n_an, "frames_per_session": len(cut[0].uv)}
             for name in ("ransac", "optim"):
                 errs, cover = [], []
-                for i, s in enumerate(sessions[:n_an]):
+                for i, s in enumerate(cut):
                     e, c = images.point_errors(res[f"{name}_{i}"], s)
                     errs += e
                     cover.append(c)
@@ -226,7 +228,7 @@ def run_images(args: argparse.Namespace) -> dict:
                 row[f"{name}_seconds"] = round(float(sum(res[f"seconds_{i}"][0 if name == "ransac" else 1]
                                                          for i in range(n_an))), 1)
             ours = {k: [] for k in ("hand", "obj", "cover_h", "cover_o")}
-            for s in sessions[:n_an]:
+            for s in cut:
                 for k, v in images.errors(s.live, s).items():
                     ours[k] += v
             row["ours_live_hand_mean_error_mm"] = images.mm(ours["hand"])
@@ -253,12 +255,20 @@ def main() -> None:
                         help="rendered sessions for the learned detector (0: none)")
     parser.add_argument("--offline-sessions", type=int, default=2,
                         help="of those, refined offline (about a minute per session and hand)")
-    parser.add_argument("--anipose-sessions", type=int, default=2, help="of those, triangulated by aniposelib")
+    parser.add_argument("--anipose-sessions", type=int, default=1, help="of those, triangulated by aniposelib")
+    parser.add_argument("--anipose-frames", type=int, default=30,
+                        help="its first frame sets (aniposelib's RANSAC tries every subset of views per point "
+                             "in Python: about 0.1 s of CPU per point)")
     parser.add_argument("--anipose-python", default=str(images.ANIPOSE_PYTHON),
                         help="the aniposelib venv's python (bench/calibration.py makes it)")
+    parser.add_argument("--live", type=float, default=60.0,
+                        help="seconds of a live xm up of deploy/sim.toml: recon keeping up with camhub (0: skip)")
     parser.add_argument("--no-projected", action="store_true", help="skip the projected-truth rows")
     args = parser.parse_args()
     learned = run_images(args) if args.image_sessions > 0 else None
+    live = _recon_live.live(args.live) if args.live > 0 else None
+    if live is not None:
+        print("live:", images.dump(live))
     rows = []
     for w, h in ([] if args.no_projected else SIZES):
         row = run(w, h, args)
@@ -267,6 +277,8 @@ def main() -> None:
         print(json.dumps(row))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    # the parts skipped this run keep what an earlier run of this bench measured
+    kept = json.loads(out.read_text()) if out.exists() else {}
     out.write_text(json.dumps({
         "sessions": [f"{task}:{seed}" for seed, task in SESSIONS[:args.sessions]], "frames_per_session": args.frames,
         "rate_hz": args.rate, "detections": {"pixel_noise_px": args.noise, "dropout": args.dropout,
@@ -274,8 +286,9 @@ def main() -> None:
         "targets": {"hand_mean_error_mm": 8.0, "hand_mean_error_mm_offline": 5.0, "object_mean_error_mm": 3.0,
                     "detect_plus_reconstruct_ms": 50.0, "aniposelib_over_ours": 1.3,
                     "thesis": {"reprojection_px": 1.8, "ray_deviation_mm": 0.2}},
-        "images": learned,
-        "rows": rows,
+        "images": learned or kept.get("images"),
+        "live": live or kept.get("live"),
+        "rows": rows or kept.get("rows", []),
         "note": "errors in mm against truth on the keypoints each method reports (coverage: their share); "
                 "stage times are wall-clock medians per 7-camera frame set on a shared 2-core machine "
                 "(reconstruct_cpu_ms: the process's CPU time for triangulation and fits, less at the "

@@ -27,6 +27,12 @@ from shared.demo import KEYPOINTS_PER_HAND
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
+INFO_SUFFIX = "/info"
+
+
+def info_key(camera: str) -> str:
+    """A frame set's entry for a camera's CameraInfo, beside its image's entry (the camera's name)."""
+    return camera + INFO_SUFFIX
 DETECTORS = ("simulated", "learned")
 TRAIN_HINT = "regenerate it with `make detector` (xm detector label, xm detector train; docs/perception.md)"
 
@@ -124,8 +130,12 @@ class ReconService:
         return out
 
     def on_info(self, msg, key: str) -> None:
-        self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height,
-                                                      readout_window(msg))
+        camera = key.split("/")[2]
+        model = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height, readout_window(msg))
+        self.cameras[camera] = model
+        if self.learned is not None:
+            # The window moves every frame set: each image is read with the CameraInfo of its own stamp.
+            self._add(msgs.stamp_seconds(msg.header.stamp), info_key(camera), model)
 
     def on_truth(self, msg) -> None:
         self.truth.append((msgs.stamp_seconds(msg.header.stamp), msg))
@@ -156,20 +166,22 @@ class ReconService:
 
     # --- learned detector: images -----------------------------------------------------------
     def on_image(self, msg, key: str) -> None:
-        camera = key.split("/")[2]
-        stamp = msgs.stamp_seconds(msg.header.stamp)
-        for set_stamp, images in self.buffer.add(stamp, camera, bytes(msg.data), set(self.cameras)):
-            self._detect_images(set_stamp, images)
+        self._add(msgs.stamp_seconds(msg.header.stamp), key.split("/")[2], bytes(msg.data))
 
-    def _detect_images(self, stamp: float, images: dict[str, bytes]) -> None:
+    def _add(self, stamp: float, item: str, payload: object) -> None:
+        expected = set(self.cameras) | {info_key(c) for c in self.cameras}
+        for set_stamp, items in self.buffer.add(stamp, item, payload, expected):
+            self._detect_images(set_stamp, items)
+
+    def _detect_images(self, stamp: float, items: dict[str, object]) -> None:
         t0 = time.perf_counter()
         views = []
-        for camera in sorted(images):
-            model = self.cameras.get(camera)
-            if model is None:
+        for camera in sorted(k for k in items if not k.endswith(INFO_SUFFIX)):
+            model = items.get(info_key(camera))
+            if model is None:  # its CameraInfo of this stamp never came: its window is unknown
                 self.node.stats.count("image_without_info", camera)
                 continue
-            rgb = decode_window(images[camera], model)
+            rgb = decode_window(items[camera], model)
             if rgb is None:
                 self.node.stats.count("corrupt_jpeg", camera)
                 continue

@@ -44,18 +44,19 @@ class FakeNode:
         self.status, self.message = status, message
 
 
-def _info(spec, stamp: float):
+def _info(spec, stamp: float, roi: tuple[int, int, int, int] = (0, 0, 0, 0)):
     return msgs.make(
         "sensor_msgs/msg/CameraInfo", header=msgs.header(stamp, spec.name), height=spec.height, width=spec.width,
         distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
         p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
-        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
-                      do_rectify=False))
+        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=roi[0], y_offset=roi[1], width=roi[2],
+                      height=roi[3], do_rectify=False))
 
 
-def _jpeg(spec, stamp: float, data: bytes | None = None):
+def _jpeg(spec, stamp: float, data: bytes | None = None, size: tuple[int, int] | None = None):
     if data is None:
-        ok, buf = cv2.imencode(".jpg", np.full((spec.height, spec.width, 3), 90, np.uint8))
+        w, h = size or (spec.width, spec.height)
+        ok, buf = cv2.imencode(".jpg", np.full((h, w, 3), 90, np.uint8))
         data = buf.tobytes()
     return msgs.make("sensor_msgs/msg/CompressedImage", header=msgs.header(stamp, spec.name), format="jpeg",
                      data=np.frombuffer(data, np.uint8))
@@ -107,7 +108,7 @@ def learned(monkeypatch):
 
         def detect(self, views):
             seen_views.append([v.camera for v in views])
-            assert all(v.image.shape == (v.model.height, v.model.width, 3) for v in views)
+            assert all(v.image.shape == (v.model.roi[3], v.model.roi[2], 3) for v in views)
             uv, _ = project(np.stack([v.model.P for v in views]), points)
             return uv, np.ones(uv.shape[:2])
 
@@ -123,8 +124,8 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
     assert node.status == "ok" and "truth" not in node.handlers
     specs = camera_specs(64, 48)
-    for spec in specs:
-        node.handlers["info"](_info(spec, 0.0), f"xm/camhub/{spec.name}/info")
+    for spec in specs:  # the rig's cameras are known from their first CameraInfo
+        node.handlers["info"](_info(spec, 1.0), f"xm/camhub/{spec.name}/info")
     for spec in specs:  # frame set 1.0: cam3's JPEG is corrupt
         node.handlers["image"](_jpeg(spec, 1.0, b"\xff\xd8bad" if spec.name == "cam3" else None),
                                f"xm/camhub/{spec.name}/image")
@@ -133,6 +134,7 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     assert "cam3" not in seen_views[0] and len(seen_views[0]) == 6
     for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 begins
         node.handlers["image"](_jpeg(spec, 2.0), f"xm/camhub/{spec.name}/image")
+        node.handlers["info"](_info(spec, 2.0), f"xm/camhub/{spec.name}/info")
     node.handlers["image"](_jpeg(specs[0], 3.0), f"xm/camhub/{specs[0].name}/image")
     assert len(node.published) == 2 and len(seen_views[1]) == 5
     scene = node.published[-1]
@@ -148,3 +150,24 @@ def test_learned_weights_of_other_keypoints_are_refused(learned):
     node = FakeNode()
     ReconService(node, ReconService.Params(detector="learned"))
     assert node.status == "error" and "make detector" in node.message and "image" not in node.handlers
+
+
+def test_each_image_is_read_with_the_window_of_its_own_frame_set(learned):
+    """camhub moves the windows every frame set: an image must not be read with a newer set's
+    CameraInfo that has already arrived (another size, or worse, the same size elsewhere)."""
+    _, seen_views = learned
+    node = FakeNode()
+    windows: list[list[tuple]] = []
+    detector = sys.modules["services.recon.learned_detector"].LearnedDetector
+    detect = detector.detect
+    detector.detect = lambda self, views: (windows.append([v.model.roi for v in views]), detect(self, views))[1]
+    ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    specs = camera_specs(64, 48)
+    for stamp, roi in ((1.0, (8, 4, 32, 24)), (2.0, (20, 10, 32, 24)), (3.0, (8, 4, 32, 24))):
+        for spec in specs:  # camhub's order: a camera's image, then its CameraInfo
+            node.handlers["image"](_jpeg(spec, stamp, size=(32, 24)), f"xm/camhub/{spec.name}/image")
+            node.handlers["info"](_info(spec, stamp, roi), f"xm/camhub/{spec.name}/info")
+    # set 1.0 came before recon knew the rig; 2.0 is read with its own windows, cam6's included
+    # (its image is in before its CameraInfo, while it still holds 1.0's)
+    assert windows[-2:] == [[(20, 10, 32, 24)] * 7, [(8, 4, 32, 24)] * 7]
+    assert not [k for k in node.stats.errors if k.startswith("corrupt_jpeg")]
