@@ -54,6 +54,9 @@ def _counters(router: str) -> dict:
         "partial_frame_sets": rec.get("partial_frame_sets", 0),
         "late_images": rec.get("late_images", 0),
         "corrupt_jpeg": sum(v for k, v in rec.get("errors", {}).items() if k.startswith("corrupt_jpeg")),
+        "image_without_info": sum(v for k, v in rec.get("errors", {}).items() if k.startswith("image_without_info")),
+        "too_few_cameras": rec.get("errors", {}).get("too_few_cameras", 0),
+        "hands_seen_twice": rec.get("hands_seen_twice", 0),
         "recon_status": rec.get("status"), "recon_detector": rec.get("detector"),
         "stage_ms_median": rec.get("stage_ms_median", {}),
     }

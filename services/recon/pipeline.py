@@ -13,6 +13,23 @@ from services.recon.objects import ObjectSmoother, object_models, pose_objects, 
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
+SAME_HAND_M = 0.05  # two hands whose keypoints triangulate this close (median) are one hand seen twice
+SAME_HAND_MIN_POINTS = 5
+
+
+def one_hand_seen_twice(hands: np.ndarray, mask: np.ndarray, support: np.ndarray) -> int | None:
+    """Which of two hands to drop when both triangulated onto the same physical hand (a detector's
+    left and right channels both peak on the one hand a window shows): the one whose detections are
+    weaker (``support``: mean confidence of its inlier views); None when the hands are apart.
+
+    hands (2,21,3), mask (2,21), support (2,)."""
+    both = mask[0].astype(bool) & mask[1].astype(bool)
+    if len(hands) != 2 or both.sum() < SAME_HAND_MIN_POINTS:
+        return None
+    if np.median(np.linalg.norm(hands[0][both] - hands[1][both], axis=1)) >= SAME_HAND_M:
+        return None
+    return int(np.argmin(support))
+
 
 @dataclass
 class Reconstruction:
@@ -43,6 +60,7 @@ class Reconstructor:
         self.fit_hands = fit_hands
         self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
         self.smoother = ObjectSmoother()
+        self.hands_seen_twice = 0  # frame sets where one hand was dropped as the other's double
 
     @property
     def n_points(self) -> int:
@@ -53,10 +71,20 @@ class Reconstructor:
         t0 = time.perf_counter()
         pts, mask, inliers = triangulate_robust(P, uv, confidence, self.gate_px)
         t1 = time.perf_counter()
-        views = inliers.sum(axis=0).astype(float)
         H, nh = len(self.hand_names), len(self.hand_names) * KEYPOINTS_PER_HAND
         hands = pts[:nh].reshape(H, KEYPOINTS_PER_HAND, 3).copy()
         hand_mask = mask[:nh].reshape(H, KEYPOINTS_PER_HAND).copy()
+        conf = np.nan_to_num(np.asarray(confidence, float))[:, :nh].reshape(-1, H, KEYPOINTS_PER_HAND)
+        kept = inliers[:, :nh].reshape(-1, H, KEYPOINTS_PER_HAND)
+        support = (conf * kept).sum(axis=(0, 2)) / np.maximum(kept.sum(axis=(0, 2)), 1)
+        double = one_hand_seen_twice(hands, hand_mask, support)
+        if double is not None:
+            self.hands_seen_twice += 1
+            sl = slice(double * KEYPOINTS_PER_HAND, (double + 1) * KEYPOINTS_PER_HAND)
+            mask[sl], hand_mask[double] = 0, 0
+            pts[sl], hands[double] = 0.0, 0.0
+            inliers[:, sl] = False
+        views = inliers.sum(axis=0).astype(float)
         fitted = np.zeros(H, bool)
         for i, name in enumerate(self.hand_names):
             if not self.fit_hands:
