@@ -4,14 +4,17 @@ only with ``detector = "simulated"`` (an option for experiments): its inputs exi
 from shared.ports import CAMERAS, GLOVES, Input, Output, Ports, latest
 
 SIMULATED = ("detector", "simulated")
+# Frame sets recon may fall behind by before it drops images or their CameraInfos: a slow frame set
+# (the network and the fits run in the handler) must not cost the next ones.
+BACKLOG = 4
 
 PORTS = Ports(
     service="recon",
     doc="scene reconstruction",
     inputs=(
-        Input("info", "camhub/main/info", "sensor_msgs/msg/CameraInfo", latest(len(CAMERAS)),
-              "camera models"),
-        Input("image", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(2 * len(CAMERAS)),
+        Input("info", "camhub/main/info", "sensor_msgs/msg/CameraInfo", latest(BACKLOG * len(CAMERAS)),
+              "camera models and each frame set's readout windows"),
+        Input("image", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(BACKLOG * len(CAMERAS)),
               "every camera's JPEG readout window (the learned detector)"),
         Input("frame", "camhub/main/image", "sensor_msgs/msg/CompressedImage", latest(1),
               "the first camera's image marks a triggered frame set (simulated detector)", only=CAMERAS[0],

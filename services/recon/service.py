@@ -89,7 +89,9 @@ class ReconService:
         else:
             self.recon = Reconstructor(params.task, gate_px=params.gate_px, fit_hands=params.fit_hands)
             self.learned = self._load_learned()
-            self.buffer = FrameSetBuffer()
+            # Images and CameraInfos come through separate subscriptions, whose handlers may run a
+            # frame set apart under load: a set is released incomplete only once two newer ones began.
+            self.buffer = FrameSetBuffer(late_after=2)
             if self.learned is not None:
                 node.input("image", self.on_image)
                 node.set_status("ok")

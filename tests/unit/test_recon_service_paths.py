@@ -132,10 +132,12 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     assert len(node.published) == 1
     assert node.stats.errors["corrupt_jpeg:cam3"] == 1
     assert "cam3" not in seen_views[0] and len(seen_views[0]) == 6
-    for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 begins
+    for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 and 4.0 begin
         node.handlers["image"](_jpeg(spec, 2.0), f"xm/camhub/{spec.name}/image")
         node.handlers["info"](_info(spec, 2.0), f"xm/camhub/{spec.name}/info")
     node.handlers["image"](_jpeg(specs[0], 3.0), f"xm/camhub/{specs[0].name}/image")
+    assert len(node.published) == 1, "one newer frame set begun: 2.0's cameras may still come"
+    node.handlers["image"](_jpeg(specs[0], 4.0), f"xm/camhub/{specs[0].name}/image")
     assert len(node.published) == 2 and len(seen_views[1]) == 5
     scene = node.published[-1]
     assert list(scene.object_names) == task_keypoint_names("assembly"), "names from the task, not from truth"
