@@ -178,7 +178,7 @@ def run_images(args: argparse.Namespace) -> dict:
             rays += d
         return images.summary(err, reproj, rays)
 
-    out = {"weights": str(args.weights or DEFAULT_WEIGHTS_DIR), "runtime": det.runtime,
+    out = {"weights": args.weights or "models/detector (shipped)", "runtime": det.runtime,
            "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images", "input_size")},
            "sessions": [f"assembly:{s}" for s in seeds], "frames_per_session": args.frames, "size": "256x192",
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}

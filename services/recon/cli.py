@@ -201,8 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", type=Path, help="an MCAP recording with camhub's frames (xm record)")
     parser.add_argument("-o", "--out", type=Path, required=True, help="where to write the reconstructed copy")
     parser.add_argument("--task", default="assembly", help="names the object keypoints (default: %(default)s)")
-    parser.add_argument("--detector", choices=("simulated", "learned"), default="simulated",
-                        help="simulated: the recorded truth projected (an experiment); learned: the images")
+    parser.add_argument("--detector", choices=("learned", "simulated"), default="learned",
+                        help="learned: the shipped network on the recorded images (default); simulated: the "
+                             "recorded truth projected (an experiment)")
     parser.add_argument("--weights", default="", help="the learned detector's weights (default: its own)")
     parser.add_argument("--pixel-noise", type=float, default=1.0)
     parser.add_argument("--dropout", type=float, default=0.08)

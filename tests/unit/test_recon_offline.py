@@ -68,7 +68,8 @@ def test_fill_gaps_interpolates_between_fits_and_holds_the_ends():
 def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
     src, dst = tmp_path / "rec.mcap", tmp_path / "out.mcap"
     truth = _recording(src)
-    assert main([str(src), "-o", str(dst), "--pixel-noise", "1.5", "--max-evaluations", "8"]) == 0
+    assert main([str(src), "-o", str(dst), "--detector", "simulated", "--pixel-noise", "1.5",
+                 "--max-evaluations", "8"]) == 0
     scenes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == SCENE_KEY]
     assert len(scenes) == len(truth)
     hands = np.stack([np.asarray(s.hand_keypoints).reshape(-1, 3) for s in scenes])
@@ -83,7 +84,7 @@ def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
 def test_offline_recon_refuses_a_recording_without_cameras(tmp_path, capsys):
     src = tmp_path / "empty.mcap"
     McapRecorder(src).close()
-    assert main([str(src), "-o", str(tmp_path / "out.mcap")]) == 2
+    assert main([str(src), "-o", str(tmp_path / "out.mcap"), "--detector", "simulated"]) == 2
     assert "CameraInfo" in capsys.readouterr().err
 
 
