@@ -3,6 +3,8 @@
 camhub stamps every camera of a frame set with the same trigger time. A set is complete when every
 expected camera has delivered; a set still incomplete when ``late_after`` newer sets have begun is
 released with the cameras it has (a camera missing or late: the others still reconstruct it).
+A stamp more than ``restart_s`` before every set already released is a new timeline (the
+simulated clock restarts with the world): the buffer starts over rather than call it late.
 """
 
 from __future__ import annotations
@@ -14,14 +16,20 @@ from dataclasses import dataclass, field
 class FrameSetBuffer:
     late_after: int = 1
     max_sets: int = 8
+    restart_s: float = 2.0
     pending: dict = field(default_factory=dict)  # stamp -> {camera: payload}
     released_partial: int = 0
     dropped_stale: int = 0
+    restarts: int = 0
     _done: set = field(default_factory=set)
 
     def add(self, stamp: float, camera: str, payload: object, expected: set[str]) -> list[tuple[float, dict]]:
         """Adds one camera's image; returns the frame sets (stamp, {camera: payload}) now ready,
         oldest first."""
+        if self._done and stamp < min(self._done) - self.restart_s:
+            self.pending.clear()
+            self._done.clear()
+            self.restarts += 1
         if stamp in self._done or (self._done and stamp < min(self._done)):
             self.dropped_stale += 1  # a camera later than its set's release
             return []

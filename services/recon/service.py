@@ -130,6 +130,7 @@ class ReconService:
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial
             out["late_images"] = self.buffer.dropped_stale
+            out["timeline_restarts"] = self.buffer.restarts
         return out
 
     def on_info(self, msg, key: str) -> None:

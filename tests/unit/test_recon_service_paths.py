@@ -76,6 +76,18 @@ def test_frame_sets_complete_partial_and_late():
     assert buf.add(2.0, "cam2", "c", cams) == [] and buf.dropped_stale == 1
 
 
+def test_frame_sets_start_over_when_the_clock_restarts():
+    """The world's reset restarts the simulated clock: the new timeline's sets are not late."""
+    buf = FrameSetBuffer(late_after=1)
+    cams = {"cam0", "cam1"}
+    for stamp in (10.0, 10.2, 10.4):
+        buf.add(stamp, "cam0", "a", cams)
+        buf.add(stamp, "cam1", "b", cams)
+    assert buf.add(0.2, "cam0", "a", cams) == [] and buf.dropped_stale == 0
+    (stamp, images), = buf.add(0.2, "cam1", "b", cams)
+    assert stamp == 0.2 and set(images) == cams and buf.restarts == 1
+
+
 def test_decode_window_refuses_corrupt_and_wrong_size():
     spec = camera_specs(64, 48)[0]
     model = SimpleNamespace(roi=(8, 4, 32, 24), width=64, height=48)
