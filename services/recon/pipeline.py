@@ -15,6 +15,19 @@ from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
 SAME_HAND_M = 0.05  # two hands whose keypoints triangulate this close (median) are one hand seen twice
 SAME_HAND_MIN_POINTS = 5
+# No keypoint of a hand lies farther than this from the median of its keypoints (the simulated
+# teacher's fingertips reach 0.118 m; the margin holds larger hands and triangulation noise).
+HAND_EXTENT_M = 0.15
+
+
+def beyond_the_hand(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(21,) bool: triangulated keypoints too far from their hand's median keypoint to belong to it
+    (a detection that landed on the other hand or elsewhere, agreed on by two or more views)."""
+    seen = mask.astype(bool)
+    if seen.sum() < SAME_HAND_MIN_POINTS:
+        return np.zeros(len(points), bool)
+    centre = np.median(points[seen], axis=0)
+    return seen & (np.linalg.norm(points - centre, axis=1) > HAND_EXTENT_M)
 
 
 def one_hand_seen_twice(hands: np.ndarray, mask: np.ndarray, support: np.ndarray) -> int | None:
@@ -61,6 +74,7 @@ class Reconstructor:
         self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
         self.smoother = ObjectSmoother()
         self.hands_seen_twice = 0  # frame sets where one hand was dropped as the other's double
+        self.beyond_hand = 0  # hand keypoints masked as too far from their hand
 
     @property
     def n_points(self) -> int:
@@ -84,6 +98,14 @@ class Reconstructor:
             mask[sl], hand_mask[double] = 0, 0
             pts[sl], hands[double] = 0.0, 0.0
             inliers[:, sl] = False
+        for i in range(H):
+            far = beyond_the_hand(hands[i], hand_mask[i])
+            if far.any():
+                self.beyond_hand += int(far.sum())
+                idx = i * KEYPOINTS_PER_HAND + np.flatnonzero(far)
+                mask[idx], hand_mask[i, far] = 0, 0
+                pts[idx], hands[i, far] = 0.0, 0.0
+                inliers[:, idx] = False
         views = inliers.sum(axis=0).astype(float)
         fitted = np.zeros(H, bool)
         for i, name in enumerate(self.hand_names):

@@ -126,6 +126,7 @@ class ReconService:
         if self.recon is not None:
             out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
             out["hands_seen_twice"] = self.recon.hands_seen_twice
+            out["hand_keypoints_beyond_the_hand"] = self.recon.beyond_hand
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial

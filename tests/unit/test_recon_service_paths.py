@@ -76,6 +76,22 @@ def test_frame_sets_complete_partial_and_late():
     assert buf.add(2.0, "cam2", "c", cams) == [] and buf.dropped_stale == 1
 
 
+def test_frame_sets_wait_for_camera_infos_running_behind_their_images():
+    """Images and CameraInfos come through separate subscriptions: images of newer sets arriving
+    before the infos of an older one do not make it late."""
+    buf = FrameSetBuffer(late_after=2)
+    expected = {"cam0", "cam1", "cam0/info", "cam1/info"}
+    for stamp in (1.0, 2.0, 3.0, 4.0):  # four sets of images first
+        assert buf.add(stamp, "cam0", "a", expected) == [] and buf.add(stamp, "cam1", "b", expected) == []
+    assert buf.add(1.0, "cam0/info", "i", expected) == []
+    (stamp, items), = buf.add(1.0, "cam1/info", "j", expected)
+    assert stamp == 1.0 and set(items) == expected and buf.released_partial == 0
+    # set 2.0's infos are lost: it goes with what it has once two newer sets have both kinds
+    assert buf.add(3.0, "cam0/info", "i", expected) == []
+    (stamp, items), = buf.add(4.0, "cam0/info", "i", expected)
+    assert stamp == 2.0 and set(items) == {"cam0", "cam1"} and buf.released_partial == 1
+
+
 def test_frame_sets_start_over_when_the_clock_restarts():
     """The world's reset restarts the simulated clock: the new timeline's sets are not late."""
     buf = FrameSetBuffer(late_after=1)
@@ -147,9 +163,10 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 and 4.0 begin
         node.handlers["image"](_jpeg(spec, 2.0), f"xm/camhub/{spec.name}/image")
         node.handlers["info"](_info(spec, 2.0), f"xm/camhub/{spec.name}/info")
-    node.handlers["image"](_jpeg(specs[0], 3.0), f"xm/camhub/{specs[0].name}/image")
-    assert len(node.published) == 1, "one newer frame set begun: 2.0's cameras may still come"
-    node.handlers["image"](_jpeg(specs[0], 4.0), f"xm/camhub/{specs[0].name}/image")
+    for stamp in (3.0, 4.0):
+        node.handlers["image"](_jpeg(specs[0], stamp), f"xm/camhub/{specs[0].name}/image")
+        assert len(node.published) == 1, "2.0's cameras may still come"
+        node.handlers["info"](_info(specs[0], stamp), f"xm/camhub/{specs[0].name}/info")
     assert len(node.published) == 2 and len(seen_views[1]) == 5
     scene = node.published[-1]
     assert list(scene.object_names) == task_keypoint_names("assembly"), "names from the task, not from truth"
