@@ -109,7 +109,9 @@ def _image_recording(path, frames: int = 3) -> None:
 
 
 def test_offline_recon_with_the_learned_detector_reads_images_only(tmp_path, monkeypatch, capsys):
-    points = np.random.default_rng(5).uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + 8, 3))
+    rng = np.random.default_rng(5)
+    hands = rng.uniform(-0.04, 0.04, (2, 21, 3)) + [[[-0.1, 0.0, 0.06]], [[0.1, 0.0, 0.06]]]  # hand-sized, apart
+    points = np.concatenate([hands.reshape(-1, 3), rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (8, 3))])
 
     class LearnedDetector:
         def detect(self, views):

@@ -128,7 +128,8 @@ def learned(monkeypatch):
     """A stand-in learned detector: projects fixed 3-D points, so the service path can be checked."""
     rng = np.random.default_rng(3)
     names_ = task_keypoint_names("assembly")
-    points = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + len(names_), 3))
+    hands = rng.uniform(-0.04, 0.04, (2, 21, 3)) + [[[-0.1, 0.0, 0.06]], [[0.1, 0.0, 0.06]]]  # hand-sized, apart
+    points = np.concatenate([hands.reshape(-1, 3), rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (len(names_), 3))])
     seen_views: list[list[str]] = []
 
     class LearnedDetector:
