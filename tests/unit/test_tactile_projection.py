@@ -224,6 +224,8 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
     objects = np.zeros((len(task_keypoint_names(ReconService.Params().task)), 3))
 
     class LearnedDetector:  # a stand-in: projects the two hands (and objects at the origin)
+        names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + task_keypoint_names("assembly")
+
         def detect(self, views):
             pts = np.concatenate([kp, objects])
             uv, _ = project(np.stack([v.model.P for v in views]), pts)
@@ -242,8 +244,9 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
                                        pressure=pressure.astype(np.float32).ravel(), mask=CELL_MASK.ravel(),
                                        sequence=1))
     for t in (1.0, 2.0):  # the glove frame is fresh for the first frame set only
-        for spec in specs:
+        for spec in specs:  # camhub's order: a camera's image, then its frame set's CameraInfo
             node.handlers["image"](_jpeg(spec, t), f"xm/camhub/{spec.name}/image")
+            node.handlers["info"](_info(spec, t), f"xm/camhub/{spec.name}/info")
     meshes = [m for m in node.published if m.__msgtype__ == "xm_msgs/msg/TactileMesh"]
     assert len(meshes) == 1, [m.__msgtype__ for m in node.published]
     (name, verts, _, values), = view.tactile_mesh_arrays(meshes[0].hand_names, meshes[0].vertex_count,
