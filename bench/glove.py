@@ -23,6 +23,7 @@ raise are put back afterwards. Targets: idle 0 lost, p99 <= 2 ms; loaded 0 lost,
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import multiprocessing
 import os
@@ -158,15 +159,22 @@ def main() -> None:
     parser.add_argument("--load", type=int, default=os.cpu_count() or 1, metavar="N",
                         help="CPU-bound processes beside the loaded run (default: one per core, %(default)s)")
     parser.add_argument("--runs", type=int, default=1, metavar="K", help="idle and loaded runs, alternating")
+    parser.add_argument("--glove-param", action="append", default=[], metavar="NAME=INT",
+                        help="a glove service parameter for both gloves, e.g. tty_worker_rt_priority=0 to see what "
+                             "the kernel's tty workers at normal priority cost (repeatable)")
     args = parser.parse_args()
     if args.load < 0 or args.runs < 1:
         parser.error("--load must be >= 0 and --runs >= 1")
+    try:
+        params = {k.strip(): int(v) for k, v in (p.split("=", 1) for p in args.glove_param)}
+    except ValueError:
+        parser.error("--glove-param takes NAME=INT, e.g. tty_worker_rt_priority=0")
     frames = make_frames()
     res: dict = {"load_processes": args.load, "cpu_count": os.cpu_count(), "harness_priority": harness_priority(),
-                 "idle_runs": [], "loaded_runs": []}
+                 "glove_params": params, "idle_runs": [], "loaded_runs": []}
     for _ in range(args.runs):
         for kind, load in (("idle", 0), ("loaded", args.load)):
-            r = run_once(load, frames)
+            r = run_once(load, frames, params)
             res[f"{kind}_runs"].append(r)
             print(f"{kind + ':':8s}{line(r)}", flush=True)
     for kind in ("idle", "loaded"):
@@ -176,15 +184,19 @@ def main() -> None:
                                  for r in res[f"{kind}_runs"])
     res["targets"] = TARGETS
     res["loaded_p99_ratio_to_idle"] = res["loaded"]["latency_p99_ms"] / max(res["idle"]["latency_p99_ms"], 1e-9)
-    Path(".bench").mkdir(exist_ok=True)
-    Path(".bench/glove.json").write_text(json.dumps(res, indent=2))
+    out = Path(".bench/glove.json" if not params else  # a comparison keeps the file of the deployed settings
+               ".bench/glove_" + "_".join(f"{k}-{v}" for k, v in sorted(params.items())) + ".json")
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+    print(f"wrote {out}")
 
 
 def line(r: dict) -> str:
     stages = ", ".join(f"{s} {r['stages_ms'][s]['p99']:.2f}" for s in STAGES)
     return (f"2 gloves x {RATE_HZ} Hz for {SECONDS:.0f} s, {r['load_processes']} CPU hogs, load avg "
             f"{r['loadavg_1min_before']:.1f} -> {r['loadavg_1min_after']:.1f}: lost {r['lost']}/{r['sent']} "
-            f"(device {r['lost_at_device']}), latency p50 {r['latency_p50_ms']:.2f} ms, "
+            f"(device {r['lost_at_device']}, before publishing {r['lost_before_publish']}), "
+            f"latency p50 {r['latency_p50_ms']:.2f} ms, "
             f"p99 {r['latency_p99_ms']:.2f} ms, max {r['latency_max_ms']:.1f} ms; p99 per stage ms: {stages}; "
             f"device slip p99 {r['device_slip_p99_ms']:.2f} ms; raw pty p50 {r['raw_pty_p50_ms']:.3f} ms, "
             f"p99 {r['raw_pty_p99_ms']:.2f} ms; other jobs' real-time threads "
@@ -200,12 +212,12 @@ def make_frames() -> dict[str, list[bytes]]:
                 for i in range(n)] for h in HANDS}
 
 
-def run_once(load: int, frames: dict[str, list[bytes]]) -> dict:
+def run_once(load: int, frames: dict[str, list[bytes]], params: dict[str, int] | None = None) -> dict:
     loadavg = os.getloadavg()[0]
     were_normal = normal_tty_workers()
     hogs = start_load(load)
     try:
-        r = measure(frames)
+        r = measure(frames, params or {})
     finally:
         stop_load(hogs)
         restore_tty_workers(were_normal)
@@ -291,13 +303,13 @@ def stage_times(trace: np.ndarray, due: np.ndarray, got: dict[int, float]) -> di
             "deliver": recv - trace[:, 3]}
 
 
-def measure(frames: dict[str, list[bytes]]) -> dict:
+def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     n = len(frames[HANDS[0]])
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     tmp = Path(tempfile.mkdtemp())
     devices = {h: PtyDevice(tmp / f"glove-{h}") for h in HANDS}
-    dep = write_deployment(tmp / "bench.toml", endpoint, {"glove": {h: {"port": str(tmp / f"glove-{h}")}
+    dep = write_deployment(tmp / "bench.toml", endpoint, {"glove": {h: {"port": str(tmp / f"glove-{h}"), **params}
                                                                     for h in HANDS}})
     procs = {h: subprocess.Popen([sys.executable, str(TRACE), str(tmp / f"trace-{h}.npz"), "--deployment", str(dep),
                                   "--instance", h], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
@@ -322,6 +334,8 @@ def measure(frames: dict[str, list[bytes]]) -> dict:
     cpu = {h: psutil.Process(p.pid) for h, p in procs.items()}
     for c in cpu.values():
         c.cpu_percent(None)
+    gc.collect()
+    gc.freeze()  # the frames and the rest: a full collection over them in the subscriber would count as latency
     ours = {os.getpid(), *(p.pid for p in procs.values())}
     rt_before, steal_before = rt_cpu_ticks(ours), steal_ticks()
     parent, child = multiprocessing.get_context("fork").Pipe()
@@ -332,13 +346,14 @@ def measure(frames: dict[str, list[bytes]]) -> dict:
     steal_s = (steal_ticks() - steal_before) / os.sysconf("SC_CLK_TCK")
     sender.join(5)
     time.sleep(1.0)
+    gc.unfreeze()
     cpu_share = {h: c.cpu_percent(None) / 100.0 for h, c in cpu.items()}
     for p in procs.values():
         os.killpg(p.pid, signal.SIGTERM)
         p.wait(5)
     session.close()
     router.close()
-    lat, lost, stages, services = [], 0, {s: [] for s in STAGES}, {}
+    lat, lost, published, stages, services = [], 0, 0, {s: [] for s in STAGES}, {}
     for h in HANDS:
         got = received[h]
         lost += sum(1 for i in range(n) if i not in got)
@@ -350,6 +365,7 @@ def measure(frames: dict[str, list[bytes]]) -> dict:
                 (round(t - due[0], 3), k) for t, k in services[h]["tty_workers_raised_later_at"]]
         except OSError:
             trace, services[h] = np.zeros((0, 4)), {"trace": "missing: the service did not exit cleanly"}
+        published += len({int(q) for q in trace[:, 0] if 0 <= q < n})
         for s, v in stage_times(trace, due, got).items():
             stages[s].append(v)
     lat = np.array(lat) if lat else np.array([np.nan])
@@ -360,6 +376,7 @@ def measure(frames: dict[str, list[bytes]]) -> dict:
     frame_bytes = len(frames[HANDS[0]][0])
     res = {"gloves": len(HANDS), "rate_hz": RATE_HZ, "seconds": SECONDS, "send_rate_achieved_hz": n / elapsed,
            "sent": n * len(HANDS), "lost": lost, "lost_at_device": int(np.ceil(dropped / frame_bytes)),
+           "lost_before_publish": n * len(HANDS) - published,  # dropped by the device, the pty or the service
            "latency_from": "frame due time on the device's schedule", "latency_to": "tactile message at a subscriber",
            "latency_p50_ms": float(np.percentile(lat, 50) * 1e3), "latency_p99_ms": float(np.percentile(lat, 99) * 1e3),
            "latency_max_ms": float(np.max(lat) * 1e3),
