@@ -132,26 +132,26 @@ def stop_load(procs: list[subprocess.Popen]) -> None:
         p.wait(5)
 
 
-def normal_tty_workers() -> set[int]:
-    """The kernel's tty workers now at the normal policy (to put back what the services raise)."""
-    out = set()
+def tty_worker_policies() -> dict[int, int]:
+    """The kernel's tty workers and their scheduling policies (to put back what the services raise)."""
+    out = {}
     for pid in tty_worker_pids():
         try:
-            if os.sched_getscheduler(pid) == os.SCHED_OTHER:
-                out.add(pid)
+            out[pid] = os.sched_getscheduler(pid)
         except OSError:
             pass
     return out
 
 
-def restore_tty_workers(were_normal: set[int]) -> None:
-    """Workers found at the normal policy go back to it; workers the kernel started during the run too."""
-    for pid in tty_worker_pids():
-        try:
-            if pid in were_normal or os.sched_getscheduler(pid) != os.SCHED_OTHER:
+def restore_tty_workers(before: dict[int, int]) -> None:
+    """Workers that were at the normal policy go back to it, and so do those the kernel started
+    during the run; workers something else had raised before are left as they are."""
+    for pid, policy in tty_worker_policies().items():
+        if policy != os.SCHED_OTHER and before.get(pid, os.SCHED_OTHER) == os.SCHED_OTHER:
+            try:
                 os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
-        except OSError:
-            pass
+            except OSError:
+                pass
 
 
 def main() -> None:
@@ -214,13 +214,13 @@ def make_frames() -> dict[str, list[bytes]]:
 
 def run_once(load: int, frames: dict[str, list[bytes]], params: dict[str, int] | None = None) -> dict:
     loadavg = os.getloadavg()[0]
-    were_normal = normal_tty_workers()
+    workers_before = tty_worker_policies()
     hogs = start_load(load)
     try:
         r = measure(frames, params or {})
     finally:
         stop_load(hogs)
-        restore_tty_workers(were_normal)
+        restore_tty_workers(workers_before)
     return {"load_processes": load, "loadavg_1min_before": loadavg, "loadavg_1min_after": os.getloadavg()[0], **r}
 
 
@@ -228,10 +228,14 @@ def send_frames(devices: dict[str, PtyDevice], frames: dict[str, list[bytes]], c
     """The two readout modules: a process of its own (no GIL shared with the bench's subscriber) at
     SCHED_FIFO where permitted, writing each glove's frame every millisecond; sends back each frame's
     due time and write time, the elapsed time and each device's (dropped bytes, FIFO peak). It
-    sleeps, never spins: a real-time thread that spins runs into the kernel's real-time throttling."""
+    sleeps, never spins: a real-time thread that spins runs into the kernel's real-time throttling.
+    Started before the services (forking the bench and the copy-on-write faults that follow stall
+    the host for tens of ms), it touches every frame once, then waits for the word to start."""
     set_fifo(DEVICE_RT_PRIORITY)
     n = len(frames[HANDS[0]])
     due, written = np.zeros(n), np.zeros(n)
+    sum(len(f) for h in HANDS for f in frames[h])  # the copy-on-write faults now, not on schedule
+    conn.recv()
     t0 = time.perf_counter() + 0.01
     for i in range(n):
         due[i] = t0 + i / RATE_HZ
@@ -326,6 +330,11 @@ def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
             received[m.hand][m.sequence] = t
 
     session.declare_subscriber("xm/glove/*/tactile", on)
+    gc.collect()
+    gc.freeze()  # the frames and the rest: a full collection over them in the subscriber would count as latency
+    parent, child = multiprocessing.get_context("fork").Pipe()
+    sender = multiprocessing.get_context("fork").Process(target=send_frames, args=(devices, frames, child))
+    sender.start()
     time.sleep(3.0)  # services up and connected
     warm = tactile.encode_frame(tactile.TactileFrame(10**6, 0, np.zeros((16, 16), np.complex64)))
     for h in HANDS:
@@ -334,15 +343,11 @@ def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     cpu = {h: psutil.Process(p.pid) for h, p in procs.items()}
     for c in cpu.values():
         c.cpu_percent(None)
-    gc.collect()
-    gc.freeze()  # the frames and the rest: a full collection over them in the subscriber would count as latency
-    ours = {os.getpid(), *(p.pid for p in procs.values())}
+    ours = {os.getpid(), sender.pid, *(p.pid for p in procs.values())}
     rt_before, steal_before = rt_cpu_ticks(ours), steal_ticks()
-    parent, child = multiprocessing.get_context("fork").Pipe()
-    sender = multiprocessing.get_context("fork").Process(target=send_frames, args=(devices, frames, child))
-    sender.start()
+    parent.send("go")
     due, written, elapsed, fifo = parent.recv()
-    others_rt = others_rt_cpu(rt_before, rt_cpu_ticks(ours | {sender.pid}))
+    others_rt = others_rt_cpu(rt_before, rt_cpu_ticks(ours))
     steal_s = (steal_ticks() - steal_before) / os.sysconf("SC_CLK_TCK")
     sender.join(5)
     time.sleep(1.0)
