@@ -307,6 +307,33 @@ def stage_times(trace: np.ndarray, due: np.ndarray, got: dict[int, float]) -> di
             "deliver": recv - trace[:, 3]}
 
 
+WARM_SEQUENCE = 10**6  # frames before the run: numbered apart from the measured ones
+START_TIMEOUT_S = 60.0
+
+
+def wait_for_services(devices: dict[str, PtyDevice], received: dict[str, dict[int, float]], lock: threading.Lock,
+                      procs: dict[str, subprocess.Popen]) -> None:
+    """Until each glove service has published a frame (its reader runs, at the priority it asked
+    for, and its messages reach the subscriber): a frame every 0.1 s. On a busy host a service
+    takes seconds to start; a run begun before would count its start-up as latency."""
+    deadline, k = time.monotonic() + START_TIMEOUT_S, 0
+    while True:
+        with lock:
+            up = all(any(q >= WARM_SEQUENCE for q in received[h]) for h in HANDS)
+        if up:
+            return
+        dead = [h for h, p in procs.items() if p.poll() is not None]
+        if dead:
+            raise RuntimeError(f"glove service(s) {', '.join(dead)} exited at start")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the glove services did not publish a frame within {START_TIMEOUT_S:.0f} s")
+        for h in HANDS:
+            devices[h].write(tactile.encode_frame(tactile.TactileFrame(WARM_SEQUENCE + k, 0,
+                                                                       np.zeros((16, 16), np.complex64))))
+        k += 1
+        time.sleep(0.1)
+
+
 def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     n = len(frames[HANDS[0]])
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -335,10 +362,7 @@ def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     parent, child = multiprocessing.get_context("fork").Pipe()
     sender = multiprocessing.get_context("fork").Process(target=send_frames, args=(devices, frames, child))
     sender.start()
-    time.sleep(3.0)  # services up and connected
-    warm = tactile.encode_frame(tactile.TactileFrame(10**6, 0, np.zeros((16, 16), np.complex64)))
-    for h in HANDS:
-        devices[h].write(warm)
+    wait_for_services(devices, received, lock, procs)
     time.sleep(0.5)
     cpu = {h: psutil.Process(p.pid) for h, p in procs.items()}
     for c in cpu.values():
