@@ -27,6 +27,7 @@ import gc
 import json
 import multiprocessing
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -61,12 +62,12 @@ TARGETS = {"idle": {"lost": 0, "latency_p99_ms_max": 2.0}, "loaded": {"lost": 0,
 
 
 def raw_pty_latency(n: int = 2000) -> np.ndarray:
-    """Baseline: the same bytes through a pty to a plain blocking reader, in a process of its own at
+    """Baseline: the same bytes through a pty to a plain reader (select, read), in a process of its own at
     SCHED_FIFO where permitted (as the glove readers), under the same load as the glove run."""
     parent, child = multiprocessing.get_context("fork").Pipe()
-    proc = multiprocessing.get_context("fork").Process(target=_raw_pty_latency, args=(n, child))
+    proc = multiprocessing.get_context("fork").Process(target=_raw_pty_latency, args=(n, child), daemon=True)
     proc.start()
-    out = parent.recv()
+    out = receive(parent, proc, 60.0, "the raw pty baseline")
     proc.join(5)
     return out
 
@@ -75,18 +76,33 @@ def _raw_pty_latency(n: int, conn) -> None:
     set_fifo(10)
     with tempfile.TemporaryDirectory() as tmp:
         dev = PtyDevice(Path(tmp) / "raw")
-        ser = serial.Serial(str(Path(tmp) / "raw"), timeout=1)
+        ser = serial.Serial(str(Path(tmp) / "raw"), timeout=0)
+        fd = ser.fileno()
         frame = tactile.encode_frame(tactile.TactileFrame(0, 0, np.zeros((16, 16), np.complex64)))
         out = []
         for _ in range(n):
             t0 = time.perf_counter()
             dev.write(frame)
-            ser.read(len(frame))
+            got = 0
+            while got < len(frame):  # a pty may report readable and return nothing: read again
+                select.select([fd], [], [], 1.0)
+                got += len(os.read(fd, len(frame) - got))
             out.append(time.perf_counter() - t0)
             time.sleep(0.001)
         ser.close()
         dev.close()
     conn.send(np.array(out))
+
+
+def receive(conn, proc: multiprocessing.Process, timeout: float, what: str):
+    """The child's answer, or a clear error when it died or hung (instead of waiting for ever)."""
+    deadline = time.monotonic() + timeout
+    while not conn.poll(0.5):
+        if not proc.is_alive():
+            raise RuntimeError(f"{what}: exited with code {proc.exitcode} and no result")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{what}: no result within {timeout:.0f} s")
+    return conn.recv()
 
 
 def set_fifo(priority: int) -> bool:
@@ -360,9 +376,15 @@ def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     gc.collect()
     gc.freeze()  # the frames and the rest: a full collection over them in the subscriber would count as latency
     parent, child = multiprocessing.get_context("fork").Pipe()
-    sender = multiprocessing.get_context("fork").Process(target=send_frames, args=(devices, frames, child))
+    sender = multiprocessing.get_context("fork").Process(target=send_frames, args=(devices, frames, child),
+                                                         daemon=True)
     sender.start()
-    wait_for_services(devices, received, lock, procs)
+    try:
+        wait_for_services(devices, received, lock, procs)
+    except RuntimeError:
+        for p in procs.values():
+            os.killpg(p.pid, signal.SIGKILL)
+        raise
     time.sleep(0.5)
     cpu = {h: psutil.Process(p.pid) for h, p in procs.items()}
     for c in cpu.values():
@@ -370,7 +392,7 @@ def measure(frames: dict[str, list[bytes]], params: dict[str, int]) -> dict:
     ours = {os.getpid(), sender.pid, *(p.pid for p in procs.values())}
     rt_before, steal_before = rt_cpu_ticks(ours), steal_ticks()
     parent.send("go")
-    due, written, elapsed, fifo = parent.recv()
+    due, written, elapsed, fifo = receive(parent, sender, SECONDS + 30.0, "the simulated readout modules")
     others_rt = others_rt_cpu(rt_before, rt_cpu_ticks(ours))
     steal_s = (steal_ticks() - steal_before) / os.sysconf("SC_CLK_TCK")
     sender.join(5)
