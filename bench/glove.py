@@ -8,7 +8,8 @@ subscriber. What stands outside the glove path runs at real-time priority so tha
 the glove path's: the simulated modules (a process at SCHED_FIFO 20, as hardware is never starved;
 their lateness against the schedule is reported as ``device_slip``) and the bench's router and
 subscriber (SCHED_FIFO 3, below the glove services: consumers that keep up). The glove services
-start at normal priority and raise themselves as deployed. Per stage, from timestamps the services
+start at normal priority and raise themselves as deployed; the run begins once each has published
+a frame, and the modules' process is started before them. Per stage, from timestamps the services
 take (bench/_glove_trace.py): ``pty`` due time -> the reader's read returned (simulated module,
 pty, the kernel's tty worker, reader wake-up), ``decode`` decoding and calibration, ``publish`` the
 publish call, ``deliver`` publish call -> subscriber (Zenoh's threads, router, subscriber).
@@ -16,9 +17,10 @@ publish call, ``deliver`` publish call -> subscriber (Zenoh's threads, router, s
 Runs on the host as it is ("idle": other jobs on the machine are not stopped, so the load average
 is reported), then with ``--load N`` CPU-bound processes beside it (default: one per core), each
 ``--runs`` times; .bench/glove.json holds every run and, as "idle" and "loaded", the run with the
-highest p99 of each. Lost frames are split into those the simulated module had to drop (its FIFO
-overflowed) and those that never reached the subscriber. The kernel threads the glove services
-raise are put back afterwards. Targets: idle 0 lost, p99 <= 2 ms; loaded 0 lost, p99 <= 5 ms."""
+highest p99 of each. Of the lost frames it says how many the simulated module had to drop (its
+FIFO overflowed) and how many were never published (the rest were lost after the publish call).
+The kernel threads the glove services raise are put back afterwards. Targets: idle 0 lost, p99
+<= 2 ms; loaded 0 lost, p99 <= 5 ms."""
 
 from __future__ import annotations
 
