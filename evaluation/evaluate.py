@@ -31,8 +31,10 @@ from evaluation.reconstructed import (
     DETECTORS,
     OBSERVATIONS,
     WINDOWS,
+    CellObserver,
     ReconOptions,
     ReconstructionError,
+    held_objects,
     reconstructed_demos,
     reconstruction_error,
 )
@@ -52,6 +54,7 @@ ROWS = {"multimodal": ("(1) Multimodal", "Yes", "Yes"), "no_tactile": ("(2) No t
         "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) Diffusion U-Net", "No", "No"),
         "diffusion_transformer": ("(9) Diffusion Transformer", "No", "No"), "naive": ("(10) None", "No", "No")}
 REFERENCE = "multimodal"
+ANCHOR_MOVED_M = 0.01  # reconstructed demonstrations: a grasped object has moved 1 cm (their noise is mm)
 
 
 class EvaluationError(ValueError):
@@ -432,18 +435,34 @@ def execute_main(args: argparse.Namespace) -> int:
             print(f"error: cannot load {path}: {exc}", file=sys.stderr)
             return 2
     torch.set_num_threads(1)
+    demos = assembly_protocol(args.seed)
+    recon = None
+    if args.observations == "reconstructed":  # anchors mined from, and the start hands of, reconstructed demos
+        recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
+        try:
+            demos = reconstructed_demos(demos, args.task, args.seed, recon, args.recon_cache, not args.no_progress)
+        except (ReconstructionError, FileNotFoundError) as exc:
+            print(f"error: cannot reconstruct the demonstrations: {exc}", file=sys.stderr)
+            return 2
     anchors = None
     if args.anchors:
         try:
-            anchors = mine_anchors(assembly_protocol(args.seed)[:3])
+            anchors = (mine_anchors([held_objects(d) for d in demos[:3]], moved_m=ANCHOR_MOVED_M) if recon
+                       else mine_anchors(demos[:3]))
         except AnchorError as exc:
             print(f"error: no contact anchors in the training demonstrations ({exc}); run with --no-anchors",
                   file=sys.stderr)
             return 2
     results = []
     for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
-                           catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None)
+        observer = CellObserver(args.task, args.seed, demo, recon) if recon else None
+        try:
+            r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
+                               catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None, observer=observer,
+                               start_hands=demos[demo].hands[0].astype(float) if recon else None)
+        finally:
+            if observer is not None:
+                observer.close()
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
@@ -456,6 +475,7 @@ def execute_main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
+                                                  "observations": recon.__dict__ if recon else "truth",
                                                   "hand_feedback": args.hand_feedback, "catch_mm": args.catch_mm,
                                                   "anchors": anchors.to_dict() if anchors else None,
                                                   "layouts": results}, indent=2))

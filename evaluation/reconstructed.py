@@ -250,6 +250,52 @@ class DemoReconstructor:
                        meta={**meta, "observations": f"reconstructed:{self.options.detector}:{self.options.windows}"})
 
 
+class CellObserver:
+    """The robot loop's view of the objects (`xm eval --execute --observations reconstructed`): at
+    the camera rate (``period_s``) the rig renders the cell as it is (the robot included) and recon
+    reconstructs it; between frame sets nothing new is observed. ``objects`` holds each keypoint
+    where it was last reconstructed (what the contact anchors aim at), ``mask`` what the latest
+    frame set saw."""
+
+    def __init__(self, task: str, seed: int, demo: int, options: ReconOptions, period_s: float = 0.2) -> None:
+        self.worker = DemoReconstructor(task, seed, options)
+        self.recon = Reconstructor(task)
+        self.demo, self.period_s = demo, period_s
+        n = len(self.worker.names) - 2 * KEYPOINTS_PER_HAND
+        self.objects, self.mask = np.zeros((n, 3)), np.zeros(n, bool)
+        self.next_t, self.trigger, self.tracked = -np.inf, 0, None
+        self.frame_sets = 0
+
+    def close(self) -> None:
+        self.worker.close()
+
+    def frame_set(self, sim: WorldSim) -> None:
+        """Reconstructs one frame set of the cell as ``sim`` holds it now."""
+        snap = Snapshot(sim.task, sim.time, sim.data.qpos.copy(), sim.data.mocap_pos.copy(),
+                        sim.data.mocap_quat.copy(), robot=sim.robot_name, seed=self.worker.seed, demo=self.demo)
+        hands = sim.hand_keypoints()
+        _, objects = sim.object_keypoints()
+        visible = np.r_[np.zeros(hands.size // 3), np.ones(len(objects))]  # the hands have left the cell
+        windows = frame_windows(self.worker.cams, self.tracked, self.trigger, self.worker.options)
+        uv, conf = self.worker.detect(snap, np.concatenate([hands.reshape(-1, 3), objects]), visible, windows)
+        r = self.recon.step(self.worker.P, uv, conf)
+        self.tracked = tracked_hands(r.hands, r.hand_mask)
+        seen = r.object_mask.astype(bool)
+        self.objects[seen] = r.objects[seen]
+        self.mask = seen
+        self.trigger += 1
+        self.frame_sets += 1
+
+    def update(self, sim: WorldSim) -> bool:
+        """Takes a frame set when one is due at the sim's time; True when it did."""
+        if sim.time + 1e-9 < self.next_t:
+            return False
+        self.frame_set(sim)
+        self.next_t = max(self.next_t + self.period_s, sim.time) if np.isfinite(self.next_t) else \
+            sim.time + self.period_s
+        return True
+
+
 def observed_steps(demo: Demo) -> int:
     """How much of a protocol demonstration a method observes: a training demonstration whole, a
     validation demonstration only its start state (every method rolls out from it; the rest of it
@@ -294,6 +340,24 @@ def truncated(demo: Demo, steps: int) -> Demo:
     return replace(demo, hands=demo.hands[:steps], hand_mask=demo.hand_mask[:steps], objects=demo.objects[:steps],
                    object_mask=demo.object_mask[:steps], tactile=demo.tactile[:steps],
                    tactile_mask=demo.tactile_mask[:steps], phase=demo.phase[:steps])
+
+
+def held_objects(demo: Demo, smooth: int = 9) -> Demo:
+    """The demonstration with every masked object point held where it was last seen (first seen,
+    before that) and each point's track median-filtered over ``smooth`` samples: what the contact
+    anchors are mined from, as they need every point at every sample and a resting object at rest."""
+    objs, mask = demo.objects.astype(float).copy(), demo.object_mask.astype(bool)
+    for k in range(objs.shape[1]):
+        seen = np.flatnonzero(mask[:, k])
+        if not len(seen):
+            continue
+        last = seen[np.clip(np.searchsorted(seen, np.arange(len(objs)), side="right") - 1, 0, len(seen) - 1)]
+        objs[:, k] = objs[last, k]
+    half = smooth // 2
+    padded = np.concatenate([np.repeat(objs[:1], half, 0), objs, np.repeat(objs[-1:], half, 0)])
+    windows = np.lib.stride_tricks.sliding_window_view(padded, smooth, axis=0)  # (T,K,3,smooth)
+    return replace(demo, objects=np.median(windows, axis=-1).astype(np.float32),
+                   object_mask=np.ones_like(demo.object_mask))
 
 
 def reconstruction_error(recon: Demo, truth: Demo) -> dict[str, float]:
