@@ -15,7 +15,13 @@ a frame set per step and no interpolation invents motion between camera frames.
 
 Before the demonstration's first sample, recon tracks the teacher for ``lead_in`` frame sets at
 the start pose (in a live session recon runs before the demonstration starts), so the start state
-is a fitted scene, not recon's first cold frame.
+is a fitted scene, not recon's first cold frame. A training demonstration is reconstructed whole;
+of a validation demonstration every method observes only the start state it rolls out from
+(``observed_steps``), so only that is reconstructed: the rest is the truth the rollout is scored
+against.
+
+``CellObserver`` is the same chain inside the robot loop: the cell rendered at the camera rate
+with the robot in it, objects reconstructed, nothing observed between frame sets.
 
 Reconstructing a demonstration costs rendering and detection (minutes for the 15 of a protocol on
 this machine), so each is cached on disk under ``cache/<key>/demo_<i>.npz``, the key naming the

@@ -10,6 +10,7 @@ import pytest
 
 from evaluation import reconstructed as R
 from evaluation.evaluate import rollouts
+from services.world.sim import WorldSim
 from services.world.teacher import generate_demo
 from shared.demo import Demo
 
@@ -130,3 +131,35 @@ def test_rollouts_start_from_the_observed_start_and_last_as_the_truth():
     start = R.truncated(replace(truth, meta={**truth.meta, "tag": "observed"}), 1)
     outs = rollouts(Method(), [truth], False, [start])
     assert seen == ["observed"] and outs[0][0].shape[0] == truth.steps
+
+
+def test_held_objects_fill_masked_points_with_the_last_seen_position(clip):
+    mask = np.ones_like(clip.object_mask)
+    mask[5:12, 0] = 0
+    mask[:3, 1] = 0
+    objs = clip.objects.copy()
+    objs[mask == 0] = 0.0  # what a reconstructed demonstration carries where it saw nothing
+    held = R.held_objects(replace(clip, objects=objs, object_mask=mask), smooth=1)
+    assert held.object_mask.all()
+    np.testing.assert_allclose(held.objects[5:12, 0], np.repeat(clip.objects[4:5, 0], 7, 0))
+    np.testing.assert_allclose(held.objects[:3, 1], np.repeat(clip.objects[3:4, 1], 3, 0))
+    np.testing.assert_allclose(held.objects[12:], clip.objects[12:])
+
+
+def test_cell_observer_sees_the_objects_at_the_camera_rate():
+    sim = WorldSim("assembly", seed=0, width=32, height=24)
+    sim.start_demo(3)
+    sim.set_robot_mode("robot")
+    observer = R.CellObserver("assembly", 0, 3, R.ReconOptions(detector="simulated"), period_s=0.1)
+    try:
+        assert observer.update(sim) and not observer.update(sim)  # one frame set per period
+        for _ in range(4):
+            observer.frame_set(sim)
+        _, truth = sim.object_keypoints()
+        seen = observer.mask
+        assert seen.sum() >= 5
+        assert np.linalg.norm(observer.objects[seen] - truth[seen], axis=1).max() < 0.01
+        sim.step(int(round(0.1 / sim.physics_dt)))
+        assert observer.update(sim)
+    finally:
+        observer.close()
