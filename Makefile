@@ -9,13 +9,19 @@ DEPLOYMENT ?= deploy/sim.toml
 # (runs/policy/demos/): what the naive fallback replays.
 POLICY_PRESET ?= no_tactile
 POLICY := runs/policy/policy.pt
+# The keypoint network recon runs ships in models/detector/ (ONNX graph + meta.json); `make detector`
+# regenerates it: labels rendered from the simulated rig, then training (about 20 min on 2 idle cores;
+# the labelled sets, weights.pt and loss.png stay in runs/detector/).
+DETECTOR_ITERS ?= 6500
+DETECTOR_MINUTES ?= 90
 
-.PHONY: run test test-fast bench soak lint clean help policy
+.PHONY: run test test-fast bench soak lint clean help policy detector
 
 help:
 	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
 	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
 	@echo "make policy - train the network the policy service serves (runs/policy/policy.pt)"
+	@echo "make detector - regenerate recon's keypoint network (models/detector/)"
 	@echo "make bench  - benchmarks, results in .bench/*.json"
 	@echo "make soak   - chaos soak: kill -9 a random service every minute for an hour (.bench/soak.json)"
 	@echo "make lint   - ruff"
@@ -38,6 +44,14 @@ policy: $(POLICY)
 # trained again when the checkpoint's configs change (a checkpoint of other configs does not load)
 $(POLICY): $(STAMP) services/policy/config.py
 	$(BIN)/xm train --teacher 0 --preset $(POLICY_PRESET) --out $(dir $(POLICY))
+
+detector: $(STAMP)
+	$(BIN)/xm detector label --out runs/detector/labels
+	$(BIN)/xm detector train --labels runs/detector/labels/train --out runs/detector \
+		--iters $(DETECTOR_ITERS) --minutes $(DETECTOR_MINUTES)
+	mkdir -p models/detector
+	cp runs/detector/model.onnx runs/detector/meta.json models/detector/
+	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
 
 test: $(STAMP)
 	$(BIN)/ruff check .

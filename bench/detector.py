@@ -28,7 +28,7 @@ import torch  # noqa: E402
 from perception.labels import keypoint_names  # noqa: E402
 from perception.train import load_set, save  # noqa: E402
 from services.recon.detector import CameraModel  # noqa: E402
-from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, INPUT_SIZE, LearnedDetector, UNet, View  # noqa: E402
+from services.recon.learned_detector import INPUT_SIZE, TRAINING_DIR, LearnedDetector, UNet, View  # noqa: E402
 
 
 def frame_set(labels: Path) -> list[View]:
@@ -83,8 +83,8 @@ def _run(fn, batch: np.ndarray) -> np.ndarray:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR))
-    parser.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "eval"))
+    parser.add_argument("--weights", default=str(TRAINING_DIR), help="a training run's folder (weights.pt)")
+    parser.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "eval"))
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-compile", action="store_true", help="skip torch.compile (its compile takes minutes)")

@@ -7,7 +7,7 @@ import sys
 
 SUBCOMMANDS = {
     "label": ("perception.sim_labels:main", "render the simulated rig and write a labelled set (COCO keypoints)"),
-    "train": ("perception.train:main", "train the U-Net on a labelled set (weights to runs/detector/)"),
+    "train": ("perception.train:main", "train the U-Net on a labelled set (runs/detector/; `make detector` ships it)"),
     "eval": ("perception.evaluate:main", "pixel error, PCK@5px, detection under occlusion on held-out images"),
 }
 

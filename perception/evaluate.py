@@ -18,7 +18,7 @@ import numpy as np
 from perception.labels import Frame, keypoint_classes
 from perception.train import load_set
 from services.recon.detector import CameraModel
-from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, LearnedDetector, View
+from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, TRAINING_DIR, LearnedDetector, View
 
 PCK_PX = 5.0
 THRESHOLD = 0.3
@@ -118,8 +118,8 @@ def evaluate(weights: Path, labels: Path, runtime: str = "auto", png: Path | Non
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="xm detector eval", description=__doc__.splitlines()[0])
-    p.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR))
-    p.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "eval"), help="held-out labelled set")
+    p.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR), help="default: the shipped network")
+    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "eval"), help="held-out labelled set")
     p.add_argument("--runtime", default="auto", choices=("auto", "onnx", "torch"))
     p.add_argument("--out", default=".bench/detector.json")
     p.add_argument("--png", help="also draw the first held-out windows with labels and detections to this PNG")

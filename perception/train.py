@@ -22,7 +22,7 @@ from tqdm import tqdm  # noqa: E402
 
 from perception.augment import AugmentParams, sample  # noqa: E402
 from perception.labels import Frame, keypoint_names, read_coco  # noqa: E402
-from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, INPUT_SIZE, UNet  # noqa: E402
+from services.recon.learned_detector import INPUT_SIZE, TRAINING_DIR, UNet  # noqa: E402
 
 SIGMA = 1.5  # heatmap Gaussian, network pixels
 FOREGROUND_WEIGHT = 30.0  # heatmap pixels near a keypoint weigh this much more: most of a map is empty
@@ -134,8 +134,8 @@ def save(net: UNet, task: str, size: tuple[int, int], losses: list[float], secon
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="xm detector train", description=__doc__.splitlines()[0])
-    p.add_argument("--labels", default=str(DEFAULT_WEIGHTS_DIR / "labels" / "train"), help="labelled set folder")
-    p.add_argument("--out", default=str(DEFAULT_WEIGHTS_DIR))
+    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
+    p.add_argument("--out", default=str(TRAINING_DIR), help="weights.pt, meta.json, loss.png, model.onnx")
     p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
     p.add_argument("--iters", type=int, default=100_000)
     p.add_argument("--batch", type=int, default=8)

@@ -74,6 +74,10 @@ class Input:
     queue: QueuePolicy = field(default_factory=latest)
     doc: str = ""
     only: str | None = None
+    when: tuple[str, str] | None = None  # (parameter, value): subscribed only where the deployment sets it so
+
+    def enabled(self, params: dict) -> bool:
+        return self.when is None or params.get(self.when[0]) == self.when[1]
 
     @property
     def sources(self) -> tuple[str, ...]:

@@ -5,19 +5,31 @@ policy (SCHED_FIFO) for the calling thread; where the OS refuses (no CAP_SYS_NIC
 not Linux) they fall back to a raised nice value, and where that is refused too they keep the normal
 priority. Either way one log line says what the thread got, so a loaded host that loses frames can
 be told apart from one that was never allowed to prioritise them.
+
+A reader at real-time priority is not enough on its own: the kernel's tty layer hands every chunk
+a serial port or pty receives to a worker thread of its unbound workqueue (``kworker/u*``, normal
+priority), which moves it to the line discipline and only then wakes the reader. With one CPU-bound
+process per core that worker waits tens of milliseconds for a CPU; ``raise_tty_workers`` gives
+those kernel threads a real-time priority too (``TtyWorkers``; host-wide: every unbound kernel work
+item runs there).
 """
 
 from __future__ import annotations
 
+import errno
 import gc
 import logging
 import os
 import sys
 import threading
+from collections.abc import Callable
+from pathlib import Path
 
 GIL_SWITCH_S = 0.0005  # Python's default 5 ms would let any other thread hold up a real-time one that long
 DEFAULT_RT_PRIORITY = 10  # above every normal thread, below the kernel's own real-time threads (50)
 FALLBACK_NICE = -10
+TTY_WORKER_RT_PRIORITY = 9  # the kernel threads that feed the readers: just below them
+KTHREADD_PID = 2  # parent of every kernel thread
 
 
 def raise_priority(what: str, log: logging.Logger, rt_priority: int = DEFAULT_RT_PRIORITY,
@@ -52,26 +64,121 @@ def raise_priority(what: str, log: logging.Logger, rt_priority: int = DEFAULT_RT
     return "normal"
 
 
-def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_NICE) -> int:
-    """Nice ``nice`` for every thread of this process that runs at the normal policy (the event loop,
-    Zenoh's threads): a real-time thread waiting for the GIL is otherwise held up as long as the
-    thread holding it waits for a CPU behind other processes. Nice, not real time: these threads do
-    the service's bulk work, and real-time threads using most of a CPU get throttled by the kernel.
-    Returns how many threads were raised; logs what was refused."""
-    if nice >= 0 or not hasattr(os, "setpriority") or not os.path.isdir("/proc/self/task"):
+def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_NICE, rt_priority: int = 0) -> int:
+    """Every thread of this process that runs at the normal policy (the event loop, Zenoh's threads)
+    to SCHED_FIFO at ``rt_priority`` (0: skip), else to nice ``nice``: a real-time thread waiting for
+    the GIL is otherwise held up as long as the thread holding it waits for a CPU behind other
+    processes, and a message it publishes waits as long for Zenoh's threads to send it. Real time
+    only for a process whose threads do little besides (real-time threads using most of a CPU get
+    throttled by the kernel); threads they start later inherit the policy. Returns how many threads
+    were raised; logs what was refused."""
+    if not os.path.isdir("/proc/self/task") or not hasattr(os, "sched_setscheduler"):
         return 0
-    raised, refused = 0, ""
+    raised, refused, policy = 0, "", ""
     for entry in os.listdir("/proc/self/task"):
         tid = int(entry)
         try:
-            if os.sched_getscheduler(tid) == os.SCHED_OTHER and os.getpriority(os.PRIO_PROCESS, tid) > nice:
+            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+                continue
+        except OSError:  # the thread ended meanwhile
+            continue
+        if rt_priority > 0:
+            try:
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(rt_priority))
+                raised, policy = raised + 1, f"SCHED_FIFO priority {rt_priority}"
+                continue
+            except OSError as exc:
+                refused = f"SCHED_FIFO {rt_priority}: {exc.strerror}"
+        if nice >= 0:
+            continue
+        try:
+            if os.getpriority(os.PRIO_PROCESS, tid) > nice:
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
-                raised += 1
+                raised, policy = raised + 1, policy or f"nice {nice}"
         except OSError as exc:  # refused, or the thread ended meanwhile
             refused = exc.strerror or str(exc)
     if refused and not raised:
         log.warning("%s: the process's threads keep their priority (%s): a busy host can hold up its "
                     "real-time threads through the GIL", what, refused)
     else:
-        log.info("%s: %d threads of the process at nice %d", what, raised, nice)
+        log.info("%s: %d threads of the process at %s", what, raised, policy or "their priority")
     return raised
+
+
+def kthread_pids(proc: Path = Path("/proc")) -> list[int]:
+    """The kernel threads, from kthreadd's list of children ([] where the kernel does not list them)."""
+    children = proc / str(KTHREADD_PID) / "task" / str(KTHREADD_PID) / "children"
+    try:
+        return [int(p) for p in children.read_text().split()]
+    except (OSError, ValueError):
+        return []
+
+
+def is_tty_worker(pid: int, proc: Path = Path("/proc")) -> bool | None:
+    """Whether ``pid`` is one of the kernel's unbound workqueue workers (a kernel thread named
+    ``kworker/u...``), which run the tty layer's receive work; None while a new kernel thread has
+    not got its name yet (or it has ended)."""
+    try:
+        comm = (proc / str(pid) / "comm").read_text().strip()
+        if comm == "kthreadd" and pid != KTHREADD_PID:  # just forked: named in a moment
+            return None
+        if not comm.startswith("kworker/u"):
+            return False
+        stat = (proc / str(pid) / "stat").read_text()
+    except OSError:
+        return None
+    # "pid (comm) state ppid ...": comm may hold spaces and parentheses, so split after the last ")"
+    fields = stat[stat.rfind(")") + 1:].split()
+    return len(fields) > 1 and fields[1] == str(KTHREADD_PID)  # a kernel thread, not a process named so
+
+
+def tty_worker_pids(proc: Path = Path("/proc")) -> list[int]:
+    """The kernel's unbound workqueue workers now: kthreadd's children, else all of /proc."""
+    pids = kthread_pids(proc) or [int(e.name) for e in os.scandir(proc) if e.name.isdigit()]
+    return [pid for pid in pids if is_tty_worker(pid, proc)]
+
+
+class TtyWorkers:
+    """Keeps the kernel's tty workers (``tty_worker_pids``) at SCHED_FIFO ``rt_priority``: the kernel
+    starts new ones as it needs them, so ``raise_new`` is called every fraction of a second; it
+    reads only kthreadd's list of children and looks closer at the threads it has not seen."""
+
+    def __init__(self, rt_priority: int = TTY_WORKER_RT_PRIORITY, proc: Path = Path("/proc"),
+                 getscheduler: Callable[[int], int] | None = None,
+                 setscheduler: Callable[[int, int, os.sched_param], None] | None = None) -> None:
+        self.rt_priority = rt_priority
+        self.proc = proc
+        # replaceable: tests must not touch real threads
+        self._get = getscheduler or getattr(os, "sched_getscheduler", None)
+        self._set = setscheduler or getattr(os, "sched_setscheduler", None)
+        self.seen: set[int] = set()
+        self.raised = 0
+        self.refused = ""  # the last refusal's error
+
+    def raise_new(self) -> int:
+        """Raise the workers started since the last call (those another process raised are left as
+        they are); returns how many were raised."""
+        if self._get is None or self._set is None or not self.proc.is_dir():
+            self.refused = "no real-time scheduling or /proc on this OS"
+            return 0
+        raised = 0
+        kthreads = set(kthread_pids(self.proc))
+        if not kthreads:  # the kernel does not list kthreadd's children: look at every worker each time
+            self.seen = set()
+        unnamed = set()
+        for pid in sorted(kthreads - self.seen) if kthreads else tty_worker_pids(self.proc):
+            worker = is_tty_worker(pid, self.proc)
+            if worker is None:
+                unnamed.add(pid)  # look again next time
+            if not worker:
+                continue
+            try:
+                if self._get(pid) == os.SCHED_OTHER:
+                    self._set(pid, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+                    raised += 1
+            except OSError as exc:  # refused, or the worker ended meanwhile
+                if exc.errno != errno.ESRCH:
+                    self.refused = exc.strerror or str(exc)
+        self.seen = kthreads - unnamed
+        self.raised += raised
+        return raised

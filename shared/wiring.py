@@ -126,7 +126,8 @@ def _bound_output(out: Output, service: str, instance: str) -> BoundOutput:
 
 
 def bind(deployment: Deployment, service: str, instance: str) -> Binding:
-    """Keys of one instance's ports, after the deployment's remaps; ConfigError names what is wrong."""
+    """Keys of one instance's ports, after the deployment's remaps (an input whose ``when`` the
+    instance's parameters do not meet is left out); ConfigError names what is wrong."""
     ports = ports_of(service)
     where = f"{deployment.path}: services.{service}.{instance}.inputs"
     remaps = deployment.inputs(service, instance)
@@ -135,7 +136,9 @@ def bind(deployment: Deployment, service: str, instance: str) -> Binding:
         raise ConfigError(f"{where}: {service} has no input {', '.join(unknown)} "
                           f"(inputs: {', '.join(i.port for i in ports.inputs) or 'none'})")
     robot = _robot(deployment, service, instance)
-    inputs = {i.port: _resolve(i, remaps.get(i.port), robot, f"{where}.{i.port}") for i in ports.inputs}
+    params = deployment.params(service, instance)
+    inputs = {i.port: _resolve(i, remaps.get(i.port), robot, f"{where}.{i.port}") for i in ports.inputs
+              if i.enabled(params)}
     outputs = {o.port: _bound_output(o, service, instance) for o in ports.outputs}
     return Binding(service, instance, inputs, outputs)
 

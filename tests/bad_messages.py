@@ -38,6 +38,9 @@ def good(msgtype: str, t: float) -> Any:
                          object_keypoints=np.zeros(6, f32), object_mask=np.ones(2, np.uint8),
                          tactile_regions=list(TACTILE_REGIONS), tactile=np.zeros(regions, f32),
                          tactile_mask=np.ones(regions, np.uint8))
+    if msgtype == "xm_msgs/msg/TactileMesh":
+        return msgs.make(msgtype, header=h, hand_names=["left"], vertex_count=3, vertices=np.zeros(9, f32),
+                         faces=np.array([0, 1, 2], np.uint32), pressure=np.zeros(3, f32), sensed=np.ones(3, np.uint8))
     if msgtype == "xm_msgs/msg/Plan":
         return msgs.make(msgtype, header=h, policy="test", dt=0.1, steps=2, point_names=["left/8"],
                          positions=np.zeros(6, f32), mask=np.ones(2, np.uint8), efforts=np.zeros(0, f32))

@@ -3,7 +3,9 @@
 The same code reads the world's simulated readout module (a pty) and the real radio receiver.
 Frames are decoded, calibrated and handed to ``on_frame`` on the serial link's reader thread (a
 real-time thread where the OS allows: shared/serial_link.py), so a busy event loop or host does
-not hold them up; register replies go to the waiting request on the event loop.
+not hold them up; register replies go to the waiting request on the event loop. On a host with
+every core busy the reader also needs the kernel threads that bring it the bytes and the threads
+that send what it publishes at real-time priority (shared/realtime.py): the driver raises both.
 """
 
 from __future__ import annotations
@@ -17,8 +19,11 @@ import numpy as np
 from services.glove.calibration import Calibration
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
-from shared.realtime import DEFAULT_RT_PRIORITY, raise_process_priority
+from shared.realtime import DEFAULT_RT_PRIORITY, TTY_WORKER_RT_PRIORITY, TtyWorkers, raise_process_priority
 from shared.serial_link import SerialLink
+
+PROCESS_RT_PRIORITY = 5  # the event loop and Zenoh's threads: real time, below the reader
+TTY_WORKER_RESCAN_S = 0.1  # the kernel starts new workqueue workers as it needs them; a look costs ~0.1 ms
 
 
 class RegisterError(RuntimeError):
@@ -55,7 +60,8 @@ class GloveDriver:
     def __init__(self, port: str, baudrate: int, calibration_path: str,
                  on_frame: Callable[[tactile.TactileFrame, np.ndarray, float], None],
                  log: logging.Logger, clock: DeviceClock, calibration_seed: int = 0,
-                 rt_priority: int = DEFAULT_RT_PRIORITY) -> None:
+                 rt_priority: int = DEFAULT_RT_PRIORITY, process_rt_priority: int = PROCESS_RT_PRIORITY,
+                 tty_worker_rt_priority: int = TTY_WORKER_RT_PRIORITY) -> None:
         if not port:
             raise ValueError("glove: no serial port configured (set port = \"/dev/ttyACM0\" in the deployment)")
         self.calibration = (Calibration.load(calibration_path) if calibration_path
@@ -67,6 +73,8 @@ class GloveDriver:
         self.last_sequence: int | None = None
         self._pending: dict[int, list[asyncio.Future]] = {}  # register address -> waiting requests
         self._loop: asyncio.AbstractEventLoop | None = None
+        self.process_rt_priority = process_rt_priority
+        self.tty_workers = TtyWorkers(tty_worker_rt_priority) if tty_worker_rt_priority > 0 else None
         self.link = SerialLink(port, self._on_bytes, baudrate, rt_priority=rt_priority)
 
     def _on_bytes(self, data: bytes) -> None:  # the reader thread
@@ -102,10 +110,33 @@ class GloveDriver:
 
     async def run(self) -> None:
         self._loop = asyncio.get_running_loop()
-        # the GIL ties the reader to every other thread of the process: they must not wait behind other processes
+        # the GIL ties the reader to every other thread of the process, and Zenoh's threads send what it
+        # publishes: none of them may wait behind other processes
         if self.link.rt_priority > 0:
-            raise_process_priority("glove", self.log)
-        await self.link.run()
+            raise_process_priority("glove", self.log, rt_priority=self.process_rt_priority)
+        if self.tty_workers is not None:
+            await asyncio.gather(self.link.run(), self._keep_tty_workers_raised())
+        else:
+            await self.link.run()
+
+    async def _keep_tty_workers_raised(self) -> None:
+        """The kernel threads that move received bytes to the reader, at real time (host-wide, once
+        per new worker; the first refusal is logged)."""
+        workers, warned = self.tty_workers, False
+        while True:
+            raised = workers.raise_new()
+            if raised:
+                self.log.info("glove: %d kernel tty workers (kworker/u*) at SCHED_FIFO priority %d", raised,
+                              workers.rt_priority)
+            elif workers.refused and not warned:
+                warned = True
+                self.log.warning("glove: the kernel's tty workers keep normal priority (%s): with every core busy "
+                                 "frames reach the reader tens of ms late", workers.refused)
+            await asyncio.sleep(TTY_WORKER_RESCAN_S)
+
+    @property
+    def tty_workers_raised(self) -> int:
+        return self.tty_workers.raised if self.tty_workers is not None else 0
 
     def close(self) -> None:
         self.link.close()

@@ -37,6 +37,12 @@ class GloveService:
         # SCHED_FIFO priority of the serial reader thread, which also decodes and publishes (0: normal
         # priority); refused by the OS -> nice -10 or normal priority, logged (shared/realtime.py).
         reader_rt_priority: int = 10
+        # SCHED_FIFO priority of the service's other threads (event loop, Zenoh's), which send what the
+        # reader publishes and share its GIL (0: nice -10); only while the reader is real-time.
+        process_rt_priority: int = 5
+        # SCHED_FIFO priority for the kernel's unbound workqueue workers, which bring every received byte
+        # to the reader (host-wide; 0: leave the kernel's threads alone).
+        tty_worker_rt_priority: int = 9
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -44,12 +50,15 @@ class GloveService:
         seed = params.calibration_seed if params.calibration_seed >= 0 else (1 if self.hand == "right" else 0)
         clock = DeviceClock(node.clock.now, sim=node.clock.mode == "sim")
         self.driver = GloveDriver(params.port, params.baudrate, params.calibration, self._on_frame, node.log,
-                                  clock, calibration_seed=seed, rt_priority=params.reader_rt_priority)
+                                  clock, calibration_seed=seed, rt_priority=params.reader_rt_priority,
+                                  process_rt_priority=params.process_rt_priority,
+                                  tty_worker_rt_priority=params.tty_worker_rt_priority)
         self.tactile_pub = node.output("tactile")
         self.raw_pub = node.output("raw") if params.publish_raw else None
         self.imu_pub = node.output("imu") if params.publish_imu else None
         node.queryable("register", self.cmd_register)
-        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats)}
+        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
+                                     "tty_workers_raised": self.driver.tty_workers_raised}
 
     def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:  # the serial reader thread
         header = msgs.header(stamp, f"glove_{self.hand}")

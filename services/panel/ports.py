@@ -8,6 +8,8 @@ PORTS = Ports(
     inputs=(
         Input("state", "robot/{robot}/state", "sensor_msgs/msg/JointState", latest(1), "robot pose"),
         Input("scene", "recon/main/scene", "xm_msgs/msg/Scene", latest(1), "keypoints"),
+        Input("tactile_mesh", "recon/main/tactile_mesh", "xm_msgs/msg/TactileMesh", latest(1),
+              "pressure on the gloved hands' surfaces"),
         Input("plan", "policy/main/plan", "xm_msgs/msg/Plan", latest(1), "planned keypoints"),
         Input("session", "world/sim/session", "xm_msgs/msg/Session", latest(1), "label"),
         Input("tactile", "glove/*/tactile", "xm_msgs/msg/Tactile", latest(len(GLOVES)), "heatmaps"),

@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import trimesh
 import viser
 
 from services.panel import view
@@ -30,6 +31,7 @@ from shared.runtime import EndpointError, Node
 RECORDER = "xm/recorder/main/@cmd"
 FRAME_SIZE = 0.8  # the aluminium frame around the table, metres (services/world/model.py)
 FRAME_HEIGHT = 0.8
+TACTILE_MESH_STALE_S = 2.0  # a hand's tactile mesh is hidden when recon has not sent it for this long
 
 
 class PanelService:
@@ -62,13 +64,15 @@ class PanelService:
         self._last_images = 0.0
         self._frustum_p: dict[str, tuple] = {}
         self._logged: set[str] = set()
+        self._mesh_seen: dict[str, float] = {}  # hand -> when its tactile mesh was last drawn
+        self._mesh_view: tuple[np.ndarray, np.ndarray] | None = None  # camera facing the most pressed hand
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        for port in ("state", "scene", "plan", "session"):  # state: robot/<model>/state (ports.py)
+        for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
             node.input(port, self._keeper(port, by_source=True))
@@ -80,7 +84,8 @@ class PanelService:
 
     def _health_extra(self) -> dict:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
-                "robot_model": self.robot is not None, "frustums": sorted(self.frustums)}
+                "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
+                "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible)}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
@@ -123,6 +128,7 @@ class PanelService:
         self.plan = sc.add_line_segments("/plan", np.zeros((1, 2, 3)), view.PLAN_COLOR, thickness=0.003,
                                          visible=False)
         self.frustums: dict[str, Any] = {}
+        self.tactile_meshes: dict[str, Any] = {}  # hand -> GLB handle (its data replaced on every draw)
 
     def _build_gui(self) -> None:
         gui = self.server.gui
@@ -132,6 +138,8 @@ class PanelService:
         with gui.add_folder("Tactile"):
             blank = view.tactile_image(np.zeros(256), scale=8)
             self.tactile_images = {h: gui.add_image(blank, label=f"{h} glove", format="png") for h in GLOVES}
+            look = gui.add_button("Look at the gloved hand")
+            look.on_click(self._look_at_glove)
         with gui.add_folder("Camera"):
             dropdown = gui.add_dropdown("camera", list(CAMERAS), initial_value=self.camera_choice)
             dropdown.on_update(lambda _e: setattr(self, "camera_choice", dropdown.value))
@@ -144,6 +152,13 @@ class PanelService:
             stop.on_click(lambda _e: self._recorder("stop", {}))
         with gui.add_folder("Services"):
             self.status_md = gui.add_markdown("querying `xm/**/@health`...")
+
+    def _look_at_glove(self, event: Any) -> None:
+        """viser worker thread: moves the clicking browser's camera to the palm side of the hand
+        whose tactile mesh carries the most pressure (it only reads the tuple the loop replaces)."""
+        pose = self._mesh_view
+        if pose is not None and event.client is not None:
+            event.client.camera.position, event.client.camera.look_at = pose
 
     def _recorder(self, verb: str, request: dict) -> None:
         """viser worker thread: a blocking query is fine here."""
@@ -193,6 +208,7 @@ class PanelService:
         if now - self._last_images >= 1.0 / self.p.tactile_hz:
             self._last_images = now
             self._draw_images()
+            self._draw_tactile_mesh(self._pop("tactile_mesh"), now)
 
     def _draw_robot(self, state: Any) -> None:
         if state is None:
@@ -268,6 +284,29 @@ class PanelService:
                 self.node.stats.count("bad_jpeg", self.camera_choice)
             else:
                 self.camera_image.image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def _draw_tactile_mesh(self, msg: Any, now: float) -> None:
+        """Each gloved hand's surface, coloured by pressure; hidden once recon stops sending it."""
+        if msg is not None:
+            sensed = np.asarray(msg.sensed, np.uint8)
+            hands = view.tactile_mesh_arrays(msg.hand_names, msg.vertex_count, msg.vertices, msg.faces, msg.pressure,
+                                             sensed)
+            if hands:
+                _, verts, _, _ = max(hands, key=lambda h: float(np.sum(h[3])))
+                self._mesh_view = view.palm_side_view(verts, sensed)
+            for name, verts, faces, pressure in hands:
+                colors = view.tactile_mesh_colors(pressure, sensed, view.HAND_COLORS.get(name, (200, 200, 200)))
+                glb = trimesh.Trimesh(verts, faces, vertex_colors=colors, process=False).export(
+                    file_type="glb", include_normals=True)  # with normals: shaded smooth, not flat
+                if name in self.tactile_meshes:  # in place: the browser keeps the node (and its shadow)
+                    self.tactile_meshes[name].glb_data = glb
+                else:
+                    self.tactile_meshes[name] = self.server.scene.add_glb(f"/hands/{name}_tactile", glb)
+                self._mesh_seen[name] = now
+        for name, handle in self.tactile_meshes.items():
+            fresh = now - self._mesh_seen.get(name, -np.inf) < TACTILE_MESH_STALE_S
+            if handle.visible != fresh:
+                handle.visible = fresh
 
     async def _status_loop(self) -> None:
         while True:

@@ -110,6 +110,59 @@ def tactile_image(pressure: Sequence[float], mask: Sequence[int] | None = None, 
     return np.kron(rgb, np.ones((scale, scale, 1), np.uint8))
 
 
+def tactile_mesh_arrays(hand_names: Sequence[str], vertex_count: int, vertices: Sequence[float],
+                        faces: Sequence[int], pressure: Sequence[float], sensed: Sequence[int] | None = None
+                        ) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """TactileMesh fields -> per hand (name, vertices (N,3) float32, faces (F,3) int, pressure (N,));
+    ``sensed``, when given, must have one flag per vertex."""
+    names, n = list(hand_names), int(vertex_count)
+    h = len(names)
+    v, p, f = np.asarray(vertices, np.float32), np.asarray(pressure, np.float32), np.asarray(faces, np.int64)
+    if v.size != h * n * 3 or p.size != h * n:
+        raise ViewError(f"tactile mesh has {v.size} vertex values and {p.size} pressures, "
+                        f"expected {h}*{n}*3 and {h}*{n}")
+    if sensed is not None and len(sensed) != n:
+        raise ViewError(f"tactile mesh has {len(sensed)} sensed flags for {n} vertices")
+    if h == 0:
+        return []
+    if f.size % (3 * h):
+        raise ViewError(f"tactile mesh has {f.size} face indices: not {h} hands of triangles")
+    f = f.reshape(h, -1, 3)
+    if f.size and (f.min() < 0 or f.max() >= n):
+        raise ViewError(f"tactile mesh face index outside 0..{n - 1}")
+    v, p = v.reshape(h, n, 3), p.reshape(h, n)
+    return [(names[i], v[i], f[i], p[i]) for i in range(h)]
+
+
+def tactile_mesh_colors(pressure: Sequence[float], sensed: Sequence[int], base: tuple[int, int, int],
+                        vmax: float = 30.0) -> np.ndarray:
+    """(N,3) uint8 vertex colours: sensed vertices on the heatmaps' inferno scale (0-vmax kPa),
+    the rest in the hand's colour."""
+    p = np.asarray(pressure, float)
+    s = np.asarray(sensed, bool)
+    if s.shape != p.shape:
+        raise ViewError(f"tactile mesh has {s.size} sensed flags for {p.size} vertices")
+    level = np.clip(np.nan_to_num(p) / vmax, 0.0, 1.0)
+    rgb = colormaps["inferno"](level)[:, :3] * 255
+    return np.where(s[:, None], rgb, np.asarray(base, float)[None, :]).round().astype(np.uint8)
+
+
+def palm_side_view(vertices: np.ndarray, sensed: Sequence[int], distance: float = 0.3,
+                   elevation_deg: tuple[float, float] = (-45.0, 60.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at point) facing a hand's sensors: the camera stands off the mesh's
+    centre on the side the sensors face (they sit on the palm side), its elevation above the
+    table's plane held within ``elevation_deg`` (a palm turned down is seen obliquely from below)."""
+    v = np.asarray(vertices, float)
+    centre = v.mean(axis=0)
+    s = np.asarray(sensed, bool)
+    toward = v[s].mean(axis=0) - centre if s.any() else np.zeros(3)
+    toward /= max(np.linalg.norm(toward), 1e-12)
+    horizontal = toward[:2] if np.linalg.norm(toward[:2]) > 1e-6 else np.array([1.0, -1.0])  # the default side
+    e = np.clip(np.arcsin(np.clip(toward[2], -1.0, 1.0)), *np.radians(elevation_deg))
+    direction = np.append(np.cos(e) * horizontal / np.linalg.norm(horizontal), np.sin(e))
+    return centre + distance * direction, centre
+
+
 # --- robot --------------------------------------------------------------------------------
 
 def joint_vector(model_names: Sequence[str], names: Sequence[str], positions: Sequence[float]) -> np.ndarray:

@@ -26,7 +26,7 @@ from services.recon.hand_model import N_PARAMS, forward
 from services.recon.offline import OfflineConfig, refine_hand
 from services.recon.pipeline import Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
-from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window
+from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window, info_key
 from services.recorder.writer import McapRecorder, RecordingError, read_messages
 from shared import msgs
 from shared.demo import KEYPOINTS_PER_HAND
@@ -61,12 +61,16 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
     buffer, images = FrameSetBuffer(), []
     learned = _learned(args) if args.detector == "learned" else None
     # every camera the recording has, so that its first frame set is not cut short
-    expected = {_camera(s.key) for s in read_messages(path, keys={f"xm/camhub/{c}/info" for c in CAMERAS})}
+    cameras = {_camera(s.key) for s in read_messages(path, keys={f"xm/camhub/{c}/info" for c in CAMERAS})}
+    expected = cameras | {info_key(c) for c in cameras}
     for stored in read_messages(path):
         if stored.key.endswith("/info") and stored.key.startswith("xm/camhub/"):
             msg = msgs.deserialize(stored.data, stored.msgtype)
-            out.cameras[_camera(stored.key)] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width,
-                                                           msg.height, readout_window(msg))
+            model = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height, readout_window(msg))
+            out.cameras[_camera(stored.key)] = model
+            if learned is not None:  # each image is read with the window of its own frame set
+                images += buffer.add(msgs.stamp_seconds(msg.header.stamp), info_key(_camera(stored.key)), model,
+                                     expected)
         elif stored.key == "xm/world/sim/truth" and learned is None:
             msg = msgs.deserialize(stored.data, stored.msgtype)
             truth.append((msgs.stamp_seconds(msg.header.stamp), msg))
@@ -107,12 +111,12 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
     else:
         for stamp, blobs in images:
             views = []
-            for c in (c for c in order if c in blobs):
-                img = decode_window(blobs[c], out.cameras[c])
+            for c in (c for c in order if c in blobs and info_key(c) in blobs):
+                img = decode_window(blobs[c], blobs[info_key(c)])
                 if img is None:
                     out.corrupt += 1  # dropped, like the live service does
                 else:
-                    views.append(View(c, out.cameras[c], img))
+                    views.append(View(c, blobs[info_key(c)], img))
             if len(views) < 2:
                 continue
             uv, conf = learned.detect(views)
@@ -197,8 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("recording", type=Path, help="an MCAP recording with camhub's frames (xm record)")
     parser.add_argument("-o", "--out", type=Path, required=True, help="where to write the reconstructed copy")
     parser.add_argument("--task", default="assembly", help="names the object keypoints (default: %(default)s)")
-    parser.add_argument("--detector", choices=("simulated", "learned"), default="simulated",
-                        help="simulated: the recorded truth projected (an experiment); learned: the images")
+    parser.add_argument("--detector", choices=("learned", "simulated"), default="learned",
+                        help="learned: the shipped network on the recorded images (default); simulated: the "
+                             "recorded truth projected (an experiment)")
     parser.add_argument("--weights", default="", help="the learned detector's weights (default: its own)")
     parser.add_argument("--pixel-noise", type=float, default=1.0)
     parser.add_argument("--dropout", type=float, default=0.08)

@@ -6,7 +6,8 @@ network's fixed input (scaled to fit, padded bottom/right), the peaks are mapped
 letterbox and the window offset to full-image pixels, so recon triangulates with the full-image
 projection matrices. Weights come from ``xm detector train`` (perception/); inference runs through
 ONNX Runtime when the trained graph was exported (the fastest CPU runtime measured by
-bench/detector.py), otherwise through torch.
+bench/detector.py), otherwise through torch. The default weights are the ones shipped in
+models/detector/ (the ONNX graph and its meta.json).
 """
 
 from __future__ import annotations
@@ -22,9 +23,12 @@ from torch import nn
 
 from services.recon.detector import CameraModel
 
-DEFAULT_WEIGHTS_DIR = Path("runs/detector")
+# The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
+# writes its outputs (weights.pt, loss.png, the labelled sets) under TRAINING_DIR, outside git.
+DEFAULT_WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "models" / "detector"
+TRAINING_DIR = Path("runs/detector")
 INPUT_SIZE = (64, 48)  # network input (width, height): fits the P6 budget on 2 cores (bench/detector.py)
-TRAIN_HINT = "train them with `xm detector label && xm detector train`"
+TRAIN_HINT = "regenerate them with `make detector` (xm detector label && xm detector train)"
 
 
 def _conv(cin: int, cout: int) -> nn.Sequential:

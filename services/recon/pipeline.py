@@ -13,6 +13,36 @@ from services.recon.objects import ObjectSmoother, object_models, pose_objects, 
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
+SAME_HAND_M = 0.05  # two hands whose keypoints triangulate this close (median) are one hand seen twice
+SAME_HAND_MIN_POINTS = 5
+# No keypoint of a hand lies farther than this from the median of its keypoints (the simulated
+# teacher's fingertips reach 0.118 m; the margin holds larger hands and triangulation noise).
+HAND_EXTENT_M = 0.15
+
+
+def beyond_the_hand(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(21,) bool: triangulated keypoints too far from their hand's median keypoint to belong to it
+    (a detection that landed on the other hand or elsewhere, agreed on by two or more views)."""
+    seen = mask.astype(bool)
+    if seen.sum() < SAME_HAND_MIN_POINTS:
+        return np.zeros(len(points), bool)
+    centre = np.median(points[seen], axis=0)
+    return seen & (np.linalg.norm(points - centre, axis=1) > HAND_EXTENT_M)
+
+
+def one_hand_seen_twice(hands: np.ndarray, mask: np.ndarray, support: np.ndarray) -> int | None:
+    """Which of two hands to drop when both triangulated onto the same physical hand (a detector's
+    left and right channels both peak on the one hand a window shows): the one whose detections are
+    weaker (``support``: mean confidence of its inlier views); None when the hands are apart.
+
+    hands (2,21,3), mask (2,21), support (2,)."""
+    both = mask[0].astype(bool) & mask[1].astype(bool)
+    if len(hands) != 2 or both.sum() < SAME_HAND_MIN_POINTS:
+        return None
+    if np.median(np.linalg.norm(hands[0][both] - hands[1][both], axis=1)) >= SAME_HAND_M:
+        return None
+    return int(np.argmin(support))
+
 
 @dataclass
 class Reconstruction:
@@ -23,6 +53,7 @@ class Reconstruction:
     object_mask: np.ndarray  # (K,) uint8
     object_posed: np.ndarray  # (objects,) bool: a rigid fit produced the object's keypoints
     inliers: np.ndarray  # (C,N) views each triangulated point used
+    triangulated: np.ndarray  # (N,3) the robust triangulation before the fits, zero where masked
     times: dict = field(default_factory=dict)  # seconds per stage
 
 
@@ -42,6 +73,8 @@ class Reconstructor:
         self.fit_hands = fit_hands
         self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
         self.smoother = ObjectSmoother()
+        self.hands_seen_twice = 0  # frame sets where one hand was dropped as the other's double
+        self.beyond_hand = 0  # hand keypoints masked as too far from their hand
 
     @property
     def n_points(self) -> int:
@@ -52,10 +85,28 @@ class Reconstructor:
         t0 = time.perf_counter()
         pts, mask, inliers = triangulate_robust(P, uv, confidence, self.gate_px)
         t1 = time.perf_counter()
-        views = inliers.sum(axis=0).astype(float)
         H, nh = len(self.hand_names), len(self.hand_names) * KEYPOINTS_PER_HAND
         hands = pts[:nh].reshape(H, KEYPOINTS_PER_HAND, 3).copy()
         hand_mask = mask[:nh].reshape(H, KEYPOINTS_PER_HAND).copy()
+        conf = np.nan_to_num(np.asarray(confidence, float))[:, :nh].reshape(-1, H, KEYPOINTS_PER_HAND)
+        kept = inliers[:, :nh].reshape(-1, H, KEYPOINTS_PER_HAND)
+        support = (conf * kept).sum(axis=(0, 2)) / np.maximum(kept.sum(axis=(0, 2)), 1)
+        double = one_hand_seen_twice(hands, hand_mask, support)
+        if double is not None:
+            self.hands_seen_twice += 1
+            sl = slice(double * KEYPOINTS_PER_HAND, (double + 1) * KEYPOINTS_PER_HAND)
+            mask[sl], hand_mask[double] = 0, 0
+            pts[sl], hands[double] = 0.0, 0.0
+            inliers[:, sl] = False
+        for i in range(H):
+            far = beyond_the_hand(hands[i], hand_mask[i])
+            if far.any():
+                self.beyond_hand += int(far.sum())
+                idx = i * KEYPOINTS_PER_HAND + np.flatnonzero(far)
+                mask[idx], hand_mask[i, far] = 0, 0
+                pts[idx], hands[i, far] = 0.0, 0.0
+                inliers[:, idx] = False
+        views = inliers.sum(axis=0).astype(float)
         fitted = np.zeros(H, bool)
         for i, name in enumerate(self.hand_names):
             if not self.fit_hands:
@@ -66,5 +117,5 @@ class Reconstructor:
         objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
         objects = self.smoother.update(self.models, objects, posed, rms, used)
         t3 = time.perf_counter()
-        return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers,
+        return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,
                               {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})

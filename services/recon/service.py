@@ -1,10 +1,12 @@
 """recon node: on each synchronized frame set, detect 2-D keypoints per camera, reconstruct them
 in 3-D (robust triangulation, articulated hand fit, rigid objects; services/recon/pipeline.py) and
-publish the scene with the latest tactile region pressures of each glove.
+publish the scene with the latest tactile region pressures of each glove, and each gloved hand's
+surface mesh with the glove's pressure projected onto it (services/recon/tactile_projection.py).
 
-Two detectors: ``simulated`` projects the simulator's truth (a labelled option for experiments)
-on the first camera's image of each set; ``learned`` decodes every camera's JPEG window and runs
-the trained network (services/recon/learned_detector.py, imported only when chosen)."""
+Two detectors: ``learned`` (the default) decodes every camera's JPEG window and runs the trained
+network (services/recon/learned_detector.py, imported only when chosen; the weights ship in
+models/detector/); ``simulated`` projects the simulator's truth on the first camera's image of
+each set, an option for experiments and the only one that subscribes to the truth."""
 
 from __future__ import annotations
 
@@ -21,12 +23,25 @@ from services.recon.detector import CameraModel, SimulatedDetector, View, readou
 from services.recon.frameset import FrameSetBuffer
 from services.recon.pipeline import Reconstruction, Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
+from services.recon.tactile_projection import TactileProjector
 from shared import msgs
+from shared.demo import KEYPOINTS_PER_HAND
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
+INFO_SUFFIX = "/info"
+
+
+def info_key(camera: str) -> str:
+    """A frame set's entry for a camera's CameraInfo, beside its image's entry (the camera's name)."""
+    return camera + INFO_SUFFIX
 DETECTORS = ("simulated", "learned")
-TRAIN_HINT = "train it with `xm detector label` then `xm detector train` (docs/perception.md)"
+TRAIN_HINT = "regenerate it with `make detector` (xm detector label, xm detector train; docs/perception.md)"
+
+
+def keypoint_names(recon: Reconstructor) -> list[str]:
+    """The detector channels recon expects: ``hand/0..20`` per hand, then the task's object keypoints."""
+    return [f"{h}/{k}" for h in recon.hand_names for k in range(KEYPOINTS_PER_HAND)] + list(recon.object_names)
 
 
 def decode_window(data: bytes, model: CameraModel) -> np.ndarray | None:
@@ -43,7 +58,7 @@ def decode_window(data: bytes, model: CameraModel) -> np.ndarray | None:
 class ReconService:
     @dataclass
     class Params:
-        detector: str = "simulated"  # "learned": the trained network on the images
+        detector: str = "learned"  # the trained network on the images; "simulated": projected truth (experiments)
         task: str = "assembly"  # its object keypoints name the scene's objects (learned detector)
         weights: str = ""  # the learned detector's weights; empty: its own default path
         pixel_noise: float = 1.0  # simulated detector
@@ -61,11 +76,14 @@ class ReconService:
         self.cameras: dict[str, CameraModel] = {}
         self.truth: collections.deque = collections.deque(maxlen=64)  # (stamp, msg)
         self.tactile: dict[str, tuple[float, np.ndarray]] = {}
+        self.pressure: dict[str, tuple[float, np.ndarray]] = {}  # the newest 16x16 frame per glove
+        self.projector = TactileProjector()
         self.times: collections.deque = collections.deque(maxlen=200)  # per-stage seconds per frame set
         self.frame_sets = 0
         self.recon: Reconstructor | None = None
         self.learned = None
         self.scene_pub = node.output("scene")
+        self.mesh_pub = node.output("tactile_mesh")
         node.health_extra = self._health
         node.input("info", self.on_info)
         node.input("tactile", self.on_tactile)
@@ -76,7 +94,9 @@ class ReconService:
         else:
             self.recon = Reconstructor(params.task, gate_px=params.gate_px, fit_hands=params.fit_hands)
             self.learned = self._load_learned()
-            self.buffer = FrameSetBuffer()
+            # Images and CameraInfos come through separate subscriptions, whose handlers may run a
+            # frame set apart under load: a set is released incomplete only once two newer ones began.
+            self.buffer = FrameSetBuffer(late_after=2)
             if self.learned is not None:
                 node.input("image", self.on_image)
                 node.set_status("ok")
@@ -88,11 +108,17 @@ class ReconService:
             # Imported here: torch/onnx stay out of the simulated path and of builds without them.
             module = importlib.import_module("services.recon.learned_detector")
             cls = module.LearnedDetector
-            return cls(self.params.weights) if self.params.weights else cls()
+            detector = cls(self.params.weights) if self.params.weights else cls()
         except (ImportError, AttributeError) as exc:
             msg = f"learned detector unavailable ({exc}); {TRAIN_HINT}"
         except (FileNotFoundError, OSError, ValueError) as exc:
             msg = f"learned detector weights missing or unreadable ({exc}); {TRAIN_HINT}"
+        else:
+            expected = keypoint_names(self.recon)
+            if list(detector.names) == expected:
+                return detector
+            msg = (f"the learned detector's {len(detector.names)} keypoints are not task {self.params.task!r}'s "
+                   f"{len(expected)} in recon's order (weights of another task?); {TRAIN_HINT}")
         self.node.stats.count("detector_unavailable")
         self.node.log.error(msg)
         self.node.set_status("error", msg)
@@ -104,15 +130,22 @@ class ReconService:
         out = {"detector": self.params.detector, "frame_sets": self.frame_sets, "stage_ms_median": stages}
         if self.recon is not None:
             out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
+            out["hands_seen_twice"] = self.recon.hands_seen_twice
+            out["hand_keypoints_beyond_the_hand"] = self.recon.beyond_hand
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial
             out["late_images"] = self.buffer.dropped_stale
+            out["timeline_restarts"] = self.buffer.restarts
         return out
 
     def on_info(self, msg, key: str) -> None:
-        self.cameras[key.split("/")[2]] = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height,
-                                                      readout_window(msg))
+        camera = key.split("/")[2]
+        model = CameraModel(np.asarray(msg.p, float).reshape(3, 4), msg.width, msg.height, readout_window(msg))
+        self.cameras[camera] = model
+        if self.learned is not None:
+            # The window moves every frame set: each image is read with the CameraInfo of its own stamp.
+            self._add(msgs.stamp_seconds(msg.header.stamp), info_key(camera), model)
 
     def on_truth(self, msg) -> None:
         self.truth.append((msgs.stamp_seconds(msg.header.stamp), msg))
@@ -120,6 +153,7 @@ class ReconService:
     def on_tactile(self, msg) -> None:
         pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
         self.tactile[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), region_means(pressure))
+        self.pressure[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), pressure)
 
     # --- simulated detector: projected truth ------------------------------------------------
     def on_frame(self, msg) -> None:
@@ -143,20 +177,22 @@ class ReconService:
 
     # --- learned detector: images -----------------------------------------------------------
     def on_image(self, msg, key: str) -> None:
-        camera = key.split("/")[2]
-        stamp = msgs.stamp_seconds(msg.header.stamp)
-        for set_stamp, images in self.buffer.add(stamp, camera, bytes(msg.data), set(self.cameras)):
-            self._detect_images(set_stamp, images)
+        self._add(msgs.stamp_seconds(msg.header.stamp), key.split("/")[2], bytes(msg.data))
 
-    def _detect_images(self, stamp: float, images: dict[str, bytes]) -> None:
+    def _add(self, stamp: float, item: str, payload: object) -> None:
+        expected = set(self.cameras) | {info_key(c) for c in self.cameras}
+        for set_stamp, items in self.buffer.add(stamp, item, payload, expected):
+            self._detect_images(set_stamp, items)
+
+    def _detect_images(self, stamp: float, items: dict[str, object]) -> None:
         t0 = time.perf_counter()
         views = []
-        for camera in sorted(images):
-            model = self.cameras.get(camera)
-            if model is None:
+        for camera in sorted(k for k in items if not k.endswith(INFO_SUFFIX)):
+            model = items.get(info_key(camera))
+            if model is None:  # its CameraInfo of this stamp never came: its window is unknown
                 self.node.stats.count("image_without_info", camera)
                 continue
-            rgb = decode_window(images[camera], model)
+            rgb = decode_window(items[camera], model)
             if rgb is None:
                 self.node.stats.count("corrupt_jpeg", camera)
                 continue
@@ -182,6 +218,7 @@ class ReconService:
         self.times.append({**times, **r.times})
         self.frame_sets += 1
         self.scene_pub.put(self._scene(stamp, r))
+        self._tactile_mesh(stamp, r)
 
     def _scene(self, stamp: float, r: Reconstruction) -> object:
         hand_names = self.recon.hand_names
@@ -189,3 +226,13 @@ class ReconService:
         tactile, tactile_mask = tactile_matrix(hand_names, fresh)
         return scene_message(stamp, hand_names, r.hands, r.hand_mask, self.recon.object_names, r.objects,
                              r.object_mask, tactile, tactile_mask)
+
+    def _tactile_mesh(self, stamp: float, r: Reconstruction) -> None:
+        t0 = time.perf_counter()
+        fresh = {h: p for h, (t, p) in self.pressure.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
+        msg, skipped = self.projector.message(stamp, self.recon.hand_names, r.hands, r.hand_mask, fresh)
+        self.times[-1]["tactile_mesh"] = time.perf_counter() - t0  # a stage of @health's stage_ms_median
+        for hand, why in skipped.items():  # keypoints missing, or a bad glove frame
+            self.node.stats.count(f"tactile_mesh_{why}", hand)
+        if msg is not None:
+            self.mesh_pub.put(msg)

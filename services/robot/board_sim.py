@@ -56,6 +56,7 @@ from shared.protocols.robot_board import (
 from shared.robots.registry import joints_with
 
 DEFAULT_DT = 0.001
+BRAKES_KEPT = 100
 BRAKE, POSITION, VELOCITY, EFFORT, IMPEDANCE, PNEUMATIC = (int(m) for m in Mode)  # ints: fast array compares
 
 
@@ -150,6 +151,8 @@ class BoardSim:
         self.counters = {"commands": 0, "commands_rejected": 0, "configs": 0, "configs_rejected": 0,
                          "brake_events": 0, "clamp_events": 0, "limit_brakes": 0}
         self.last_reasons: list[str] = []
+        self.last_brake: dict | None = None  # board times of the latest watchdog brake and the command before it
+        self.brakes_after: list[int] = []  # sequence of the last command before each recent watchdog brake
         self._braking = True
         self._in_zone = np.zeros(n, bool)
         # Muscle pairs (PNEUMATIC mode): parameters per joint from pneumatic_params; joints without a
@@ -223,6 +226,9 @@ class BoardSim:
         expired = self.watchdog.check(t)
         if expired and not self._braking:
             self.counters["brake_events"] += 1
+            self.last_brake = {"at": t, "last_command_at": self.last_command_t,
+                               "last_command_sequence": self.last_command_sequence}
+            self.brakes_after = (self.brakes_after + [self.last_command_sequence])[-BRAKES_KEPT:]
             self._next_feedback = t  # report the brake at once, not at the next feedback period
         self._braking = expired
         joint_flags = np.zeros(n, np.uint8)

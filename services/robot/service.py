@@ -18,6 +18,7 @@ import numpy as np
 
 from services.robot.driver import BoardDriver
 from services.robot.safety import (
+    WATCHDOG_TIMEOUT_S,
     CommandRejectedError,
     board_limits,
     check_finite,
@@ -34,6 +35,10 @@ from shared.realtime import raise_priority, raise_process_priority
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
+GAPS_KEPT = 100
+# A gap this long may brake a board that hears commands up to 1 ms late (USB; the simulated board's
+# arrival stamps, services/world/arrival_stamper.py).
+GAP_NEAR_WATCHDOG_S = WATCHDOG_TIMEOUT_S - 0.001
 VELOCITY_SLACK = 1.1  # trajectory time runs at most this much faster than wall time (CommandClock)
 
 
@@ -91,14 +96,16 @@ class RobotService:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_config = -np.inf
-        self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0, "configs": 0,
+        self.gaps_after: list[int] = []  # the last command's sequence before each recent gap near the watchdog's
+        self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0,
+                       "gaps_over_watchdog": 0, "configs": 0,
                        "errors": 0}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state,
-                                     "command_stream": dict(self.stream),
+                                     "command_stream": {**self.stream, "gaps_after": self.gaps_after},
                                      "command_clock_jumps": self.command_clock.jumps}
 
     def _reject(self, reason: str) -> None:
@@ -134,6 +141,7 @@ class RobotService:
             raise_process_priority("robot", self.node.log)
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
+        last_sent: float | None = None
         while not self._stop.is_set():
             next_t += period
             delay = next_t - time.monotonic()
@@ -146,11 +154,26 @@ class RobotService:
             elapsed, last = now - last, now
             self.stream["ticks"] += 1
             self.stream["max_gap_ms"] = max(self.stream["max_gap_ms"], elapsed * 1e3)
+            sequence = self.driver.sequence
             try:
                 self._command_tick(elapsed, now)
             except Exception as exc:  # a bug in one tick must not stop the stream (the board would brake)
                 self.stream["errors"] += 1
                 self.node.log.exception("command tick failed: %r", exc)
+            if self.driver.sequence != sequence:  # sent: the gap the board sees is between the writes
+                sent = time.monotonic()
+                if last_sent is not None:
+                    self._count_gap(sent - last_sent, sequence - 1)
+                last_sent = sent
+            else:
+                last_sent = None  # no feedback, no commands: the board brakes, as it should
+
+    def _count_gap(self, gap: float, before: int) -> None:
+        """A gap between two commands written: over the watchdog timeout it is counted, near it the
+        sequence of the command before it is kept (bench/robot.py tells the board's brakes apart)."""
+        self.stream["gaps_over_watchdog"] += gap > WATCHDOG_TIMEOUT_S
+        if gap > GAP_NEAR_WATCHDOG_S:
+            self.gaps_after = (self.gaps_after + [before])[-GAPS_KEPT:]
 
     def _command_tick(self, elapsed: float, now: float | None = None) -> None:
         """One command, ``elapsed`` wall seconds after the previous one."""
@@ -173,9 +196,11 @@ class RobotService:
         except CommandRejectedError as exc:
             self._reject(str(exc))
             goal, velocity = self.target, np.zeros(len(self.target))
-        # The rate limit runs on trajectory time (at most VELOCITY_SLACK x the wall time): a trajectory
-        # within the velocity limit is never clamped because the time between two commands jittered.
-        self.target, reasons = limit_step(goal, self.target, self.limits, advanced)
+        # The rate limit allows what the axes can move in the time since the last command: the wall
+        # time, or the trajectory time when it catches up (at most VELOCITY_SLACK x the wall time), so a
+        # trajectory within the velocity limit is never clamped because the time between two commands
+        # jittered, nor a re-plan's small step while trajectory time waits for a late clock.
+        self.target, reasons = limit_step(goal, self.target, self.limits, max(advanced, elapsed))
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)

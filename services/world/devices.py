@@ -158,9 +158,19 @@ class BoardDevice:
     flat out to catch up), so the host's commands, which come on wall time, would all reach the board
     at the first step of a burst: the gaps between them in simulated time would differ from the
     real ones and the 10 ms watchdog would brake although the host never paused. So a helper
-    process (services/world/arrival_stamper.py) stamps each read from the host with its wall
-    arrival time, and ``step`` hands each command to the board at the step whose simulated time
-    matches (``sim_time_of``, the world's wall -> simulated time map)."""
+    process (services/world/arrival_stamper.py) stamps each read from the host with when the host
+    wrote it (at most one probe period late; frames of a backlog the stamper read late are placed by
+    ``_release_batch``), and ``step`` hands each command to the board at the step whose simulated
+    time matches (``sim_time_of``, the world's wall -> simulated time map), kicking the watchdog at
+    the previous kick plus the host's own spacing (``_kick_time``).
+
+    The pty's own transfer can hold the host's bytes back far longer than 10 ms on a busy host (the
+    stamper says why); a real board's UART sees them within about a millisecond. So once a command
+    is overdue on what has arrived, the board's clock does not run past the stamper's horizon (the
+    time up to which everything the host wrote has arrived): ``step`` returns False and the world
+    waits, then steps on. The board brakes within 10 ms plus one physics step of the host's last
+    command in board time, and never because the simulated wire was slow. A horizon older than
+    ``MAX_HOLD_S`` (a stalled pty, a dead stamper) holds nothing back."""
 
     MAX_HOLD_S = 1.0  # a command never waits longer than this in wall time, whatever the map says
 
@@ -171,14 +181,22 @@ class BoardDevice:
         self.feedback_frames = 0
         self._inbox: collections.deque[tuple[float, object]] = collections.deque()
         self._stamped = bytearray()
-        self._stamper = subprocess.Popen([sys.executable, str(STAMPER), str(self.pty.master)],
-                                         pass_fds=[self.pty.master], stdout=subprocess.PIPE,
+        self.horizon: float | None = None  # wall time up to which every byte the host wrote has arrived
+        self._kick: tuple[float, float] | None = None  # the last command's (board time, wall stamp)
+        self.waits = 0  # steps held back for the wire
+        self._last_stamp = float("-inf")  # stamp of the latest bytes from the host
+        self._batch: list = []  # frames since the last horizon, and when the last of them was read
+        self._batch_upper = float("-inf")
+        fds = [self.pty.master, self.pty.slave]
+        self._stamper = subprocess.Popen([sys.executable, str(STAMPER), *map(str, fds)],
+                                         pass_fds=fds, stdout=subprocess.PIPE,
                                          stdin=subprocess.DEVNULL, start_new_session=True)
         os.set_blocking(self._stamper.stdout.fileno(), False)
 
     def restart_schedule(self) -> None:
         """The simulated time restarted."""
         self.board.restart_clock()
+        self._kick = None
 
     def _drain_stamper(self) -> None:
         """Commands the stamper read, with their arrival times, into the inbox."""
@@ -192,26 +210,69 @@ class BoardDevice:
             t, n = HEADER.unpack_from(buf, at)
             if len(buf) - at - HEADER.size < n:
                 break
-            self.arrived(bytes(buf[at + HEADER.size:at + HEADER.size + n]), t)
+            if n:
+                self.arrived(bytes(buf[at + HEADER.size:at + HEADER.size + n]), t)
+            else:
+                self.heard_until(t)
             at += HEADER.size + n
         del buf[:at]
 
     def arrived(self, data: bytes, t_wall: float) -> None:
-        """Bytes from the host that arrived at ``t_wall`` (monotonic seconds)."""
-        for msg in self.decoder.feed(data):
-            self._inbox.append((t_wall, msg))
+        """Bytes from the host, written after the horizon and by ``t_wall`` (monotonic seconds). Their
+        frames wait for the next horizon (``heard_until``), which closes what is known of when they
+        were written (``_release_batch``)."""
+        self._batch += self.decoder.feed(data)
+        self._batch_upper = t_wall
 
-    def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> None:
+    def heard_until(self, t_wall: float) -> None:
+        """Every byte the host wrote before ``t_wall`` (monotonic seconds) has arrived."""
+        self._release_batch(t_wall)
+        self.horizon = t_wall if self.horizon is None else max(self.horizon, t_wall)
+
+    def _release_batch(self, closing: float | None = None) -> None:
+        """The frames read since the last horizon, into the inbox with their write times. Each was
+        written after the previous frame and the last horizon, and by its read's stamp; where that
+        leaves room (the stamper itself could not run for a while, and read a backlog) they are placed
+        evenly between the previous frame and the closing horizon, inside those bounds: the kindest
+        reading of the evidence, so a gap the host may not have left shows nowhere, while one the
+        probes prove (no frame between two horizons more than 10 ms apart) still does."""
+        batch, upper = self._batch, self._batch_upper
+        if not batch:
+            return
+        lower = max(self._last_stamp, self.horizon if self.horizon is not None else float("-inf"))
+        if not np.isfinite(lower) or lower >= upper:
+            stamps = [upper] * len(batch)
+        else:
+            prev = self._last_stamp if np.isfinite(self._last_stamp) else lower
+            end = max(upper, closing if closing is not None else upper)
+            stamps = [min(max(prev + (end - prev) * (i + 1) / (len(batch) + 1), lower), upper)
+                      for i in range(len(batch))]
+        for stamp, msg in zip(stamps, batch, strict=True):
+            self._inbox.append((stamp, msg))
+        self._last_stamp = stamps[-1]
+        self._batch = []
+
+    def step(self, sim, sim_time_of: Callable[[float], float] | None = None, now: float | None = None) -> bool:
         """One physics step: commands due by now to the board, the board's efforts to MuJoCo, its
-        feedback to the pty. Without ``sim_time_of`` every command that arrived is due."""
+        feedback to the pty. Without ``sim_time_of`` every command that arrived is due at once.
+        Returns False, without stepping, while the wire may still hold a command that decides
+        whether the watchdog expires at this step (the caller waits and calls again)."""
         self._drain_stamper()
         inbox, now = self._inbox, time.monotonic() if now is None else now
+        if self._batch and now - self._batch_upper >= self.MAX_HOLD_S:  # no horizon comes (a dead stamper)
+            self._release_batch()
         while inbox:
             t_arrival, msg = inbox[0]
-            if sim_time_of is not None and sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
-                break
+            at = sim.time
+            if sim_time_of is not None:
+                if sim_time_of(t_arrival) > sim.time and now - t_arrival < self.MAX_HOLD_S:
+                    break
+                at = self._kick_time(t_arrival, sim_time_of, sim.time)
             inbox.popleft()
-            self.board.receive(msg, sim.time)
+            self.board.receive(msg, at)
+        if sim_time_of is not None and self._undecided(sim.time, sim_time_of, now):
+            self.waits += 1
+            return False
         self.pty.flush()
         q, qd = sim.joint_state()
         efforts, feedback = self.board.step(sim.time, q, qd, sim.physics_dt)
@@ -219,6 +280,28 @@ class BoardDevice:
         if feedback is not None:
             self.pty.write(robot_board.encode_feedback(feedback))
             self.feedback_frames += 1
+        return True
+
+    def _kick_time(self, stamp: float, sim_time_of: Callable[[float], float], now_sim: float) -> float:
+        """The board time a command stamped ``stamp`` kicks the watchdog: the previous kick plus the
+        host's own spacing since the previous command, so that a world re-pacing its map (it fell
+        far behind) moves no command onto another's time; never before the previous kick or 0,
+        never after the current step (a command the world could not yet hand over)."""
+        if self._kick is None:
+            at = sim_time_of(stamp)
+        else:
+            at = self._kick[0] + sim_time_of(stamp) - sim_time_of(self._kick[1])
+        at = min(max(at, self._kick[0] if self._kick else 0.0, 0.0), now_sim)
+        self._kick = (at, stamp)
+        return at
+
+    def _undecided(self, t: float, sim_time_of: Callable[[float], float], now: float) -> bool:
+        """The watchdog would expire at ``t`` on the commands that arrived, but the host may have
+        written one before ``t`` that the pty has not delivered yet."""
+        dog = self.board.watchdog
+        if dog.state != "ok" or not dog.expired(t) or self.horizon is None or now - self.horizon >= self.MAX_HOLD_S:
+            return False
+        return sim_time_of(self.horizon) < t
 
     def stats(self) -> dict:
         cmd = self.board.command
@@ -226,7 +309,10 @@ class BoardDevice:
                                         if (cmd.mode == m).any()}
         return {"feedback_frames": self.feedback_frames, "dropped_bytes": self.pty.dropped_bytes,
                 "command_modes": modes, "watchdog_brakes": self.board.counters["brake_events"],
-                "limit_brakes": self.board.counters["limit_brakes"],
+                "limit_brakes": self.board.counters["limit_brakes"], "last_brake": self.board.last_brake,
+                "brakes_after": self.board.brakes_after,
+                "waits_for_wire": self.waits,
+                "wire_lag_s": None if self.horizon is None else round(time.monotonic() - self.horizon, 4),
                 "muscle_pressure_max_bar": float(self.board.pressure.max()),
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}
 

@@ -41,6 +41,11 @@ class PtyDevice:
         tmp.replace(self.link)  # atomic: a driver never sees a half-made link
         self.dropped_bytes = 0
 
+    @property
+    def slave(self) -> int:
+        """The device's own fd of the slave end: it keeps the pty open while no host has it."""
+        return self._slave
+
     def write(self, data: bytes) -> int:
         """Non-blocking; returns the bytes accepted (sent or queued in the device FIFO); what overflows
         the FIFO is dropped and counted in ``dropped_bytes``."""

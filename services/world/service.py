@@ -27,6 +27,7 @@ from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 SNAPSHOT_KEY = "xm/world/sim/@snapshot"
+WIRE_WAIT_S = 0.0005  # how often a step held back for the robot's pty asks again
 
 
 class WorldService:
@@ -145,8 +146,9 @@ class WorldService:
         while True:
             self._wall0, self._sim0 = wall0, sim0
             for _ in range(self.substeps):
-                if self.board is not None:
-                    self.board.step(self.sim, self._sim_time_of)
+                # The board's clock waits for a command the pty may still hold (BoardDevice.step).
+                while self.board is not None and not self.board.step(self.sim, self._sim_time_of):
+                    await asyncio.sleep(WIRE_WAIT_S)
                 self.sim.step(1)
             self._publish_due()
             if self._repace:

@@ -136,6 +136,17 @@ def _scene(msg: Any) -> None:
     _expect("tactile_mask", len(msg.tactile_mask), len(msg.tactile))
 
 
+def _tactile_mesh(msg: Any) -> None:
+    hands, n = len(msg.hand_names), int(msg.vertex_count)
+    _expect("vertices", len(msg.vertices), hands * n * 3)
+    _expect("pressure", len(msg.pressure), hands * n)
+    _expect("sensed", len(msg.sensed), n)
+    if len(msg.faces) % 3 or (hands and len(msg.faces) % (3 * hands)) or (not hands and len(msg.faces)):
+        raise RejectedError("bad_length", f"faces has {len(msg.faces)} values: not {hands} hands of triangles")
+    if len(msg.faces) and int(np.max(msg.faces)) >= n:
+        raise RejectedError("bad_value", f"a face index {int(np.max(msg.faces))} is beyond {n} vertices")
+
+
 def _ground_truth(msg: Any) -> None:
     hands, objects = len(msg.hand_names), len(msg.object_names)
     _expect("hand_keypoints", len(msg.hand_keypoints), hands * KEYPOINTS_PER_HAND * 3)
@@ -177,6 +188,7 @@ LENGTH_RULES: dict[str, Callable[[Any], None]] = {
     "xm_msgs/msg/Imu": _imu,
     "xm_msgs/msg/Plan": _plan,
     "xm_msgs/msg/Scene": _scene,
+    "xm_msgs/msg/TactileMesh": _tactile_mesh,
     "xm_msgs/msg/GroundTruth": _ground_truth,
     "sensor_msgs/msg/JointState": _joint_state,
     "trajectory_msgs/msg/JointTrajectory": _joint_trajectory,

@@ -15,10 +15,13 @@ import numpy as np
 import viser
 from websockets.sync.client import connect
 
+from services.glove.layout import pressure_from_forces
+from services.recon.tactile_projection import TactileProjector
 from shared import msgs
 from shared.geometry import look_at, projection
 from shared.kinematics import load_robot
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, write_deployment
+from tests.unit.test_tactile_projection import hand
 
 
 @contextlib.contextmanager
@@ -71,6 +74,15 @@ def tactile(hand: str) -> object:
                      pressure=np.linspace(0, 30, 256, dtype=np.float32), mask=np.ones(256, np.uint8), sequence=1)
 
 
+def tactile_mesh() -> object:
+    """recon's TactileMesh of a right hand above the table, fingers up, palm toward -y, pinching:
+    thumb and index pressed (27 kPa), the palm lightly (2.7 kPa)."""
+    kp = hand("right", curl=0.5, rot=(1.209, 1.209, 1.209), at=(0.0, 0.0, 0.15))
+    pressure = pressure_from_forces(np.array([8.0, 8.0, 0.0, 0.0, 0.0, 2.0]))
+    msg, _ = TactileProjector().message(time.time(), ["right"], kp[None], np.ones((1, 21)), {"right": pressure})
+    return msg
+
+
 def plan() -> object:
     steps, names = 5, ["left/8", "right/8"]
     pos = np.linspace(0.0, 0.2, steps * len(names) * 3, dtype=np.float32)
@@ -105,7 +117,8 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
 
         frames = {"xm/robot/workcell/state": joint_state(), "xm/recon/main/scene": scene(),
                   "xm/glove/left/tactile": tactile("left"), "xm/glove/right/tactile": tactile("right"),
-                  "xm/camhub/cam0/info": camera_info(), "xm/policy/main/plan": plan()}
+                  "xm/camhub/cam0/info": camera_info(), "xm/policy/main/plan": plan(),
+                  "xm/recon/main/tactile_mesh": tactile_mesh()}
         pubs = {k: session.declare_publisher(k) for k in frames}
 
         def received() -> dict | None:
@@ -123,6 +136,7 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
             h = wait_for(lambda: (r := received()) and r["clients"] == 1 and r["frames_drawn"] > 3 and r, 20)
             assert h, health_of(session)
             assert h["frustums"] == ["cam0"] and "draw_error" not in h["errors"], (h["errors"], panel.output())
+            assert h["tactile_meshes"] == ["right"], "the gloved hand's tactile mesh is drawn"
 
         pubs["xm/glove/left/tactile"].put(b"\x00\x01garbage")  # malformed: counted, not fatal
         h = wait_for(lambda: (r := query_json(session, "xm/panel/main/@health")) and

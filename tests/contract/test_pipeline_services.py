@@ -77,8 +77,10 @@ def test_camhub_publishes_synchronized_jpeg_and_camera_info(router, tmp_path):
 
 
 def test_recon_triangulates_the_scene_from_cameras_and_detections(router, tmp_path):
+    """The simulated detector's path (projected truth, an experiment option)."""
     endpoint, session = router
-    dep = write_deployment(tmp_path / "d.toml", endpoint, {"recon": {"main": {"dropout": 0.0}}})
+    dep = write_deployment(tmp_path / "d.toml", endpoint,
+                           {"recon": {"main": {"detector": "simulated", "dropout": 0.0}}})
     svc = ServiceProcess("recon", dep, "main", tmp_path / "recon.log")
     try:
         scenes, _a = collect(session, "xm/recon/main/scene", "xm_msgs/msg/Scene")

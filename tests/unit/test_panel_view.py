@@ -64,6 +64,48 @@ def test_tactile_image_maps_pressure_to_brightness_and_greys_missing_cells():
         view.tactile_image(np.zeros(100))
 
 
+def test_tactile_mesh_arrays_split_hands_and_reject_inconsistent_sizes():
+    verts = np.arange(2 * 4 * 3, dtype=np.float32)
+    faces = np.array([0, 1, 2, 0, 2, 3, 0, 2, 1, 0, 3, 2])  # two triangles per hand
+    hands = view.tactile_mesh_arrays(["left", "right"], 4, verts, faces, np.arange(8.0))
+    assert [h[0] for h in hands] == ["left", "right"]
+    name, v, f, p = hands[1]
+    np.testing.assert_array_equal(v, verts.reshape(2, 4, 3)[1])
+    np.testing.assert_array_equal(f, [[0, 2, 1], [0, 3, 2]])
+    np.testing.assert_array_equal(p, [4, 5, 6, 7])
+    assert view.tactile_mesh_arrays([], 4, [], [], []) == []
+    for args, words in (((verts[:-3], faces, np.arange(8.0)), "vertex values"),
+                        ((verts, faces[:-1], np.arange(8.0)), "face indices"),
+                        ((verts, np.where(faces == 3, 4, faces), np.arange(8.0)), "outside"),
+                        ((verts, faces, np.arange(7.0)), "pressures"),
+                        ((verts, faces, np.arange(8.0), [1, 0, 1]), "sensed flags")):
+        with pytest.raises(view.ViewError, match=words):
+            view.tactile_mesh_arrays(["left", "right"], 4, *args)
+
+
+def test_tactile_mesh_colors_heat_the_sensed_vertices_only():
+    base = view.HAND_COLORS["right"]
+    rgb = view.tactile_mesh_colors([0.0, 30.0, 30.0, np.nan], [1, 1, 0, 1], base)
+    assert rgb.dtype == np.uint8 and rgb.shape == (4, 3)
+    assert rgb[0].sum() < 30 and rgb[1].sum() > 600, "inferno: black at 0 kPa, near white at 30"
+    assert tuple(rgb[2]) == base, "unsensed vertices keep the hand's colour"
+    np.testing.assert_array_equal(rgb[3], rgb[0])  # NaN reads as 0
+    with pytest.raises(view.ViewError, match="sensed flags"):
+        view.tactile_mesh_colors([1.0, 2.0], [1], base)
+
+
+def test_palm_side_view_faces_the_sensors():
+    verts = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1], [0.1, 0.0, 0.1],
+                      [0.05, 0.02, 0.05], [0.05, 0.02, 0.05]]) + [0.2, 0.1, 0.3]  # sensors toward +y
+    position, target = view.palm_side_view(verts, [0, 0, 0, 0, 1, 1], distance=0.4)
+    np.testing.assert_allclose(target, verts.mean(axis=0))
+    np.testing.assert_allclose(position - target, [0.0, 0.4, 0.0], atol=1e-9)
+    down = np.array([[0.0, 0.0, 0.3], [0.1, 0.0, 0.3], [0.0, 0.1, 0.3], [0.1, 0.1, 0.3],
+                     [0.05, 0.05, 0.28], [0.05, 0.05, 0.28]])  # flat, palm down: from below at 45 degrees
+    position, target = view.palm_side_view(down, [0, 0, 0, 0, 1, 1], distance=0.4)
+    np.testing.assert_allclose(position - target, 0.4 * np.array([0.5, -0.5, -np.sqrt(0.5)]), atol=1e-9)
+
+
 def test_camera_frustum_recovers_the_pose_and_fov_from_projection():
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     world_T_cam = look_at(np.array([0.4, -0.4, 0.8]), np.array([0.03, 0.0, 0.02]))

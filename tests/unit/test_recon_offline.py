@@ -68,7 +68,8 @@ def test_fill_gaps_interpolates_between_fits_and_holds_the_ends():
 def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
     src, dst = tmp_path / "rec.mcap", tmp_path / "out.mcap"
     truth = _recording(src)
-    assert main([str(src), "-o", str(dst), "--pixel-noise", "1.5", "--max-evaluations", "8"]) == 0
+    assert main([str(src), "-o", str(dst), "--detector", "simulated", "--pixel-noise", "1.5",
+                 "--max-evaluations", "8"]) == 0
     scenes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == SCENE_KEY]
     assert len(scenes) == len(truth)
     hands = np.stack([np.asarray(s.hand_keypoints).reshape(-1, 3) for s in scenes])
@@ -83,7 +84,7 @@ def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
 def test_offline_recon_refuses_a_recording_without_cameras(tmp_path, capsys):
     src = tmp_path / "empty.mcap"
     McapRecorder(src).close()
-    assert main([str(src), "-o", str(tmp_path / "out.mcap")]) == 2
+    assert main([str(src), "-o", str(tmp_path / "out.mcap"), "--detector", "simulated"]) == 2
     assert "CameraInfo" in capsys.readouterr().err
 
 
@@ -108,7 +109,9 @@ def _image_recording(path, frames: int = 3) -> None:
 
 
 def test_offline_recon_with_the_learned_detector_reads_images_only(tmp_path, monkeypatch, capsys):
-    points = np.random.default_rng(5).uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + 8, 3))
+    rng = np.random.default_rng(5)
+    hands = rng.uniform(-0.04, 0.04, (2, 21, 3)) + [[[-0.1, 0.0, 0.06]], [[0.1, 0.0, 0.06]]]  # hand-sized, apart
+    points = np.concatenate([hands.reshape(-1, 3), rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (8, 3))])
 
     class LearnedDetector:
         def detect(self, views):

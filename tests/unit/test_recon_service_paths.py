@@ -44,18 +44,19 @@ class FakeNode:
         self.status, self.message = status, message
 
 
-def _info(spec, stamp: float):
+def _info(spec, stamp: float, roi: tuple[int, int, int, int] = (0, 0, 0, 0)):
     return msgs.make(
         "sensor_msgs/msg/CameraInfo", header=msgs.header(stamp, spec.name), height=spec.height, width=spec.width,
         distortion_model="plumb_bob", d=np.zeros(5), k=spec.K.ravel(), r=np.eye(3).ravel(),
         p=projection(spec.K, spec.world_T_cam).ravel(), binning_x=0, binning_y=0,
-        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=0, y_offset=0, height=0, width=0,
-                      do_rectify=False))
+        roi=msgs.make("sensor_msgs/msg/RegionOfInterest", x_offset=roi[0], y_offset=roi[1], width=roi[2],
+                      height=roi[3], do_rectify=False))
 
 
-def _jpeg(spec, stamp: float, data: bytes | None = None):
+def _jpeg(spec, stamp: float, data: bytes | None = None, size: tuple[int, int] | None = None):
     if data is None:
-        ok, buf = cv2.imencode(".jpg", np.full((spec.height, spec.width, 3), 90, np.uint8))
+        w, h = size or (spec.width, spec.height)
+        ok, buf = cv2.imencode(".jpg", np.full((h, w, 3), 90, np.uint8))
         data = buf.tobytes()
     return msgs.make("sensor_msgs/msg/CompressedImage", header=msgs.header(stamp, spec.name), format="jpeg",
                      data=np.frombuffer(data, np.uint8))
@@ -73,6 +74,34 @@ def test_frame_sets_complete_partial_and_late():
     (stamp, images), = buf.add(3.0, "cam0", "a", cams)
     assert stamp == 2.0 and set(images) == {"cam0", "cam1"} and buf.released_partial == 1
     assert buf.add(2.0, "cam2", "c", cams) == [] and buf.dropped_stale == 1
+
+
+def test_frame_sets_wait_for_camera_infos_running_behind_their_images():
+    """Images and CameraInfos come through separate subscriptions: images of newer sets arriving
+    before the infos of an older one do not make it late."""
+    buf = FrameSetBuffer(late_after=2)
+    expected = {"cam0", "cam1", "cam0/info", "cam1/info"}
+    for stamp in (1.0, 2.0, 3.0, 4.0):  # four sets of images first
+        assert buf.add(stamp, "cam0", "a", expected) == [] and buf.add(stamp, "cam1", "b", expected) == []
+    assert buf.add(1.0, "cam0/info", "i", expected) == []
+    (stamp, items), = buf.add(1.0, "cam1/info", "j", expected)
+    assert stamp == 1.0 and set(items) == expected and buf.released_partial == 0
+    # set 2.0's infos are lost: it goes with what it has once two newer sets have both kinds
+    assert buf.add(3.0, "cam0/info", "i", expected) == []
+    (stamp, items), = buf.add(4.0, "cam0/info", "i", expected)
+    assert stamp == 2.0 and set(items) == {"cam0", "cam1"} and buf.released_partial == 1
+
+
+def test_frame_sets_start_over_when_the_clock_restarts():
+    """The world's reset restarts the simulated clock: the new timeline's sets are not late."""
+    buf = FrameSetBuffer(late_after=1)
+    cams = {"cam0", "cam1"}
+    for stamp in (10.0, 10.2, 10.4):
+        buf.add(stamp, "cam0", "a", cams)
+        buf.add(stamp, "cam1", "b", cams)
+    assert buf.add(0.2, "cam0", "a", cams) == [] and buf.dropped_stale == 0
+    (stamp, images), = buf.add(0.2, "cam1", "b", cams)
+    assert stamp == 0.2 and set(images) == cams and buf.restarts == 1
 
 
 def test_decode_window_refuses_corrupt_and_wrong_size():
@@ -98,14 +127,17 @@ def test_learned_detector_missing_says_how_to_train_and_publishes_nothing(monkey
 def learned(monkeypatch):
     """A stand-in learned detector: projects fixed 3-D points, so the service path can be checked."""
     rng = np.random.default_rng(3)
-    names = task_keypoint_names("assembly")
-    points = rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (42 + len(names), 3))
+    names_ = task_keypoint_names("assembly")
+    hands = rng.uniform(-0.04, 0.04, (2, 21, 3)) + [[[-0.1, 0.0, 0.06]], [[0.1, 0.0, 0.06]]]  # hand-sized, apart
+    points = np.concatenate([hands.reshape(-1, 3), rng.uniform([-0.1, -0.1, 0.0], [0.1, 0.1, 0.1], (len(names_), 3))])
     seen_views: list[list[str]] = []
 
     class LearnedDetector:
+        names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + names_
+
         def detect(self, views):
             seen_views.append([v.camera for v in views])
-            assert all(v.image.shape == (v.model.height, v.model.width, 3) for v in views)
+            assert all(v.image.shape == (v.model.roi[3], v.model.roi[2], 3) for v in views)
             uv, _ = project(np.stack([v.model.P for v in views]), points)
             return uv, np.ones(uv.shape[:2])
 
@@ -121,17 +153,21 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
     assert node.status == "ok" and "truth" not in node.handlers
     specs = camera_specs(64, 48)
-    for spec in specs:
-        node.handlers["info"](_info(spec, 0.0), f"xm/camhub/{spec.name}/info")
+    for spec in specs:  # the rig's cameras are known from their first CameraInfo
+        node.handlers["info"](_info(spec, 1.0), f"xm/camhub/{spec.name}/info")
     for spec in specs:  # frame set 1.0: cam3's JPEG is corrupt
         node.handlers["image"](_jpeg(spec, 1.0, b"\xff\xd8bad" if spec.name == "cam3" else None),
                                f"xm/camhub/{spec.name}/image")
     assert len(node.published) == 1
     assert node.stats.errors["corrupt_jpeg:cam3"] == 1
     assert "cam3" not in seen_views[0] and len(seen_views[0]) == 6
-    for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 begins
+    for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 and 4.0 begin
         node.handlers["image"](_jpeg(spec, 2.0), f"xm/camhub/{spec.name}/image")
-    node.handlers["image"](_jpeg(specs[0], 3.0), f"xm/camhub/{specs[0].name}/image")
+        node.handlers["info"](_info(spec, 2.0), f"xm/camhub/{spec.name}/info")
+    for stamp in (3.0, 4.0):
+        node.handlers["image"](_jpeg(specs[0], stamp), f"xm/camhub/{specs[0].name}/image")
+        assert len(node.published) == 1, "2.0's cameras may still come"
+        node.handlers["info"](_info(specs[0], stamp), f"xm/camhub/{specs[0].name}/info")
     assert len(node.published) == 2 and len(seen_views[1]) == 5
     scene = node.published[-1]
     assert list(scene.object_names) == task_keypoint_names("assembly"), "names from the task, not from truth"
@@ -139,3 +175,31 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     np.testing.assert_allclose(hands, points[:42], atol=1e-3)
     assert np.isfinite(np.asarray(scene.object_keypoints)).all()
     assert node.health_extra()["partial_frame_sets"] == 1
+
+
+def test_learned_weights_of_other_keypoints_are_refused(learned):
+    sys.modules["services.recon.learned_detector"].LearnedDetector.names = ["left/0", "right/0"]
+    node = FakeNode()
+    ReconService(node, ReconService.Params(detector="learned"))
+    assert node.status == "error" and "make detector" in node.message and "image" not in node.handlers
+
+
+def test_each_image_is_read_with_the_window_of_its_own_frame_set(learned):
+    """camhub moves the windows every frame set: an image must not be read with a newer set's
+    CameraInfo that has already arrived (another size, or worse, the same size elsewhere)."""
+    _, seen_views = learned
+    node = FakeNode()
+    windows: list[list[tuple]] = []
+    detector = sys.modules["services.recon.learned_detector"].LearnedDetector
+    detect = detector.detect
+    detector.detect = lambda self, views: (windows.append([v.model.roi for v in views]), detect(self, views))[1]
+    ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    specs = camera_specs(64, 48)
+    for stamp, roi in ((1.0, (8, 4, 32, 24)), (2.0, (20, 10, 32, 24)), (3.0, (8, 4, 32, 24))):
+        for spec in specs:  # camhub's order: a camera's image, then its CameraInfo
+            node.handlers["image"](_jpeg(spec, stamp, size=(32, 24)), f"xm/camhub/{spec.name}/image")
+            node.handlers["info"](_info(spec, stamp, roi), f"xm/camhub/{spec.name}/info")
+    # set 1.0 came before recon knew the rig; 2.0 is read with its own windows, cam6's included
+    # (its image is in before its CameraInfo, while it still holds 1.0's)
+    assert windows[-2:] == [[(20, 10, 32, 24)] * 7, [(8, 4, 32, 24)] * 7]
+    assert not [k for k in node.stats.errors if k.startswith("corrupt_jpeg")]

@@ -21,6 +21,7 @@ from services.recon.hand_model import (
     rotvec,
 )
 from services.recon.objects import object_models, pose_objects, task_keypoint_names
+from services.recon.pipeline import beyond_the_hand, one_hand_seen_twice
 from services.recon.triangulation import triangulate, triangulate_robust
 from shared.geometry import look_at, projection
 
@@ -201,3 +202,31 @@ def test_object_with_two_keypoints_stays_triangulated():
 def test_unknown_task_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown task"):
         object_models("juggling")
+
+
+def test_a_hand_triangulated_onto_the_other_is_dropped_not_reported_twice():
+    """Both hands' keypoints on one physical hand (a detector's left and right channels peaking on
+    the one hand a window shows): the hand with the weaker detections is masked."""
+    rng = np.random.default_rng(5)
+    hand = rng.uniform(-0.05, 0.05, (21, 3)) + [0.1, 0.0, 0.2]
+    mask = np.ones((2, 21), np.uint8)
+    twice = np.stack([hand, hand + rng.normal(0, 0.005, hand.shape)])
+    assert one_hand_seen_twice(twice, mask, np.array([0.9, 0.6])) == 1
+    assert one_hand_seen_twice(twice, mask, np.array([0.5, 0.8])) == 0
+    apart = np.stack([hand, hand + [0.0, 0.3, 0.0]])
+    assert one_hand_seen_twice(apart, mask, np.array([0.9, 0.6])) is None
+    few = mask.copy()
+    few[1, 4:] = 0  # too few keypoints of the second hand to tell
+    assert one_hand_seen_twice(twice, few, np.array([0.9, 0.6])) is None
+
+
+def test_a_keypoint_far_from_the_rest_of_its_hand_is_masked():
+    rng = np.random.default_rng(6)
+    hand = rng.uniform(-0.04, 0.04, (21, 3)) + [0.1, 0.0, 0.2]
+    mask = np.ones(21, np.uint8)
+    assert not beyond_the_hand(hand, mask).any()
+    hand[8] += [0.0, 0.3, 0.0]  # the index tip triangulated on the other hand
+    assert np.flatnonzero(beyond_the_hand(hand, mask)).tolist() == [8]
+    few = np.zeros(21, np.uint8)
+    few[[0, 8]] = 1  # too few keypoints to tell where the hand is
+    assert not beyond_the_hand(hand, few).any()

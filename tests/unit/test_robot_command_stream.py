@@ -4,6 +4,8 @@ at their arrival time so the watchdog sees the host's real gaps."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from services.robot.safety import limit_step, soft_limits
@@ -73,9 +75,9 @@ def clamps_following(use_command_clock: bool) -> int:
     clock, target, clamps = CommandClock(max_rate=VELOCITY_SLACK), start.copy(), 0
     times = command_times(0.5, seed=1)
     for t, e in zip(times, np.diff(times, prepend=-COMMAND_PERIOD), strict=True):
-        if use_command_clock:
+        if use_command_clock:  # as RobotService._command_tick
             t_traj, advanced = clock.advance(staircase(t), e)
-            dt = advanced
+            dt = max(advanced, e)
         else:  # sampling at the deployment clock itself, rate-limited on wall time
             t_traj, dt = staircase(t), e
         goal, _ = follower.sample(t_traj)
@@ -87,6 +89,34 @@ def clamps_following(use_command_clock: bool) -> int:
 def test_a_trajectory_within_the_velocity_limit_is_never_clamped():
     assert clamps_following(use_command_clock=False) > 10  # the staircase clock: the cause
     assert clamps_following(use_command_clock=True) == 0
+
+
+def test_a_replan_while_trajectory_time_waits_for_a_late_clock_is_not_clamped():
+    """The world runs late: its clock stands still, trajectory time stops within max_lead_s of it, and
+    the planner's next trajectory differs from the last by a fraction of a millimetre at that time
+    (another knot grid). Moving there within what the axes can do in the wall time is no clamp;
+    a re-plan that jumps further than that still is."""
+    model = load_robot("workcell")
+    limits = soft_limits(model)
+    start = (limits.lower + limits.upper) / 2
+    follower = TrajectoryFollower(model.joint_names)
+    assert follower.load(trajectory(model.joint_names, start, np.zeros(len(start)), 1.0), 0.0) is None
+    clock, target = CommandClock(max_rate=VELOCITY_SLACK), start.copy()
+    counts = []
+    for offset in (0.3, 3.0):  # of what the axes may move in one command period
+        replan = trajectory(model.joint_names, target + offset * limits.velocity * COMMAND_PERIOD,
+                            np.zeros(len(start)), 1.0)
+        clamps = 0
+        for k in range(50):  # the clock stands at 0.1 s
+            t_traj, advanced = clock.advance(0.1, COMMAND_PERIOD)
+            if k == 40:
+                assert advanced == 0.0 and t_traj == 0.1 + clock.max_lead_s, "trajectory time waits for the clock"
+                assert follower.load(replan, 0.1) is None
+            goal, _ = follower.sample(t_traj)
+            target, reasons = limit_step(goal, target, limits, max(advanced, COMMAND_PERIOD))
+            clamps += "velocity_limit" in reasons
+        counts.append(clamps)
+    assert counts[0] == 0 and counts[1] > 0
 
 
 def test_after_the_clock_was_held_up_trajectory_time_catches_up_at_most_10_percent_fast():
@@ -125,18 +155,20 @@ def test_commands_reach_the_simulated_board_at_their_arrival_time(tmp_path):
     names = load_robot("workcell").joint_names
     n = len(names)
     results = {}
+    base = time.monotonic() + 1000.0  # past every horizon of the device's own stamper (no host writes to it)
     for mapped in (True, False):
         device = BoardDevice(str(tmp_path / f"board-{mapped}"), names)
         sim = StalledSim(n)
         command = rb.CommandFrame(0, np.full(n, rb.Mode.POSITION, np.uint8), *np.full((5, n), 0.0))
         try:
             for seq in range(300):  # 1.2 s of commands
-                wall = seq * COMMAND_PERIOD
+                wall = base + seq * COMMAND_PERIOD
                 command.sequence = seq
                 device.arrived(rb.encode_command(command), wall)
+                device.heard_until(wall)  # the stamper's next probe
                 if seq % 25 == 24:  # the world wakes up and catches up to the wall time, a tick ahead
-                    while sim.time < wall + TICK:
-                        device.step(sim, (lambda w: w + TICK) if mapped else None, now=wall)
+                    while sim.time < wall - base + TICK:
+                        device.step(sim, (lambda w: w - base + TICK) if mapped else None, now=wall)
                         sim.time += sim.physics_dt
             results[mapped] = device.board.counters["brake_events"]
         finally:

@@ -43,13 +43,14 @@ def test_a_renamed_instance_connects_through_the_deployments_remap(tmp_path):
     broken.write_text(renamed)
     _, problems = edges(load_deployment(broken))
     assert sorted(p.split(" ")[0] for p in problems) == ["camhub/main.scene", "panel/main.scene",
-                                                             "policy/main.scene"]
+                                                             "panel/main.tactile_mesh", "policy/main.scene"]
 
     fixed = tmp_path / "fixed.toml"
     remapped = renamed.replace("[services.policy.main]", '[services.policy.main]\ninputs = { scene = "recon/left" }')
     remapped = remapped.replace("[services.camhub.main]", '[services.camhub.main]\ninputs = { scene = "recon/left" }')
     fixed.write_text(remapped.replace("[services.panel.main]",
-                                      '[services.panel.main]\ninputs = { scene = "recon/left/scene" }'))
+                                      '[services.panel.main]\ninputs = { scene = "recon/left/scene", '
+                                      'tactile_mesh = "recon/left/tactile_mesh" }'))
     dep = load_deployment(fixed)
     graph, problems = edges(dep)
     assert not problems
