@@ -73,9 +73,9 @@ def _object_of(name: str) -> str:
     return name.split("/", 1)[0]
 
 
-def _grasp(demo: Demo) -> tuple[int, int, int, np.ndarray]:
+def _grasp(demo: Demo, moved_m: float = MOVED_M) -> tuple[int, int, int, np.ndarray]:
     """(hand, point, sample when the held object starts moving, pinch - point there)."""
-    moved = np.linalg.norm(demo.objects - demo.objects[:1], axis=-1) > MOVED_M  # (T,K)
+    moved = np.linalg.norm(demo.objects - demo.objects[:1], axis=-1) > moved_m  # (T,K)
     if not moved.any():
         raise AnchorError(f"demonstration {demo.meta.get('demo', '?')}: no object moves")
     t = int(np.argmax(moved.any(axis=1)))
@@ -88,12 +88,14 @@ def _grasp(demo: Demo) -> tuple[int, int, int, np.ndarray]:
     return int(h), int(k), t, pinches[h] - demo.objects[t, k]
 
 
-def mine_anchors(demos: list[Demo]) -> ContactAnchors:
-    """The grasp and mate anchors shared by ``demos`` (raises AnchorError where they disagree)."""
+def mine_anchors(demos: list[Demo], moved_m: float = MOVED_M) -> ContactAnchors:
+    """The grasp and mate anchors shared by ``demos`` (raises AnchorError where they disagree).
+    ``moved_m``: how far a point must leave its start to count as moved (above the observation's
+    noise: reconstructed demonstrations need more than the truth's ``MOVED_M``)."""
     if not demos:
         raise AnchorError("no demonstrations to mine contact anchors from")
     names = demos[0].object_names
-    grasps = [_grasp(d) for d in demos]
+    grasps = [_grasp(d, moved_m) for d in demos]
     grasp_points = {names[k] for _, k, _, _ in grasps}
     if len(grasp_points) != 1:
         raise AnchorError(f"the demonstrations grasp different points: {sorted(grasp_points)}")

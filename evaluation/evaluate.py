@@ -27,6 +27,17 @@ from evaluation.anchors import AnchorError, mine_anchors
 from evaluation.baselines import make
 from evaluation.baselines.mlp import quick_budget
 from evaluation.execute import execute_layout
+from evaluation.reconstructed import (
+    DETECTORS,
+    OBSERVATIONS,
+    WINDOWS,
+    CellObserver,
+    ReconOptions,
+    ReconstructionError,
+    held_objects,
+    reconstructed_demos,
+    reconstruction_error,
+)
 from learning.metrics import SCORE_KEYS, trajectory_scores
 from learning.ours import Ours
 from learning.presets import PRESETS, config_changes
@@ -43,6 +54,7 @@ ROWS = {"multimodal": ("(1) Multimodal", "Yes", "Yes"), "no_tactile": ("(2) No t
         "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) Diffusion U-Net", "No", "No"),
         "diffusion_transformer": ("(9) Diffusion Transformer", "No", "No"), "naive": ("(10) None", "No", "No")}
 REFERENCE = "multimodal"
+ANCHOR_MOVED_M = 0.01  # reconstructed demonstrations: a grasped object has moved 1 cm (their noise is mm)
 
 
 class EvaluationError(ValueError):
@@ -66,13 +78,17 @@ def split(demos: list[Demo]) -> tuple[list[Demo], list[Demo]]:
     return train, val
 
 
-def rollouts(method, val: list[Demo], progress: bool) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One rollout per validation demo, as long as that demo. Batched when the method can."""
+def rollouts(method, val: list[Demo], progress: bool, starts: list[Demo] | None = None
+             ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One rollout per validation demo, as long as that demo, from its start state as ``starts``
+    observe it (default: the demo itself). Batched when the method can."""
+    starts = val if starts is None else starts
     if hasattr(method, "rollout_batch"):
-        outs = method.rollout_batch(val, max(d.steps for d in val))
+        outs = method.rollout_batch(starts, max(d.steps for d in val))
         return [(h[:d.steps], o[:d.steps]) for (h, o), d in zip(outs, val, strict=True)]
-    return [method.rollout(d, d.steps) for d in tqdm(val, desc=f"rollout {method.name}", disable=not progress,
-                                                     leave=False)]
+    return [method.rollout(s, d.steps) for s, d in tqdm(list(zip(starts, val, strict=True)),
+                                                        desc=f"rollout {method.name}", disable=not progress,
+                                                        leave=False)]
 
 
 def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[str, float]:
@@ -92,14 +108,19 @@ def score(outs: list[tuple[np.ndarray, np.ndarray]], val: list[Demo]) -> dict[st
 def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[str, ...] = METHODS,
              out_dir: str | Path = "runs/eval", quick: bool = False, progress: bool = True,
              demos: list[Demo] | None = None, merge: bool = False, draw: int = 0,
-             changes: dict | None = None) -> dict[str, dict[str, float]]:
+             changes: dict | None = None, recon: ReconOptions | None = None,
+             recon_cache: str | Path | None = "runs/recon_demos") -> dict[str, dict[str, float]]:
     """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
 
     ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation').
     ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
     ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
     noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md).
-    ``changes``: recipe fields changed in rows (1)-(3) (`xm eval --set`)."""
+    ``changes``: recipe fields changed in rows (1)-(3) (`xm eval --set`).
+    ``recon``: every method observes the demonstrations as recon reconstructs them from rendered
+    images (evaluation/reconstructed.py; cached in ``recon_cache``): it trains on the reconstructed
+    training demonstrations and rolls out from the reconstructed validation start states; the
+    scores stay against the validation demonstrations' truth."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise EvaluationError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
@@ -113,6 +134,15 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     train, val = split(demos)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    observed_train, starts, observed = train, val, "truth"
+    if recon is not None:
+        try:
+            seen = reconstructed_demos(demos, task, seed, recon, recon_cache, progress)
+        except (ReconstructionError, FileNotFoundError) as exc:
+            raise EvaluationError(f"cannot reconstruct the demonstrations: {exc}") from exc
+        observed_train, starts = split(seen)
+        observed = f"reconstructed ({recon.detector} detector, {recon.windows} windows, {recon.width}x{recon.height})"
+        write_reconstruction(out / "reconstruction.json", recon, observed_train + starts, train + val)
     results, timing = {}, {}
     if merge and (out / "results.json").exists():
         results = json.loads((out / "results.json").read_text())
@@ -124,9 +154,9 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         torch.manual_seed(train_seed)
         method = make_method(name, quick=quick, seed=train_seed, draw=draw, changes=changes)
         t0 = time.perf_counter()
-        method.fit(train, progress=progress)
+        method.fit(observed_train, progress=progress)
         t1 = time.perf_counter()
-        outs = rollouts(method, val, progress)
+        outs = rollouts(method, val, progress, starts)
         t2 = time.perf_counter()
         results[name] = score(outs, val)
         save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
@@ -138,8 +168,23 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
-    write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes)
+    write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes, observed)
     return results
+
+
+def write_reconstruction(path: Path, options: ReconOptions, seen: list[Demo], truth: list[Demo]) -> None:
+    """How far the observed demonstrations are from their truth: per demonstration and on average
+    over the training demonstrations and over the validation start states."""
+    per = [{"demo": d.meta.get("demo"), "split": d.meta.get("split"), "steps": d.steps, **reconstruction_error(d, t)}
+           for d, t in zip(seen, truth, strict=True)]
+
+    def mean(split: str, key: str) -> float:
+        vals = [p[key] for p in per if (p["split"] == "train") == (split == "train") and np.isfinite(p[key])]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    summary = {s: {k: mean(s, k) for k in ("hand_m", "object_m", "hand_reported", "object_reported")}
+               for s in ("train", "validation_start")}
+    path.write_text(json.dumps({"options": options.__dict__, "summary": summary, "demos": per}, indent=2))
 
 
 def in_table_order(results: dict) -> dict:
@@ -148,11 +193,11 @@ def in_table_order(results: dict) -> dict:
 
 
 def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int,
-                 draw: int = 0, changes: dict | None = None) -> None:
+                 draw: int = 0, changes: dict | None = None, observed: str = "truth") -> None:
     """results.json, results.md and results.png of one run."""
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val,
-                                          draw=draw, changes=changes))
+                                          draw=draw, changes=changes, observed=observed))
     plot_results(results, out / "results.png")
 
 
@@ -200,13 +245,14 @@ def _fmt(x: float) -> str:
 
 
 def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool = False, n_train: int = 3,
-          n_val: int = 12, draw: int = 0, changes: dict | None = None) -> str:
+          n_val: int = 12, draw: int = 0, changes: dict | None = None, observed: str = "truth") -> str:
     """Markdown in the layout of Table 7.1, each cell with its ratio to the reference method."""
     ref = results.get(REFERENCE)
     lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}"
              + (f", training draw {draw}" if draw else "")
              + (", rows (1)-(3) with " + ", ".join(f"{k}={v}" for k, v in changes.items()) if changes else "")
              + f": {n_train} train / {n_val} validation demos"
+             + (f", observed {observed}" if observed != "truth" else "")
              + (" (--quick: tiny training budgets, numbers meaningless)" if quick else ""),
              "", "Symmetric closest-point distance in metres (lower is better); (x) = ratio to (1) Multimodal.", "",
              "| Method | Tactile | Memory | Hand | Object | Hand (masked) | Object (masked) | fit s | rollout s |",
@@ -298,6 +344,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="change a recipe field (ModelConfig, TrainConfig or InferenceConfig) of rows (1)-(3), "
                         "e.g. --set reservoir_periods=0.25,8 (repeatable)")
+    parser.add_argument("--observations", default="truth", choices=OBSERVATIONS,
+                        help="what the methods observe: the teacher's truth, or the demonstrations as recon "
+                        "reconstructs them from rendered camera images (training demonstrations and validation start "
+                        "states; scored against the truth either way; docs/policy.md) (default %(default)s)")
+    parser.add_argument("--detector", default="learned", choices=DETECTORS,
+                        help="--observations reconstructed: recon's 2-D detector; simulated projects the truth with "
+                        "noise, dropouts and occlusion (no images) (default %(default)s)")
+    parser.add_argument("--detector-weights", default=ReconOptions.weights,
+                        help="--detector learned: the trained detector's folder (default %(default)s)")
+    parser.add_argument("--recon-windows", default="roi", choices=WINDOWS,
+                        help="--observations reconstructed: each camera reads camhub's window around the last "
+                        "reconstructed hands (roi), or whole frames (default %(default)s)")
+    parser.add_argument("--recon-cache", default="runs/recon_demos",
+                        help="--observations reconstructed: folder caching reconstructed demonstrations per seed "
+                        "and detector (default %(default)s)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
     parser.add_argument("--merge", action="store_true",
                         help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
@@ -343,12 +404,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     try:
+        recon = None
+        if args.observations == "reconstructed":
+            recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
         if args.rescore:
             rescore(args.out, args.seed)
         else:
             evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
-                     merge=args.merge, draw=args.draw, changes=changes)
-    except EvaluationError as e:
+                     merge=args.merge, draw=args.draw, changes=changes, recon=recon, recon_cache=args.recon_cache)
+    except (EvaluationError, ReconstructionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print((Path(args.out) / "results.md").read_text())
@@ -371,18 +435,34 @@ def execute_main(args: argparse.Namespace) -> int:
             print(f"error: cannot load {path}: {exc}", file=sys.stderr)
             return 2
     torch.set_num_threads(1)
+    demos = assembly_protocol(args.seed)
+    recon = None
+    if args.observations == "reconstructed":  # anchors mined from, and the start hands of, reconstructed demos
+        recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
+        try:
+            demos = reconstructed_demos(demos, args.task, args.seed, recon, args.recon_cache, not args.no_progress)
+        except (ReconstructionError, FileNotFoundError) as exc:
+            print(f"error: cannot reconstruct the demonstrations: {exc}", file=sys.stderr)
+            return 2
     anchors = None
     if args.anchors:
         try:
-            anchors = mine_anchors(assembly_protocol(args.seed)[:3])
+            anchors = (mine_anchors([held_objects(d) for d in demos[:3]], moved_m=ANCHOR_MOVED_M) if recon
+                       else mine_anchors(demos[:3]))
         except AnchorError as exc:
             print(f"error: no contact anchors in the training demonstrations ({exc}); run with --no-anchors",
                   file=sys.stderr)
             return 2
     results = []
     for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
-                           catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None)
+        observer = CellObserver(args.task, args.seed, demo, recon) if recon else None
+        try:
+            r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
+                               catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None, observer=observer,
+                               start_hands=demos[demo].hands[0].astype(float) if recon else None)
+        finally:
+            if observer is not None:
+                observer.close()
         results.append(r.to_dict())
         if args.no_progress:
             print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
@@ -395,6 +475,7 @@ def execute_main(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
+                                                  "observations": recon.__dict__ if recon else "truth",
                                                   "hand_feedback": args.hand_feedback, "catch_mm": args.catch_mm,
                                                   "anchors": anchors.to_dict() if anchors else None,
                                                   "layouts": results}, indent=2))

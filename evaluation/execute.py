@@ -64,6 +64,7 @@ THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
 THUMB_TIP, INDEX_TIP = FINGERTIPS["thumb"], FINGERTIPS["index"]
 GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
 EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
+LEAD_IN_FRAME_SETS = 5  # reconstructed objects: frame sets recon sees before the robot starts
 LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
 FRAME_EVERY = 2  # physics steps (2 ms) per command frame
 PRESS_WEIGHT = 0.1  # the finger yields to the gripper where the two arms compete for room on the rail
@@ -201,7 +202,8 @@ def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
-                   horizon_dt: float | None = None, catch_m: float | None = None) -> ExecutionResult:
+                   horizon_dt: float | None = None, catch_m: float | None = None, observer=None,
+                   start_hands: np.ndarray | None = None) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``model``: a trained Policy, or None for the teacher's own hands (TeacherReplay).
@@ -220,10 +222,16 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     ``catch_m``: with feedback, the grasping hand is observed at the gripper only from when the pads
     first come this close to the policy's own pinch (None: from the first step). The gripper starts
     where no demonstrated hand was; until it has caught up with the policy's hand it follows the
-    policy's own prediction."""
+    policy's own prediction.
+    ``observer``: a CellObserver (evaluation/reconstructed.py): the policy and the anchors see the
+    objects as recon reconstructs them from rendered frame sets at the camera rate, and between
+    frame sets the policy runs on its own object predictions; None: the world's truth every step.
+    ``start_hands``: the policy's initial hands (default the teacher's true start pose). Success and
+    the recorded distances are always measured on the world's truth."""
     sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
-    start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
+    if start_hands is None:
+        start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands
     sim.set_robot_mode("robot")
     robot = load_robot(ROBOT.name)
     opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=ROBOT.execution_point_map, contact_slots=8,
@@ -241,6 +249,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     cam0 = objects[cam].mean(axis=0)
     hand_mask = np.ones((2, KEYPOINTS_PER_HAND), bool)
     obj_mask = np.ones(len(names), bool)
+    if observer is not None:
+        for _ in range(LEAD_IN_FRAME_SETS):  # recon has watched the cell before the robot starts
+            observer.frame_set(sim)
+        objects, obj_mask, predicted_objects = observer.objects.copy(), observer.mask.copy(), None
     hands = start_hands
     look = runner.horizon(SceneObs(hands, hand_mask, objects, obj_mask), int(round(LOOKAHEAD_S / dt)))
     grasp_hand = grasping_hand(look[:, :2 * KEYPOINTS_PER_HAND].reshape(len(look), 2, KEYPOINTS_PER_HAND, 3),
@@ -273,15 +285,25 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         anchor_state = AnchorState(grasp_k, mate_k, target_k, target_object, observing)
     for k in range(steps):
         t = sim.time
-        _, objects = sim.object_keypoints()
+        seen_objects, seen_mask = objects, obj_mask
+        if observer is None:
+            _, objects = sim.object_keypoints()
+            seen_objects = objects
+        else:
+            if observer.update(sim):
+                objects = seen_objects = observer.objects.copy()
+            elif predicted_objects is not None:  # no new frame set: the objects as the policy predicts them
+                seen_objects = predicted_objects
+            seen_mask = observer.mask
         # the policy's own next hands (runner.state keeps the observation it was given)
         if feedback and k:
             hands, observing = observed_hands(hands, g, opt.points(sim.joint_state()[0])[tips].mean(axis=0),
                                               observing, catch_m)
             if anchors is not None:
                 anchor_state.observed_hand = observing
-        hands = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))[:2 * KEYPOINTS_PER_HAND].reshape(
-            2, KEYPOINTS_PER_HAND, 3)
+        stepped = runner.step(SceneObs(hands, hand_mask, seen_objects, seen_mask))
+        hands = stepped[:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND, 3)
+        predicted_objects = stepped[2 * KEYPOINTS_PER_HAND:]
         policy_closest = min(policy_closest, float(np.linalg.norm(
             pinch(hands[g]) - objects[lens])))
         if k % plan_every == 0:
@@ -379,13 +401,13 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         success = success or sim.assembly_success()
         if k % plan_every == 0:
             q_now, _ = sim.joint_state()
-            _, objects = sim.object_keypoints()
-            gap = float(np.linalg.norm(opt.points(q_now)[tips].mean(axis=0) - objects[lens]))
+            _, truth = sim.object_keypoints()  # the record measures the world, not the observation
+            gap = float(np.linalg.norm(opt.points(q_now)[tips].mean(axis=0) - truth[lens]))
             if gap < closest:
                 closest, opening = gap, float(q_now[fingers].sum())
             min_gap = min(min_gap, sim.connector_gap())
-    _, objects = sim.object_keypoints()
+    _, truth = sim.object_keypoints()
     return ExecutionResult(seed, demo, sim.teacher.grasp_hand, grasp_hand, bool(success), sim.time,
                            float(np.nanmedian(tracking) * 1e3) if tracking else float("nan"), rejected,
-                           float(np.linalg.norm(objects[cam].mean(axis=0) - cam0) * 1e3), closest * 1e3,
+                           float(np.linalg.norm(truth[cam].mean(axis=0) - cam0) * 1e3), closest * 1e3,
                            opening * 1e3, max_kpa, min_gap * 1e3, sim.seated_at is not None, policy_closest * 1e3)
