@@ -1,5 +1,5 @@
 """Chaos soak: the simulated cell under the supervisor, a kill -9 of a random service every few
-seconds, one CPU-hog process beside it, `xm record` throughout.
+seconds, one CPU-hog process beside it, the cell's own recorder recording throughout.
 
 Reports per kill the time until the killed service publishes again (every one of its registered
 keys, or for services without keys its @health answering from the new process), the outage of
