@@ -14,6 +14,7 @@ import collections
 import importlib
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -68,6 +69,22 @@ class ReconService:
         gate_px: float = 6.0  # reprojection gate of the robust triangulation
         fit_hands: bool = True  # articulated hand model (else the triangulated keypoints)
 
+    _prepared: ClassVar[dict[str, object]] = {}  # a standby spare's loaded network, by its params
+
+    @classmethod
+    def prepare(cls, params: Params) -> None:
+        """A standby spare imports and loads the learned detector before it takes over (most of
+        recon's start); a failure is left to the real start, which reports it."""
+        if params.detector == "learned":
+            cls._prepared[repr(params)] = cls._new_detector(params)
+
+    @staticmethod
+    def _new_detector(params: Params) -> object:
+        # Imported here: torch/onnx stay out of the simulated path and of builds without them.
+        module = importlib.import_module("services.recon.learned_detector")
+        cls = module.LearnedDetector
+        return cls(params.weights) if params.weights else cls()
+
     def __init__(self, node: Node, params: Params) -> None:
         if params.detector not in DETECTORS:
             raise ValueError(f"recon detector {params.detector!r}: choose one of {', '.join(DETECTORS)}")
@@ -105,10 +122,7 @@ class ReconService:
         """The learned detector, or None (status says how to get it) when its module or weights are
         missing: recon then publishes nothing rather than wrong scenes."""
         try:
-            # Imported here: torch/onnx stay out of the simulated path and of builds without them.
-            module = importlib.import_module("services.recon.learned_detector")
-            cls = module.LearnedDetector
-            detector = cls(self.params.weights) if self.params.weights else cls()
+            detector = self._prepared.pop(repr(self.params), None) or self._new_detector(self.params)
         except (ImportError, AttributeError) as exc:
             msg = f"learned detector unavailable ({exc}); {TRAIN_HINT}"
         except (FileNotFoundError, OSError, ValueError) as exc:

@@ -203,3 +203,17 @@ def test_each_image_is_read_with_the_window_of_its_own_frame_set(learned):
     # (its image is in before its CameraInfo, while it still holds 1.0's)
     assert windows[-2:] == [[(20, 10, 32, 24)] * 7, [(8, 4, 32, 24)] * 7]
     assert not [k for k in node.stats.errors if k.startswith("corrupt_jpeg")]
+
+
+def test_a_spare_loads_the_network_before_it_takes_over(learned):
+    """prepare() (a standby spare) builds the detector; the service started later uses that one."""
+    cls = sys.modules["services.recon.learned_detector"].LearnedDetector
+    built: list[object] = []
+    cls.__init__ = lambda self, *a: built.append(self)
+    params = ReconService.Params(detector="learned", fit_hands=False)
+    ReconService.prepare(params)
+    assert len(built) == 1
+    service = ReconService(FakeNode(), params)
+    assert len(built) == 1 and service.learned is built[0], "the prepared network, not a second load"
+    ReconService(FakeNode(), params)
+    assert len(built) == 2, "a prepared network serves one start only"
