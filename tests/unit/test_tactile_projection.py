@@ -13,7 +13,7 @@ import pytest
 from services.glove.layout import CELL_MASK, CELL_REGION, FINGER_ROWS, pressure_from_forces, region_pressure_kpa
 from services.panel import view
 from services.recon.hand_mesh import CHAINS, PALM, RADIUS, bone_frames, pose, template
-from services.recon.hand_model import DEFAULT_BONES, DEFAULT_PALM, HandShape, local_points, mirror, rodrigues
+from services.recon.hand_model import local_points, mirror, rodrigues
 from services.recon.objects import task_keypoint_names
 from services.recon.service import ReconService
 from services.recon.tactile_projection import FINGERS, TactileProjector
@@ -22,17 +22,9 @@ from services.world.model import camera_specs
 from shared import msgs
 from shared.demo import TACTILE_REGIONS
 from tests.unit.test_recon_service_paths import FakeNode, _info, _jpeg
+from tests.unit.test_recon_stages import _shape
 
 PALM_REGION = TACTILE_REGIONS.index("palm")
-
-
-def _shape() -> HandShape:
-    frames = np.repeat(np.eye(3)[None], 5, axis=0)
-    x = np.array([0.6, 0.7, -0.4]) / np.linalg.norm([0.6, 0.7, -0.4])
-    z = np.array([0.0, 0.0, 1.0]) - x[2] * x
-    z /= np.linalg.norm(z)
-    frames[0] = np.stack([x, np.cross(z, x), z], axis=1)
-    return HandShape(DEFAULT_PALM.copy(), DEFAULT_BONES.copy(), frames)
 
 
 def hand(side: str = "right", curl: float = 0.3, rot=(0.3, -0.2, 1.0), at=(0.1, 0.2, 0.3)) -> np.ndarray:
