@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import zenoh
 
+from shared.process_group import stop_group
 from shared.runtime import open_client
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,11 +88,7 @@ def live(seconds: float, startup_timeout: float = 240.0) -> dict:
             end = _counters(router)
             load1 = os.getloadavg()
         finally:
-            os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(30)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+            stop_group(proc, 30)
             log.close()
     delta = {k: end[k] - start[k] for k in start if isinstance(start[k], int | float) and k != "t"}
     published, handled = delta["camhub_frame_sets"], delta["recon_frame_sets"]

@@ -23,6 +23,7 @@ import serial
 import zenoh
 
 from shared import keys
+from shared.process_group import stop_group
 from shared.protocols import robot_board as rb
 from shared.runtime import open_client, open_router
 
@@ -245,11 +246,7 @@ def xm_up(deployment: Path, log_path: Path, *flags: str) -> Iterator[subprocess.
     try:
         yield proc
     finally:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
+        stop_group(proc, 20)
         log.close()
 
 
