@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from services.camhub.camera_info import encode_jpeg
-from services.camhub.roi import CameraGeometry, RoiParams, rig_windows, tracked_points
+from services.camhub.roi import CameraGeometry, RoiParams, missing_hand, rig_windows, tracked_points
 from services.recon.cli import Frames, reconstruct
-from services.recon.detector import CameraModel, SimulatedDetector, View
+from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel, SimulatedDetector, View
 from services.recon.hand_model import CHAINS
 from services.recon.offline import OfflineConfig
 from services.recon.pipeline import Reconstruction, Reconstructor
@@ -81,7 +81,8 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
         for seed in seeds:
             sim = WorldSim(task, seed=seed)
             steps = int(round(1.0 / rate_hz / sim.physics_dt))
-            rec, rec_sim = Reconstructor(task), Reconstructor(task)
+            rec = Reconstructor(task, hand_present_confidence=getattr(detector, "hand_present_confidence", 0.0))
+            rec_sim = Reconstructor(task)
             simulated = SimulatedDetector(1.0, 0.08, seed=seed)
             s, last = Session(seed), None
             for trigger in range(frames):
@@ -93,7 +94,8 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
                 present = np.r_[np.repeat(~np.all(hands[..., 2] < -0.5, axis=1), hands.shape[1]),
                                 np.ones(len(objects), bool)]
                 points = None if last is None else tracked_points(last.hands, last.hand_mask)
-                windows, _ = rig_windows(geoms, points, 1.0 / rate_hz, trigger, params)
+                lost = last is not None and missing_hand(last.hand_mask, len(last.hand_mask))
+                windows, _ = rig_windows(geoms, points, 1.0 / rate_hz, trigger, params, lost)
                 rois = [tuple(windows[g.name]) for g in geoms]
                 snap = snapshot(sim.task, sim.data, sim.robot_name, seed, sim.demo, sim.teacher.tactile_hand)
                 blobs = [encode_jpeg(img, 80) for img in renderer.render(snap, rois)]
@@ -164,7 +166,7 @@ def offline(s: Session, P: np.ndarray, task: str, rate_hz: float) -> tuple[list[
     session's learned detections; returns per frame set hands/objects as Reconstructions."""
     cams = {f"cam{i}": CameraModel(P[i], 0, 0) for i in range(len(P))}
     frames = Frames(cameras=cams, stamps=[i / rate_hz for i in range(len(s.uv))], uv=list(s.uv),
-                    confidence=list(s.conf))
+                    confidence=list(s.conf), hand_present_confidence=HAND_PRESENT_CONFIDENCE)
     t0 = time.perf_counter()
     scenes, _ = reconstruct(frames, task, OfflineConfig())
     seconds = time.perf_counter() - t0

@@ -195,12 +195,14 @@ class DemoReconstructor:
         self.names = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)] + task_keypoint_names(task)
         self.scenes = DemoScenes.for_task(task, seed, options.width, options.height)
         self.renderer = self.learned = self.simulated = None
+        self.present_confidence = 0.0  # the learned detector's hand_present_confidence
         if options.detector == "learned":
             self.learned = LearnedDetector(options.weights, threads=options.threads)
             if list(self.learned.names) != self.names:
                 raise ReconstructionError(f"detector weights in {options.weights} name {len(self.learned.names)} "
                                           f"keypoints, not the {len(self.names)} of task {task!r} in recon's order")
             self.renderer = SceneRenderer(task, options.width, options.height)
+            self.present_confidence = self.learned.hand_present_confidence
         else:
             self.simulated = SimulatedDetector(options.pixel_noise, options.dropout, seed=seed)
 
@@ -232,7 +234,7 @@ class DemoReconstructor:
             raise ReconstructionError(f"demonstration objects {demo.object_names} are not task {self.task!r}'s")
         teacher = Teacher(self.task, int(meta["seed"]), meta.get("grasp_hand"), meta.get("tactile_hand"))
         glove = str(meta.get("tactile_hand", ""))
-        recon = Reconstructor(self.task)
+        recon = Reconstructor(self.task, hand_present_confidence=self.present_confidence)
         hands, hmask, objs, omask = [], [], [], []
         tracked = None
         times = [0.0] * self.options.lead_in + [k * demo.dt for k in range(steps)]
@@ -265,7 +267,7 @@ class CellObserver:
 
     def __init__(self, task: str, seed: int, demo: int, options: ReconOptions, period_s: float = 0.2) -> None:
         self.worker = DemoReconstructor(task, seed, options)
-        self.recon = Reconstructor(task)
+        self.recon = Reconstructor(task, hand_present_confidence=self.worker.present_confidence)
         self.demo, self.period_s = demo, period_s
         n = len(self.worker.names) - 2 * KEYPOINTS_PER_HAND
         self.objects, self.mask = np.zeros((n, 3)), np.zeros(n, bool)

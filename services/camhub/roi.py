@@ -4,7 +4,9 @@ Each trigger reads out, per camera, the window around the last reconstructed han
 margin, so the hands are seen at full sensor resolution while the rig keeps its rate. When no hand
 is tracked (no recent scene, too few keypoints, hands outside a camera's view) that camera reads
 the full frame, and so it does every ``reacquire_every`` triggers, so a hand entering the cell
-outside the current windows is found again. Windows start on even pixels and have even sizes, as
+outside the current windows is found again; while one hand is missing from the scene (it left its
+window, or moves too fast for the margin) every ``reacquire_lost_every``-th trigger reads full
+frames instead. Windows start on even pixels and have even sizes, as
 sensor readout windows do (MT9P001).
 """
 
@@ -33,6 +35,7 @@ class RoiParams:
     min_px: int = 64  # smallest window side
     max_age_s: float = 0.5  # a scene older than this counts as tracking lost
     reacquire_every: int = 10  # every n-th trigger reads full frames (0: never)
+    reacquire_lost_every: int = 2  # the same while a hand is missing from the scene (0: as reacquire_every)
 
 
 def full_frame(width: int, height: int) -> Roi:
@@ -97,12 +100,15 @@ class CameraGeometry:
 
 
 def rig_windows(cameras: list[CameraGeometry], points: np.ndarray | None, scene_age_s: float, trigger: int,
-                params: RoiParams) -> tuple[dict[str, Roi], bool]:
+                params: RoiParams, hand_missing: bool = False) -> tuple[dict[str, Roi], bool]:
     """Windows of one trigger for every camera, and whether the hands are tracked.
 
-    ``points`` are the tracked hand keypoints (N,3) of the last scene (masked ones left out)."""
+    ``points`` are the tracked hand keypoints (N,3) of the last scene (masked ones left out);
+    ``hand_missing``: that scene lacks one of the hands (``missing_hand``)."""
     tracked = points is not None and len(points) >= MIN_POINTS and scene_age_s <= params.max_age_s
-    reacquire = params.reacquire_every > 0 and trigger % params.reacquire_every == 0
+    every = params.reacquire_lost_every if hand_missing and params.reacquire_lost_every > 0 else \
+        params.reacquire_every
+    reacquire = every > 0 and trigger % every == 0
     out = {}
     for cam in cameras:
         window = None
@@ -123,6 +129,17 @@ def tracked_points(hand_keypoints: np.ndarray, hand_mask: np.ndarray) -> np.ndar
         raise ValueError(f"hand_mask has {mask.size} entries for {len(pts)} keypoints")
     keep = mask & np.all(np.isfinite(pts), axis=1)
     return pts[keep]
+
+
+def missing_hand(hand_mask: np.ndarray, hands: int) -> bool:
+    """Whether a scene's flat hand mask (hands x keypoints) has a hand with fewer than MIN_POINTS
+    observed keypoints (an empty mask: every keypoint observed)."""
+    mask = np.asarray(hand_mask, bool).ravel()
+    if mask.size == 0 or hands <= 0:
+        return False
+    if mask.size % hands:
+        raise ValueError(f"hand_mask has {mask.size} entries, not a multiple of {hands} hands")
+    return bool((mask.reshape(hands, -1).sum(axis=1) < MIN_POINTS).any())
 
 
 def crop(image: np.ndarray, roi: Roi) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 
 from services.camhub.camera_info import camera_info, encode_jpeg, from_calibration
 from services.camhub.driver import DeviceRig, FileSource, FrameSet, RigError, SimRig, SizeMismatchError, V4L2Source
-from services.camhub.roi import CameraGeometry, RoiParams, full_frame, rig_windows, tracked_points
+from services.camhub.roi import CameraGeometry, RoiParams, full_frame, missing_hand, rig_windows, tracked_points
 from services.world.model import camera_specs
 from shared import calibration, msgs
 from shared.config import ConfigError
@@ -44,6 +44,7 @@ class CamhubService:
         roi_min_px: int = 64
         roi_max_age_s: float = 0.5
         roi_reacquire_every: int = 10
+        roi_reacquire_lost_every: int = 2
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -51,12 +52,13 @@ class CamhubService:
         self.names = list(params.cameras) or list(CAMERAS)
         self.cameras, self.intrinsics = self._geometry(params)
         self.roi_params = RoiParams(params.roi_margin_m, params.roi_min_px, params.roi_max_age_s,
-                                    params.roi_reacquire_every)
+                                    params.roi_reacquire_every, params.roi_reacquire_lost_every)
         self.rig = self._rig(params)
         self.worker = ThreadPoolExecutor(1, thread_name_prefix="rig")  # the rig's GL context lives on this thread
         self.pubs = {name: (node.output("image", name), node.output("info", name))
                      for name in self.names}
-        self.hands: tuple[float, np.ndarray] | None = None  # (stamp, tracked keypoints) of the last scene
+        # (stamp, tracked keypoints, a hand missing) of the last scene
+        self.hands: tuple[float, np.ndarray, bool] | None = None
         self.windows = {c.name: full_frame(c.width, c.height) for c in self.cameras}
         self.tracking = False
         self.triggers = 0
@@ -110,17 +112,19 @@ class CamhubService:
     def on_scene(self, msg) -> None:
         try:
             points = tracked_points(msg.hand_keypoints, msg.hand_mask)
+            missing = missing_hand(msg.hand_mask, len(msg.hand_names)) if len(msg.hand_mask) else False
         except ValueError as exc:
             self.node.stats.count("bad_scene")
             self.node.log.warning("scene ignored: %s", exc)
             return
-        self.hands = (msgs.stamp_seconds(msg.header.stamp), points)
+        self.hands = (msgs.stamp_seconds(msg.header.stamp), points, missing)
 
     def _next_windows(self, now: float) -> None:
         if not self.params.roi:
             return
-        stamp, points = self.hands if self.hands is not None else (-np.inf, None)
-        self.windows, self.tracking = rig_windows(self.cameras, points, now - stamp, self.triggers, self.roi_params)
+        stamp, points, missing = self.hands if self.hands is not None else (-np.inf, None, False)
+        self.windows, self.tracking = rig_windows(self.cameras, points, now - stamp, self.triggers, self.roi_params,
+                                                  missing)
 
     # --- main loop ----------------------------------------------------------------------
     async def run(self) -> None:

@@ -46,6 +46,7 @@ class Frames:
     object_names: list[str] | None = None
     tactile: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)
     corrupt: int = 0  # JPEG windows that did not decode
+    hand_present_confidence: float = 0.0  # the detector's (LearnedDetector.hand_present_confidence)
 
 
 def _camera(key: str) -> str:
@@ -60,6 +61,7 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
     triggers: list[float] = []
     buffer, images = FrameSetBuffer(), []
     learned = _learned(args) if args.detector == "learned" else None
+    out.hand_present_confidence = getattr(learned, "hand_present_confidence", 0.0)
     # every camera the recording has, so that its first frame set is not cut short
     cameras = {_camera(s.key) for s in read_messages(path, keys={f"xm/camhub/{c}/info" for c in CAMERAS})}
     expected = cameras | {info_key(c) for c in cameras}
@@ -148,10 +150,12 @@ def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool =
     """Scenes (one per frame set) and a summary per hand."""
     order = [c for c in CAMERAS if c in frames.cameras]
     P = np.stack([frames.cameras[c].P for c in order])
-    first = Reconstructor(task, object_names=frames.object_names)
+    first = Reconstructor(task, object_names=frames.object_names,
+                          hand_present_confidence=frames.hand_present_confidence)
     for uv, conf in zip(frames.uv, frames.confidence, strict=True):
         first.step(P, uv, conf)
-    second = Reconstructor(task, object_names=frames.object_names)
+    second = Reconstructor(task, object_names=frames.object_names,
+                           hand_present_confidence=frames.hand_present_confidence)
     for name, tracker in second.trackers.items():
         tracker.shape = first.trackers[name].shape
     T, H = len(frames.stamps), len(second.hand_names)

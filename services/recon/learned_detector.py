@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.recon.detector import CameraModel
+from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
 # writes its outputs (weights.pt, loss.png, the labelled sets) under TRAINING_DIR, outside git.
@@ -152,6 +152,7 @@ class LearnedDetector:
         self.names: list[str] = list(self.meta["keypoints"])
         self.size = tuple(self.meta["input_size"])
         self.sigma = float(self.meta.get("sigma", 1.5))
+        self.hand_present_confidence = float(self.meta.get("hand_present_confidence", HAND_PRESENT_CONFIDENCE))
         onnx_path, weights = folder / "model.onnx", folder / "weights.pt"
         if runtime == "auto":
             runtime = "onnx" if onnx_path.exists() and _has_onnxruntime() else "torch"

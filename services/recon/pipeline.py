@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.recon.hand_fit import FitConfig, HandTracker
+from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked
 from services.recon.objects import ObjectSmoother, object_models, pose_objects, task_keypoint_names
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
@@ -18,6 +19,7 @@ SAME_HAND_MIN_POINTS = 5
 # No keypoint of a hand lies farther than this from the median of its keypoints (the simulated
 # teacher's fingertips reach 0.118 m; the margin holds larger hands and triangulation noise).
 HAND_EXTENT_M = 0.15
+TRACKED_MIN_POINTS = 5  # reported keypoints of a hand needed to decide other detections' hand by it
 
 
 def beyond_the_hand(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -62,9 +64,14 @@ class Reconstructor:
 
     def __init__(self, task: str, hand_names: tuple[str, ...] = HAND_NAMES, gate_px: float = 6.0,
                  fit: FitConfig | None = None, fit_hands: bool = True,
-                 object_names: list[str] | None = None) -> None:
+                 object_names: list[str] | None = None, identity: bool = True,
+                 min_confidence: float = 0.0, hand_present_confidence: float = 0.0) -> None:
         """``object_names``: the keypoints the detector reports, when they are not the task's own
-        (then no rigid model applies and objects stay triangulated points)."""
+        (then no rigid model applies and objects stay triangulated points). ``identity``: give hand
+        detections to the tracked hand nearest their ray (hand_identity.py); ``min_confidence``:
+        detections below it count as none there; ``hand_present_confidence``: a view whose detections of
+        a hand have a lower median confidence does not show that hand (a learned detector's
+        calibration: ``LearnedDetector.hand_present_confidence``; 0: off)."""
         self.hand_names = list(hand_names)
         names = task_keypoint_names(task)
         self.object_names = names if object_names is None else list(object_names)
@@ -75,6 +82,16 @@ class Reconstructor:
         self.smoother = ObjectSmoother()
         self.hands_seen_twice = 0  # frame sets where one hand was dropped as the other's double
         self.beyond_hand = 0  # hand keypoints masked as too far from their hand
+        self.identity = identity
+        self.min_confidence = min_confidence
+        self.hand_present_confidence = hand_present_confidence
+        self.hand_views_absent = 0  # (view, hand) pairs whose detections were too weak to show the hand
+        self.hand_swaps = 0  # 2-D detections moved to the other hand's channel
+        self.hand_detections_dropped = 0  # 2-D hand detections near no tracked hand, or a second claim
+        self._tracked: list[np.ndarray | None] = [None] * len(self.hand_names)
+        self.object_detections_dropped = 0  # object detections far from where the object is tracked
+        self._objects = np.zeros((len(self.object_names), 3))
+        self._objects_known = np.zeros(len(self.object_names), bool)
 
     @property
     def n_points(self) -> int:
@@ -83,6 +100,22 @@ class Reconstructor:
     def step(self, P: np.ndarray, uv: np.ndarray, confidence: np.ndarray) -> Reconstruction:
         """P (C,3,4) of the cameras present; uv (C,N,2) full-image pixels; confidence (C,N)."""
         t0 = time.perf_counter()
+        if self.hand_present_confidence > 0:
+            absent = absent_hands(confidence, len(self.hand_names), KEYPOINTS_PER_HAND, self.hand_present_confidence)
+            if absent.any():
+                self.hand_views_absent += int(absent.sum())
+                confidence = np.array(confidence, float, copy=True)
+                nh = len(self.hand_names) * KEYPOINTS_PER_HAND
+                confidence[:, :nh] *= ~np.repeat(absent, KEYPOINTS_PER_HAND, axis=1)
+        if self.identity:
+            a = assign_hands(P, uv, confidence, self._tracked, KEYPOINTS_PER_HAND, self.min_confidence)
+            uv, confidence = a.uv, a.confidence
+            self.hand_swaps += a.swapped
+            self.hand_detections_dropped += a.dropped
+            nh = len(self.hand_names) * KEYPOINTS_PER_HAND
+            obj_conf, dropped = gate_tracked(P, uv[:, nh:], confidence[:, nh:], self._objects, self._objects_known)
+            confidence = np.concatenate([confidence[:, :nh], obj_conf], axis=1)
+            self.object_detections_dropped += dropped
         pts, mask, inliers = triangulate_robust(P, uv, confidence, self.gate_px)
         t1 = time.perf_counter()
         H, nh = len(self.hand_names), len(self.hand_names) * KEYPOINTS_PER_HAND
@@ -113,9 +146,12 @@ class Reconstructor:
                 break
             sl = slice(i * KEYPOINTS_PER_HAND, (i + 1) * KEYPOINTS_PER_HAND)
             hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl])
+        self._tracked = [h[m.astype(bool)] if m.sum() >= TRACKED_MIN_POINTS else None
+                         for h, m in zip(hands, hand_mask, strict=True)]
         t2 = time.perf_counter()
         objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
         objects = self.smoother.update(self.models, objects, posed, rms, used)
+        self._objects, self._objects_known = objects.copy(), object_mask.astype(bool)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,
                               {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})

@@ -111,6 +111,7 @@ class ReconService:
         else:
             self.recon = Reconstructor(params.task, gate_px=params.gate_px, fit_hands=params.fit_hands)
             self.learned = self._load_learned()
+            self.recon.hand_present_confidence = getattr(self.learned, "hand_present_confidence", 0.0)
             # Images and CameraInfos come through separate subscriptions, whose handlers may run a
             # frame set apart under load: a set is released incomplete only once two newer ones began.
             self.buffer = FrameSetBuffer(late_after=2)

@@ -99,3 +99,22 @@ def test_crop_and_mapping_back_to_the_full_image():
     v, u = 10, 20
     full_u, full_v = roi.to_full_image(np.array([[u, v]]), r)[0]
     assert image[int(full_v), int(full_u)] == sub[v, u]
+
+
+def test_a_missing_hand_brings_full_frames_every_second_trigger():
+    cams = geometry()
+    hand = np.array([0.05, -0.05, 0.1]) + np.random.default_rng(1).uniform(-0.04, 0.04, (21, 3))
+    params = roi.RoiParams(reacquire_every=10, reacquire_lost_every=2)
+    mask = np.ones(42, np.uint8)
+    assert not roi.missing_hand(mask, 2) and not roi.missing_hand([], 2)
+    mask[21:] = 0
+    mask[21:23] = 1  # two keypoints of the right hand: too few to track it
+    assert roi.missing_hand(mask, 2)
+    with pytest.raises(ValueError, match="hand_mask"):
+        roi.missing_hand(np.ones(41), 2)
+    full = roi.full_frame(640, 480)
+    for trigger in range(1, 7):
+        both, _ = roi.rig_windows(cams, hand, 0.1, trigger, params, hand_missing=False)
+        one, _ = roi.rig_windows(cams, hand, 0.1, trigger, params, hand_missing=True)
+        assert all(w != full for w in both.values())
+        assert all((w == full) == (trigger % 2 == 0) for w in one.values())
