@@ -107,7 +107,7 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
                 t2 = time.perf_counter()
                 times["cpu_detect"].append(time.process_time() - c1)
                 c0 = time.process_time()
-                r = rec.step(P, uv, conf)
+                r = rec.step(P, uv, conf, np.array(rois, float))
                 times["cpu_reconstruct"].append(time.process_time() - c0)
                 times["decode"].append(t1 - t0)
                 times["detect"].append(t2 - t1)

@@ -242,7 +242,7 @@ class DemoReconstructor:
             snap, truth, visible = self.scenes.at(teacher, t, self.seed, int(meta["demo"]), glove)
             windows = frame_windows(self.cams, tracked, trigger, self.options)
             uv, conf = self.detect(snap, truth, visible, windows)
-            r = recon.step(self.P, uv, conf)
+            r = recon.step(self.P, uv, conf, np.array([tuple(w) for w in windows], float))
             tracked = tracked_hands(r.hands, r.hand_mask)
             if trigger >= self.options.lead_in:
                 hands.append(r.hands)

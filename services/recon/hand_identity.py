@@ -105,3 +105,23 @@ def gate_tracked(P: np.ndarray, uv: np.ndarray, confidence: np.ndarray, tracked:
     far = (np.diagonal(d, axis1=1, axis2=2) > gate_m) & (conf[:, idx] > 0)
     conf[:, idx] = np.where(far, 0.0, conf[:, idx])
     return conf, int(far.sum())
+
+
+def outside_windows(P: np.ndarray, points: np.ndarray, known: np.ndarray, windows: np.ndarray,
+                    margin_px: float = 2.0) -> np.ndarray:
+    """(C, K) bool: tracked points (K, 3) (where ``known``) that project outside a view's readout
+    window (C, 4: x, y, width, height in full-image pixels) or behind it: that view cannot have seen
+    them, whatever its network reports there."""
+    out = np.zeros((len(P), len(points)), bool)
+    idx = np.flatnonzero(known)
+    if not len(idx) or len(P) == 0:
+        return out
+    X = np.c_[np.asarray(points, float)[idx], np.ones(len(idx))]
+    proj = np.einsum("cij,nj->cni", P, X)
+    z = proj[..., 2]
+    uv = proj[..., :2] / np.where(np.abs(z) < 1e-9, 1e-9, z)[..., None]
+    w = np.asarray(windows, float)[:, None, :]
+    inside = (uv[..., 0] >= w[..., 0] - margin_px) & (uv[..., 0] <= w[..., 0] + w[..., 2] - 1 + margin_px) & \
+        (uv[..., 1] >= w[..., 1] - margin_px) & (uv[..., 1] <= w[..., 1] + w[..., 3] - 1 + margin_px) & (z > 0)
+    out[:, idx] = ~inside
+    return out

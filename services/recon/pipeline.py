@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.recon.hand_fit import FitConfig, HandTracker
-from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked
+from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked, outside_windows
 from services.recon.objects import ObjectSmoother, object_models, pose_objects, task_keypoint_names
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
@@ -90,6 +90,7 @@ class Reconstructor:
         self.hand_detections_dropped = 0  # 2-D hand detections near no tracked hand, or a second claim
         self._tracked: list[np.ndarray | None] = [None] * len(self.hand_names)
         self.object_detections_dropped = 0  # object detections far from where the object is tracked
+        self.objects_outside_windows = 0  # object detections in views whose window cannot show the object
         self._objects = np.zeros((len(self.object_names), 3))
         self._objects_known = np.zeros(len(self.object_names), bool)
 
@@ -97,8 +98,11 @@ class Reconstructor:
     def n_points(self) -> int:
         return len(self.hand_names) * KEYPOINTS_PER_HAND + len(self.object_names)
 
-    def step(self, P: np.ndarray, uv: np.ndarray, confidence: np.ndarray) -> Reconstruction:
-        """P (C,3,4) of the cameras present; uv (C,N,2) full-image pixels; confidence (C,N)."""
+    def step(self, P: np.ndarray, uv: np.ndarray, confidence: np.ndarray,
+             windows: np.ndarray | None = None) -> Reconstruction:
+        """P (C,3,4) of the cameras present; uv (C,N,2) full-image pixels; confidence (C,N);
+        ``windows`` (C,4): each view's readout window (x, y, width, height), when known: a tracked
+        object outside a view's window is not detected there."""
         t0 = time.perf_counter()
         if self.hand_present_confidence > 0:
             absent = absent_hands(confidence, len(self.hand_names), KEYPOINTS_PER_HAND, self.hand_present_confidence)
@@ -114,6 +118,10 @@ class Reconstructor:
             self.hand_detections_dropped += a.dropped
             nh = len(self.hand_names) * KEYPOINTS_PER_HAND
             obj_conf, dropped = gate_tracked(P, uv[:, nh:], confidence[:, nh:], self._objects, self._objects_known)
+            if windows is not None:
+                unseen = outside_windows(P, self._objects, self._objects_known, windows) & (obj_conf > 0)
+                obj_conf[unseen] = 0.0
+                self.objects_outside_windows += int(unseen.sum())
             confidence = np.concatenate([confidence[:, :nh], obj_conf], axis=1)
             self.object_detections_dropped += dropped
         pts, mask, inliers = triangulate_robust(P, uv, confidence, self.gate_px)

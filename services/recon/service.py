@@ -229,7 +229,9 @@ class ReconService:
     def _reconstruct(self, stamp: float, cameras: list[str], uv: np.ndarray, confidence: np.ndarray,
                      times: dict) -> None:
         P = np.stack([self.cameras[c].P for c in cameras])
-        r: Reconstruction = self.recon.step(P, uv, confidence)
+        models = [self.cameras[c] for c in cameras]
+        windows = np.array([m.roi or (0, 0, m.width, m.height) for m in models], float)
+        r: Reconstruction = self.recon.step(P, uv, confidence, windows)
         self.times.append({**times, **r.times})
         self.frame_sets += 1
         self.scene_pub.put(self._scene(stamp, r))

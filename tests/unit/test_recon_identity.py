@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked, ray_distances
+from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked, outside_windows, ray_distances
 from services.recon.pipeline import Reconstructor
 from services.recon.triangulation import project
 from shared.geometry import look_at, projection
@@ -123,3 +123,16 @@ def test_reconstruction_keeps_each_hand_when_views_swap_its_channels():
             assert rec.hand_swaps > 0
     assert max(errors[True]) < 1e-3
     assert max(errors[False]) > 0.1
+
+
+def test_tracked_points_outside_a_views_window_are_marked_unseen_there():
+    pts = np.array([[0.0, 0.0, 0.1], [0.3, 0.3, 0.0]])
+    uv, _ = project(P, pts)
+    full = np.tile([0.0, 0.0, 256.0, 192.0], (len(P), 1))
+    tight = full.copy()
+    tight[0] = [uv[0, 0, 0] - 10, uv[0, 0, 1] - 10, 20, 20]  # view 0 reads a window around point 0 only
+    out = outside_windows(P, pts, np.array([True, True]), tight)
+    inside_full = ~outside_windows(P, pts, np.array([True, True]), full)
+    assert not out[0, 0] and out[0, 1] == inside_full[0, 1]
+    assert (out[1:] == ~inside_full[1:]).all()
+    assert not outside_windows(P, pts, np.array([False, False]), tight).any()
