@@ -5,7 +5,7 @@ shape learned from the whole first pass, so no frame waits for the initialisatio
 each hand's trajectory is refined as one problem (services/recon/offline.py): robust reprojection
 against the detections the live triangulation kept, joint limits, a jerk regulariser, gaps filled
 from interpolated poses. OUT.mcap holds the recording with `xm/recon/main/scene` replaced by the
-refined scenes.
+refined scenes and `xm/recon/main/tactile_mesh` by the glove's cells on the refined hands.
 """
 
 from __future__ import annotations
@@ -27,12 +27,15 @@ from services.recon.offline import OfflineConfig, refine_hand
 from services.recon.pipeline import Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
 from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window, info_key
+from services.recon.tactile_projection import MSGTYPE as MESH_MSGTYPE
+from services.recon.tactile_projection import TactileProjector
 from services.recorder.writer import McapRecorder, RecordingError, read_messages
 from shared import msgs
 from shared.demo import KEYPOINTS_PER_HAND
 from shared.ports import CAMERAS
 
 SCENE_KEY = "xm/recon/main/scene"
+MESH_KEY = "xm/recon/main/tactile_mesh"
 
 
 @dataclass
@@ -44,7 +47,8 @@ class Frames:
     uv: list[np.ndarray] = field(default_factory=list)
     confidence: list[np.ndarray] = field(default_factory=list)
     object_names: list[str] | None = None
-    tactile: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)
+    tactile: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)  # region means
+    pressure: dict[str, list[tuple[float, np.ndarray]]] = field(default_factory=dict)  # 16x16 frames
     corrupt: int = 0  # JPEG windows that did not decode
     hand_present_confidence: float = 0.0  # the detector's (LearnedDetector.hand_present_confidence)
 
@@ -89,6 +93,7 @@ def read_detections(path: Path, args: argparse.Namespace, n_points: int) -> Fram
             pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
             out.tactile.setdefault(msg.hand, []).append((msgs.stamp_seconds(msg.header.stamp),
                                                          region_means(pressure)))
+            out.pressure.setdefault(msg.hand, []).append((msgs.stamp_seconds(msg.header.stamp), pressure))
     images += buffer.flush()
     order = [c for c in CAMERAS if c in out.cameras]
     if len(order) < 2:
@@ -188,16 +193,40 @@ def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool =
         summary[name] = {"refined": True, **info}
     scenes = []
     for t, stamp in enumerate(frames.stamps):
-        fresh = {}
-        for hand, series in frames.tactile.items():
-            near = min(series, key=lambda s: abs(s[0] - stamp))
-            if abs(near[0] - stamp) < TACTILE_MAX_AGE_S:
-                fresh[hand] = near[1]
-        tactile, tactile_mask = tactile_matrix(second.hand_names, fresh)
+        tactile, tactile_mask = tactile_matrix(second.hand_names, nearest(frames.tactile, stamp))
         r = live[t]
         scenes.append(scene_message(stamp, second.hand_names, hands[t], hand_mask[t], second.object_names,
                                     r.objects, r.object_mask, tactile, tactile_mask))
     return scenes, summary
+
+
+def nearest(series: dict[str, list[tuple[float, np.ndarray]]], stamp: float) -> dict[str, np.ndarray]:
+    """Per hand, the sample of its (stamp, value) series nearest ``stamp``, when within
+    TACTILE_MAX_AGE_S."""
+    fresh = {}
+    for hand, samples in series.items():
+        near = min(samples, key=lambda s: abs(s[0] - stamp))
+        if abs(near[0] - stamp) < TACTILE_MAX_AGE_S:
+            fresh[hand] = near[1]
+    return fresh
+
+
+def tactile_meshes(frames: Frames, scenes: list) -> tuple[list, dict[str, int]]:
+    """The glove's cells on the reconstructed hands (services/recon/tactile_projection.py), one
+    TactileMesh per frame set that has a gloved hand with all its keypoints; and per reason, the
+    hands left out."""
+    projector, out, skipped = TactileProjector(), [], {}
+    for scene in scenes:
+        stamp = msgs.stamp_seconds(scene.header.stamp)
+        names = list(scene.hand_names)
+        hands = np.asarray(scene.hand_keypoints, float).reshape(len(names), KEYPOINTS_PER_HAND, 3)
+        mask = np.asarray(scene.hand_mask, np.uint8).reshape(len(names), KEYPOINTS_PER_HAND)
+        msg, why = projector.message(stamp, names, hands, mask, nearest(frames.pressure, stamp))
+        for reason in why.values():
+            skipped[reason] = skipped.get(reason, 0) + 1
+        if msg is not None:
+            out.append(msg)
+    return out, skipped
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
             raise RecordingError(f"{args.recording}: no frame sets (no camhub images)")
         config = OfflineConfig(jerk_px_per_m=args.jerk, max_nfev=args.max_evaluations)
         scenes, summary = reconstruct(frames, args.task, config, refine=not args.no_refine)
+        meshes, mesh_skipped = tactile_meshes(frames, scenes)
     except (RecordingError, ValueError) as exc:
         print(f"xm recon: {exc}", file=sys.stderr)
         return 2
@@ -239,9 +269,13 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         stamp_ns = int(round(msgs.stamp_seconds(scene.header.stamp) * 1e9))
         rec.write(SCENE_KEY, "xm_msgs/msg/Scene", msgs.serialize(scene, "xm_msgs/msg/Scene"), stamp_ns)
+    for mesh in meshes:
+        stamp_ns = int(round(msgs.stamp_seconds(mesh.header.stamp) * 1e9))
+        rec.write(MESH_KEY, MESH_MSGTYPE, msgs.serialize(mesh, MESH_MSGTYPE), stamp_ns)
     rec.close()
     print(f"xm recon: {len(scenes)} frame sets -> {args.out}"
           + (f" ({frames.corrupt} corrupt JPEG windows dropped)" if frames.corrupt else ""))
+    print(f"  tactile meshes: {len(meshes)}" + (f" (hands left out: {mesh_skipped})" if mesh_skipped else ""))
     for hand, info in summary.items():
         print(f"  {hand}: {info}")
     return 0

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.recon.cli import SCENE_KEY, main
+from services.recon.cli import MESH_KEY, SCENE_KEY, main
 from services.recon.hand_model import N_PARAMS
 from services.recon.objects import task_keypoint_names
 from services.recon.offline import fill_gaps
@@ -18,6 +18,7 @@ from services.recorder.writer import McapRecorder, read_messages
 from services.world.model import camera_specs
 from services.world.sim import WorldSim
 from shared import msgs
+from shared.demo import KEYPOINTS_PER_HAND
 from shared.geometry import projection
 
 
@@ -50,6 +51,11 @@ def _recording(path, frames: int = 16) -> np.ndarray:
         rec.write("xm/camhub/cam0/image", "sensor_msgs/msg/CompressedImage", msgs.serialize(msgs.make(
             "sensor_msgs/msg/CompressedImage", header=msgs.header(t, "cam0"), format="jpeg",
             data=np.zeros(4, np.uint8))), int(t * 1e9))
+        pressure = np.zeros((16, 16), np.float32)
+        pressure[2:5, 3:6] = 40.0 + f  # a press that grows over the recording
+        rec.write("xm/glove/right/tactile", "xm_msgs/msg/Tactile", msgs.serialize(msgs.make(
+            "xm_msgs/msg/Tactile", header=msgs.header(t, "right"), hand="right", rows=16, cols=16,
+            pressure=pressure.ravel(), mask=np.ones(256, np.uint8), sequence=f)), int(t * 1e9))
     rec.close()
     return np.stack(truth)
 
@@ -79,6 +85,16 @@ def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
     assert err.mean() < 0.010
     kept = {s.key for s in read_messages(dst)}
     assert "xm/world/sim/truth" in kept, "the rest of the recording is copied"
+    # The glove's cells ride on the refined right hand: one mesh per frame set with the whole hand.
+    meshes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == MESH_KEY]
+    complete = sum(bool(m[KEYPOINTS_PER_HAND:].all()) for m in mask)
+    assert len(meshes) == complete > 0
+    m = meshes[-1]
+    assert list(m.hand_names) == ["right"]
+    verts = np.asarray(m.vertices).reshape(-1, 3)
+    right = hands[-1][KEYPOINTS_PER_HAND:]
+    assert np.linalg.norm(verts.mean(axis=0) - right.mean(axis=0)) < 0.05, "the mesh sits on the hand"
+    assert np.asarray(m.pressure).max() > 40.0, "the press shows on the mesh"
 
 
 def test_offline_recon_refuses_a_recording_without_cameras(tmp_path, capsys):
