@@ -39,25 +39,32 @@ LOG_SUMMARY_S = 10.0  # a recurring warning is summarised at most this often
 
 
 class RateMeter:
-    """Message rate over the last few seconds, from arrival times."""
+    """Message rate over the last few seconds, from arrival times. Ticked from transport threads and
+    read from the health timer: one lock keeps the window consistent."""
 
     def __init__(self) -> None:
         self.count = 0
         self._times: collections.deque[float] = collections.deque()
+        self._lock = threading.Lock()
 
     def tick(self, now: float) -> None:
-        self.count += 1
-        self._times.append(now)
-        while self._times and self._times[0] < now - RATE_WINDOW_S:
-            self._times.popleft()
+        with self._lock:
+            self.count += 1
+            self._times.append(now)
+            self._trim(now)
 
     def rate(self, now: float) -> float:
+        with self._lock:
+            self._trim(now)
+            n, first = len(self._times), (self._times[0] if self._times else now)
+        if n < 2:
+            return 0.0
+        span = max(now - first, 1e-6)
+        return (n - 1) / span if span < RATE_WINDOW_S * 0.5 else n / RATE_WINDOW_S
+
+    def _trim(self, now: float) -> None:
         while self._times and self._times[0] < now - RATE_WINDOW_S:
             self._times.popleft()
-        if len(self._times) < 2:
-            return 0.0
-        span = max(now - self._times[0], 1e-6)
-        return (len(self._times) - 1) / span if span < RATE_WINDOW_S * 0.5 else len(self._times) / RATE_WINDOW_S
 
 
 class Publisher:

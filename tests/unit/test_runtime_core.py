@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,3 +129,30 @@ def test_rate_meter():
         meter.tick(i * 0.01)
     assert meter.rate(1.0) == pytest.approx(100.0, rel=0.02)
     assert meter.rate(100.0) == 0.0
+
+
+def test_rate_meter_ticked_and_read_from_several_threads_keeps_count():
+    meter = RateMeter()
+    errors: list[BaseException] = []
+
+    def tick(offset: float) -> None:
+        try:
+            for i in range(20_000):
+                meter.tick(offset + i * 1e-3)
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            errors.append(exc)
+
+    def read() -> None:
+        try:
+            for i in range(20_000):
+                meter.rate(i * 1e-3 + 10.0)  # trims the window the tickers append to
+        except BaseException as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=tick, args=(k * 0.5,)) for k in range(3)] + [threading.Thread(target=read)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert meter.count == 60_000
