@@ -147,6 +147,11 @@ class ReconService:
             out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
             out["hands_seen_twice"] = self.recon.hands_seen_twice
             out["hand_keypoints_beyond_the_hand"] = self.recon.beyond_hand
+            out["hand_detections_swapped"] = self.recon.hand_swaps
+            out["hand_detections_dropped"] = self.recon.hand_detections_dropped
+            out["hand_views_absent"] = self.recon.hand_views_absent
+            out["object_detections_off_track"] = self.recon.object_detections_dropped
+            out["object_detections_outside_window"] = self.recon.objects_outside_windows
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial
