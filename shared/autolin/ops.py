@@ -12,8 +12,9 @@ quat (w, x, y, z, unit) -> vec3 rotation vector, with the perturbation q' = exp(
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from . import scalar as S
 
@@ -35,7 +36,7 @@ def dot(a: Comps, b: Comps) -> Any:
 
 
 def vadd(a: Comps, b: Comps) -> Comps:
-    return tuple(x + y for x, y in zip(a, b))
+    return tuple(x + y for x, y in zip(a, b, strict=False))
 
 
 def qrot(q: Comps, v: Comps) -> Comps:
@@ -117,6 +118,10 @@ def _scal(f: Callable[..., Any]) -> Callable[..., Comps]:
     return lambda *a: (f(*[x[0] for x in a]),)
 
 
+def vsub(a: Comps, b: Comps) -> Comps:
+    return tuple(x - y for x, y in zip(a, b, strict=True))
+
+
 def _neg(v: Comps) -> Comps:
     return tuple(-x for x in v)
 
@@ -128,8 +133,8 @@ def _scale(s: Any, v: Comps) -> Comps:
 for _t in ("scalar", "vec3", "mat3"):
     register(Op(f"add.{_t}", (_t, _t), _t, vadd, lambda a, b, o: (), lambda L, da, db: vadd(da, db),
                 lambda L, g: (g, g)))
-    register(Op(f"sub.{_t}", (_t, _t), _t, lambda a, b: tuple(x - y for x, y in zip(a, b)), lambda a, b, o: (),
-                lambda L, da, db: tuple(x - y for x, y in zip(da, db)), lambda L, g: (g, _neg(g))))
+    register(Op(f"sub.{_t}", (_t, _t), _t, vsub, lambda a, b, o: (),
+                lambda L, da, db: vsub(da, db), lambda L, g: (g, _neg(g))))
     register(Op(f"neg.{_t}", (_t,), _t, _neg, lambda a, o: (), lambda L, da: _neg(da), lambda L, g: (_neg(g),)))
 
 # scalar products keep both factors: forward and reverse are then multiplies and adds

@@ -9,8 +9,9 @@ scalar programs, and batched execution with numpy.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -96,7 +97,7 @@ def reverse_program(src: Program) -> Program:
         go = _merge(p, O.GRAD[src.types[o]], contrib.pop(o), ins.line)
         outs = tuple(p.var(O.GRAD[src.types[a]]) for a in ins.args)
         p.instrs.append(Instr(ins.op + ".rev", (data[k], go), outs, ins.line))
-        for a, w in zip(ins.args, outs):
+        for a, w in zip(ins.args, outs, strict=False):
             if a not in src.consts:
                 contrib.setdefault(a, []).append(w)
     p.outputs = [_merge(p, O.GRAD[src.types[v]], contrib[v], "") if v in contrib
@@ -110,7 +111,7 @@ def accumulation_program(src: Program) -> Program:
     xs = [p.var(src.types[v]) for v in src.inputs]
     gs = [p.var(O.GRAD[src.types[v]]) for v in src.inputs]
     p.inputs = xs + gs
-    for x, gv, v in zip(xs, gs, src.inputs):
+    for x, gv, v in zip(xs, gs, src.inputs, strict=False):
         o = p.var(src.types[v])
         p.instrs.append(Instr(f"acc.{src.types[v]}", (x, gv), (o,)))
         p.outputs.append(o)
@@ -154,7 +155,7 @@ def lower(p: Program, data_sizes: list[int] | None = None) -> tuple[S.ScalarProg
             res = O.rules(base).rev(env[ins.args[0]], env[ins.args[1]])
         else:
             res = (O.OPS[ins.op].eval(*[env[a] for a in ins.args]),)
-        for o, r in zip(ins.outs, res):
+        for o, r in zip(ins.outs, res, strict=False):
             env[o] = tuple(x if isinstance(x, S.Sym) else b.const(x) for x in r)
     b.prog.outputs = [x.i for v in p.outputs for x in env[v]]
     return S.prune(b.prog), produced or sizes
@@ -239,7 +240,7 @@ class Linearized:
         if len(xs) != len(types):
             raise ValueError(f"expected {len(types)} arguments ({', '.join(types)}), got {len(xs)}")
         flat = []
-        for x, t in zip(xs, types):
+        for x, t in zip(xs, types, strict=False):
             flat += _comps(x, t)
         batch = np.broadcast_shapes(batch, *[np.shape(c) for c in flat])
         return flat, batch
@@ -254,7 +255,7 @@ class Linearized:
 
     def _explain_nonfinite(self, flat: list[Any], batch: tuple[int, ...]) -> str:
         prog = self.scalar["linearize"]
-        for i, x in zip(prog.inputs, flat):
+        for i, x in zip(prog.inputs, flat, strict=False):
             if not np.all(np.isfinite(x)):
                 return f"non-finite input {prog.nodes[i].name}"
         first: list[int] = []

@@ -11,8 +11,9 @@ simplification pass of thesis section 3.2.5.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -226,7 +227,7 @@ def replay(prog: ScalarProgram, inputs: Sequence[Any], on_node: Callable[[int, A
     """Run `prog` on numpy arrays (batched execution), or inline it into `builder` when the
     inputs are `Sym` values. `on_node(i, value)` sees every computed node (error reports)."""
     vals: list[Any] = [None] * len(prog.nodes)
-    for i, x in zip(prog.inputs, inputs):
+    for i, x in zip(prog.inputs, inputs, strict=False):
         vals[i] = x
     for i in prog.live():
         n = prog.nodes[i]
@@ -280,8 +281,8 @@ def jvp_program(prog: ScalarProgram) -> ScalarProgram:
     b = Builder(simplify=True)
     xs = [b.input(prog.nodes[i].name) for i in prog.inputs]
     dxs = [b.input("d" + prog.nodes[i].name) for i in prog.inputs]
-    v: dict[int, Any] = dict(zip(prog.inputs, xs))
-    d: dict[int, Any] = dict(zip(prog.inputs, dxs))
+    v: dict[int, Any] = dict(zip(prog.inputs, xs, strict=False))
+    d: dict[int, Any] = dict(zip(prog.inputs, dxs, strict=False))
     zero = b.const(0.0)
     for i in prog.live():
         n = prog.nodes[i]
@@ -318,7 +319,7 @@ def vjp_program(prog: ScalarProgram) -> ScalarProgram:
     b = Builder(simplify=True)
     xs = [b.input(prog.nodes[i].name) for i in prog.inputs]
     gys = [b.input("g" + str(k)) for k in range(len(prog.outputs))]
-    v: dict[int, Any] = dict(zip(prog.inputs, xs))
+    v: dict[int, Any] = dict(zip(prog.inputs, xs, strict=False))
     live = prog.live()
     for i in live:  # forward sweep: values needed by the reverse rules
         n = prog.nodes[i]
@@ -327,7 +328,7 @@ def vjp_program(prog: ScalarProgram) -> ScalarProgram:
         elif n.op != "in":
             v[i] = _apply(n.op, [v[k] for k in n.args])
     contrib: dict[int, list[tuple[Sym, int]]] = {}
-    for o, g in zip(prog.outputs, gys):
+    for o, g in zip(prog.outputs, gys, strict=False):
         contrib.setdefault(o, []).append((g, 1))
     grads: dict[int, tuple[Sym, int]] = {}
     for i in reversed(live):
@@ -357,7 +358,7 @@ def vjp_program(prog: ScalarProgram) -> ScalarProgram:
             parts = [(g * sin(a[0]), -s)]
         elif n.op == "sqrt":
             parts = [(g / (v[i] + v[i]), s)]
-        for k, p in zip(n.args, parts):
+        for k, p in zip(n.args, parts, strict=False):
             if prog.nodes[k].op not in ("const", "zero"):
                 contrib.setdefault(k, []).append(p)
     outs = []
