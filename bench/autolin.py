@@ -149,11 +149,41 @@ def timings(batch: int, reps: int) -> dict:
     return out
 
 
+def bundle(reps: int) -> dict:
+    """GN-CG against scipy least_squares (trf, finite-difference Jacobian) on the same residuals:
+    wall time to each one's final cost, the traced programs compiled beforehand."""
+    from scipy.optimize import least_squares
+
+    from shared.autolin.bundle import make_problem, numpy_residuals, numpy_start, reprojection
+    from shared.autolin.solver import LeastSquares
+
+    pr = make_problem(n_cams=4, n_points=25, noise_px=0.5, seed=1)
+    t0 = time.perf_counter()
+    ls = LeastSquares(reprojection, ["quat", "vec3", "vec3"], ["scalar", "scalar"], [pr.cam, pr.cam, pr.pt])
+    compile_s = time.perf_counter() - t0
+    fixed = [np.arange(len(pr.quats)) == 0, np.arange(len(pr.trans)) == 0, None]
+    out: dict = {}
+    t: dict[str, list[float]] = {"autolin_gn_cg_s": [], "scipy_least_squares_s": []}
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        res = ls.solve([pr.quats, pr.trans, pr.points], [pr.uv[:, 0], pr.uv[:, 1]], fixed=fixed)
+        t["autolin_gn_cg_s"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = least_squares(numpy_residuals, numpy_start(pr), args=(pr,), method="trf", x_scale="jac")
+        t["scipy_least_squares_s"].append(time.perf_counter() - t0)
+    out = {k: float(np.median(v)) for k, v in t.items()}
+    out.update(observations=int(pr.cam.size), compile_s=compile_s, autolin_cost=res.cost, scipy_cost=float(ref.cost),
+               autolin_iterations=res.iterations, autolin_cg_iterations=res.cg_iterations, scipy_nfev=int(ref.nfev))
+    out["speedup"] = out["scipy_least_squares_s"] / out["autolin_gn_cg_s"]
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--reps", type=int, default=10)
     ap.add_argument("--no-timing", action="store_true", help="counts only (no torch import)")
+    ap.add_argument("--no-bundle", action="store_true", help="skip the bundle-adjustment comparison")
     args = ap.parse_args()
     res = {"counts": counts(), "thesis": THESIS}
     qc, bq, bm = res["counts"]["quat_chain"], res["counts"]["scalar_ad_quat"], res["counts"]["scalar_ad_matrix"]
@@ -178,6 +208,12 @@ def main() -> None:
               f"J v {t['autolin_jv_ms']:.2f} ms vs torch.func jvp {t['torch_jvp_ms']:.2f} ms "
               f"({t['speedup_jv']:.2f}x); J^T v {t['autolin_jtv_ms']:.2f} ms vs torch.func vjp "
               f"{t['torch_vjp_ms']:.2f} ms ({t['speedup_jtv']:.2f}x); target >= 2x")
+    if not args.no_bundle:
+        b = bundle(3)
+        res["bundle"] = b
+        print(f"bundle adjustment, {b['observations']} observations, median of 3: GN-CG {b['autolin_gn_cg_s']:.2f} s "
+              f"(cost {b['autolin_cost']:.6f}) vs scipy least_squares {b['scipy_least_squares_s']:.2f} s "
+              f"(cost {b['scipy_cost']:.6f}), {b['speedup']:.1f}x; tracing and generation {b['compile_s']:.2f} s")
     Path(".bench").mkdir(exist_ok=True)
     Path(".bench/autolin.json").write_text(json.dumps(res, indent=2))
 
