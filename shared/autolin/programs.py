@@ -17,6 +17,7 @@ import numpy as np
 
 from . import ops as O
 from . import scalar as S
+from .memory import Executable
 from .trace import Instr, Program, trace
 
 counters: Counter[str] = Counter()  # bad input seen by execution, by kind
@@ -192,6 +193,10 @@ class Linearized:
     block: dict[str, Program]
     scalar: dict[str, S.ScalarProgram]
     data_sizes: list[int] = field(default_factory=list)
+    exe: dict[str, Executable] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.exe = {k: Executable(p) for k, p in self.scalar.items()}
 
     @property
     def in_types(self) -> list[str]:
@@ -203,7 +208,10 @@ class Linearized:
 
     def _run(self, name: str, flat: list[Any], batch: tuple[int, ...],
              on_node: Callable[[int, Any], None] | None = None) -> list[Any]:
-        return S.replay(self.scalar[name], [np.broadcast_to(x, batch) for x in flat], on_node)
+        xs = [np.broadcast_to(x, batch) for x in flat]
+        if on_node is not None:
+            return S.replay(self.scalar[name], xs, on_node)
+        return self.exe[name](xs)
 
     def linearize(self, *xs: Any) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Values of the outputs and the linearization data (flat component arrays)."""

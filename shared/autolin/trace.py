@@ -86,6 +86,20 @@ class Tracer:
         return WRAP[o.out_type](self, v)
 
 
+def lift(tr: Tracer, o: Any, typ: str) -> Value:
+    """A traced value of `tr` as is, or a plain number / array as a constant of type `typ`."""
+    if isinstance(o, Value):
+        if o.tr is not tr:
+            raise TracingError(f"{user_line()}: value from another trace")
+        return o
+    if isinstance(o, (int, float, np.floating, np.integer, np.ndarray, list, tuple)):
+        c = np.asarray(o, dtype=float).ravel()
+        if c.size != O.SIZE[typ]:
+            raise TracingError(f"{user_line()}: constant of {c.size} numbers where a {typ} is needed")
+        return tr.const(typ, c)
+    raise TracingError(f"{user_line()}: cannot use {type(o).__name__} where a {typ} is needed")
+
+
 class Value:
     typ = ""
 
@@ -93,16 +107,7 @@ class Value:
         self.tr, self.v = tr, v
 
     def _lift(self, o: Any, typ: str) -> Value:
-        if isinstance(o, Value):
-            if o.tr is not self.tr:
-                raise TracingError(f"{user_line()}: value from another trace")
-            return o
-        if isinstance(o, (int, float, np.floating, np.integer, np.ndarray, list, tuple)):
-            c = np.asarray(o, dtype=float).ravel()
-            if c.size != O.SIZE[typ]:
-                raise TracingError(f"{user_line()}: constant of {c.size} numbers where a {typ} is needed")
-            return self.tr.const(typ, c)
-        raise TracingError(f"{user_line()}: cannot combine a traced {self.typ} with {type(o).__name__}")
+        return lift(self.tr, o, typ)
 
     def _nocontrol(self, *_: Any) -> bool:
         raise TracingError(f"{user_line()}: data-dependent control flow on a traced {self.typ} (comparison "
@@ -215,12 +220,12 @@ def sqrt(x: Scalar) -> Value:
 
 def dot(a: Any, b: Any) -> Value:
     tr = _tracer_of(a, b)
-    return tr.emit("dot", Vec3(tr, 0)._lift(a, "vec3"), Vec3(tr, 0)._lift(b, "vec3"))
+    return tr.emit("dot", lift(tr, a, "vec3"), lift(tr, b, "vec3"))
 
 
 def cross(a: Any, b: Any) -> Value:
     tr = _tracer_of(a, b)
-    return tr.emit("cross", Vec3(tr, 0)._lift(a, "vec3"), Vec3(tr, 0)._lift(b, "vec3"))
+    return tr.emit("cross", lift(tr, a, "vec3"), lift(tr, b, "vec3"))
 
 
 def angle_axis(angle: Scalar, axis: Sequence[float]) -> Value:
@@ -232,7 +237,6 @@ def angle_axis(angle: Scalar, axis: Sequence[float]) -> Value:
     n = float(np.linalg.norm(a))
     if a.shape != (3,) or not np.isfinite(n) or n == 0.0:
         raise TracingError(f"{user_line()}: angle_axis needs a finite non-zero 3-vector axis, got {axis!r}")
-    O.angle_axis_op(tuple(a / n))
     return angle.tr.emit(O.angle_axis_op(tuple(a / n)).name, angle)
 
 

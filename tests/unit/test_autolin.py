@@ -183,3 +183,16 @@ def test_batched_execution_matches_single_samples():
     np.testing.assert_allclose(y, r, rtol=1e-12)
     with pytest.raises(ValueError, match="trailing size 4"):
         f.linearize(q[:, :3], m, v)
+
+
+def test_static_memory_allocation_reuses_registers():
+    from shared.autolin.memory import Executable, allocate
+
+    f = al.compile(lambda a, b, c: (a * b) * (c * a.conj()), ["quat"] * 3)
+    for name, p in f.scalar.items():
+        reg, n = allocate(p)
+        assert n < len(p.live()), name  # registers are shared once values are dead
+        rng = np.random.default_rng(0)
+        xs = [rng.normal(size=4) for _ in p.inputs]
+        for got, want in zip(Executable(p)(xs), S.replay(p, xs), strict=True):
+            np.testing.assert_array_equal(got, want)
