@@ -5,7 +5,8 @@ reverse mode, simplified the same way), and the thesis's figures: forward 33 / r
 for quaternion chaining against 60 / 56 (quaternion) and 99 / 90 (matrix); 13 memory
 operations against 20 / 45. Also the five-frame chain (q, t, joint angle per frame): counts
 against scalar AD, and the median time of J v and J^T v through the generated programs
-(numpy, batched) against torch.func's jvp (which evaluates the function again) and the
+(numpy register plan and plain C, batched; the node-by-node interpreter as the in-run
+baseline) against torch.func's jvp (which evaluates the function again) and the
 pullback of torch.func.vjp (recorded once, like the linearization), on the same function and
 batch, in the same run, one thread each. Writes .bench/autolin.json.
 """
@@ -96,11 +97,7 @@ def medians_ms(fns: dict, reps: int) -> dict[str, float]:
     return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
 
 
-def timings(batch: int, reps: int) -> dict:
-    import torch  # optional heavy dependency, only for the timing comparison
-    from torch.func import jvp, vjp
-
-    torch.set_num_threads(1)
+def chain_batch(batch: int) -> tuple:
     rng = np.random.default_rng(0)
     xs = []
     for t in TYPES:
@@ -111,8 +108,45 @@ def timings(batch: int, reps: int) -> dict:
             xs.append(rng.normal(size=(batch, 3) if t == "vec3" else (batch,)))
     ds = [rng.normal(size=(batch,) if t == "scalar" else (batch, 3)) for t in TYPES]
     w = [rng.normal(size=(batch, 3)), rng.normal(size=(batch, 3))]
+    return xs, ds, w
+
+
+def autolin_fns(batch: int) -> dict:
+    """J v and J^T v of the five-frame chain: register plan (numpy), plain C, and the
+    node-by-node interpreter as the in-run baseline."""
+    xs, ds, w = chain_batch(batch)
     f = al.compile(chain, TYPES)
+    c = f.with_c()
     _, L = f.linearize(*xs)
+    interp = al.Linearized(f.source, f.block, f.scalar, f.data_sizes)
+    interp.exe = {k: (lambda ins, p=p: S.replay(p, ins)) for k, p in f.scalar.items()}
+    return {"autolin_linearize_ms": lambda: f.linearize(*xs), "autolin_jv_ms": lambda: f.forward(L, *ds),
+            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward(L, *ds),
+            "autolin_c_jtv_ms": lambda: c.reverse(L, *w), "interpreted_jv_ms": lambda: interp.forward(L, *ds),
+            "interpreted_jtv_ms": lambda: interp.reverse(L, *w)}
+
+
+def timings(batch: int, reps: int, with_torch: bool) -> dict:
+    fns = autolin_fns(batch)
+    if with_torch:
+        fns.update(torch_fns(batch))
+    out = {"batch": batch, "reps": reps, **medians_ms(fns, reps)}
+    out["plan_vs_interpreted_jtv"] = out["interpreted_jtv_ms"] / out["autolin_jtv_ms"]
+    out["c_vs_plan_jtv"] = out["autolin_jtv_ms"] / out["autolin_c_jtv_ms"]
+    if with_torch:
+        for k in ("jv", "jtv"):
+            ref = out["torch_jvp_ms" if k == "jv" else "torch_vjp_ms"]
+            out[f"speedup_{k}"] = ref / out[f"autolin_{k}_ms"]
+            out[f"speedup_c_{k}"] = ref / out[f"autolin_c_{k}_ms"]
+    return out
+
+
+def torch_fns(batch: int) -> dict:
+    import torch  # optional heavy dependency, only for the timing comparison
+    from torch.func import jvp, vjp
+
+    torch.set_num_threads(1)
+    xs, ds, w = chain_batch(batch)
 
     axes = torch.tensor(AXES, dtype=torch.float64)
     conj = torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
@@ -140,13 +174,7 @@ def timings(batch: int, reps: int) -> dict:
                for d, t in zip(ds, TYPES, strict=True))
     _, pull = vjp(ref, *tx)
     tw = (torch.tensor(np.concatenate([w[0], np.zeros((batch, 1))], 1)), torch.tensor(w[1]))
-    out = {"batch": batch, "reps": reps, **medians_ms({
-        "autolin_linearize_ms": lambda: f.linearize(*xs), "autolin_jv_ms": lambda: f.forward(L, *ds),
-        "autolin_jtv_ms": lambda: f.reverse(L, *w), "torch_jvp_ms": lambda: jvp(ref, tx, td),
-        "torch_vjp_ms": lambda: pull(tw)}, reps)}
-    out["speedup_jv"] = out["torch_jvp_ms"] / out["autolin_jv_ms"]
-    out["speedup_jtv"] = out["torch_vjp_ms"] / out["autolin_jtv_ms"]
-    return out
+    return {"torch_jvp_ms": lambda: jvp(ref, tx, td), "torch_vjp_ms": lambda: pull(tw)}
 
 
 def bundle(reps: int) -> dict:
@@ -182,8 +210,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--reps", type=int, default=10)
-    ap.add_argument("--no-timing", action="store_true", help="counts only (no torch import)")
+    ap.add_argument("--no-timing", action="store_true", help="no torch.func comparison (no torch import)")
     ap.add_argument("--no-bundle", action="store_true", help="skip the bundle-adjustment comparison")
+    ap.add_argument("--out", default=".bench/autolin.json")
     args = ap.parse_args()
     res = {"counts": counts(), "thesis": THESIS}
     qc, bq, bm = res["counts"]["quat_chain"], res["counts"]["scalar_ad_quat"], res["counts"]["scalar_ad_matrix"]
@@ -201,21 +230,23 @@ def main() -> None:
     res["match_thesis"] = all(res["counts"][k][d]["instructions"] == v[d] for k, v in THESIS.items()
                               for d in ("forward", "reverse")) and all(
         res["counts"][k]["forward"]["memory_ops"] == v["memory_ops"] for k, v in THESIS.items())
+    t = timings(args.batch, args.reps, not args.no_timing)
+    res["timing"] = t
+    print(f"five-frame chain, batch {t['batch']}, median of {t['reps']} (one thread, noisy machine): J v "
+          f"{t['autolin_jv_ms']:.2f} ms (C {t['autolin_c_jv_ms']:.2f}), J^T v {t['autolin_jtv_ms']:.2f} ms "
+          f"(C {t['autolin_c_jtv_ms']:.2f}); node-by-node interpreter J^T v {t['interpreted_jtv_ms']:.2f} ms")
     if not args.no_timing:
-        t = timings(args.batch, args.reps)
-        res["timing"] = t
-        print(f"five-frame chain, batch {t['batch']}, median of {t['reps']} (one thread, noisy machine): "
-              f"J v {t['autolin_jv_ms']:.2f} ms vs torch.func jvp {t['torch_jvp_ms']:.2f} ms "
-              f"({t['speedup_jv']:.2f}x); J^T v {t['autolin_jtv_ms']:.2f} ms vs torch.func vjp "
-              f"{t['torch_vjp_ms']:.2f} ms ({t['speedup_jtv']:.2f}x); target >= 2x")
+        print(f"  against torch.func: jvp {t['torch_jvp_ms']:.2f} ms ({t['speedup_jv']:.1f}x, C "
+              f"{t['speedup_c_jv']:.1f}x), vjp pullback {t['torch_vjp_ms']:.2f} ms ({t['speedup_jtv']:.1f}x, C "
+              f"{t['speedup_c_jtv']:.1f}x); target >= 2x")
     if not args.no_bundle:
         b = bundle(3)
         res["bundle"] = b
         print(f"bundle adjustment, {b['observations']} observations, median of 3: GN-CG {b['autolin_gn_cg_s']:.2f} s "
               f"(cost {b['autolin_cost']:.6f}) vs scipy least_squares {b['scipy_least_squares_s']:.2f} s "
               f"(cost {b['scipy_cost']:.6f}), {b['speedup']:.1f}x; tracing and generation {b['compile_s']:.2f} s")
-    Path(".bench").mkdir(exist_ok=True)
-    Path(".bench/autolin.json").write_text(json.dumps(res, indent=2))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(res, indent=2))
 
 
 if __name__ == "__main__":

@@ -82,7 +82,8 @@ class CProgram:
         if len(inputs) != self.n_in:
             raise ValueError(f"expected {self.n_in} input arrays, got {len(inputs)}")
         batch = np.broadcast_shapes(*[np.shape(x) for x in inputs]) if inputs else ()
-        ins = [np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=np.float64), batch)).ravel() for x in inputs]
+        ins = [np.ascontiguousarray(x if np.shape(x) == batch else np.broadcast_to(x, batch), dtype=np.float64).ravel()
+               for x in inputs]
         outs = [np.empty(int(np.prod(batch))) for _ in range(self.n_out)]
         pin = (ctypes.c_void_p * max(self.n_in, 1))(*[x.ctypes.data for x in ins])
         pout = (ctypes.c_void_p * max(self.n_out, 1))(*[x.ctypes.data for x in outs])

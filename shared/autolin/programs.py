@@ -17,6 +17,7 @@ import numpy as np
 
 from . import ops as O
 from . import scalar as S
+from .emit_c import CProgram
 from .memory import Executable
 from .trace import Instr, Program, trace
 
@@ -193,10 +194,16 @@ class Linearized:
     block: dict[str, Program]
     scalar: dict[str, S.ScalarProgram]
     data_sizes: list[int] = field(default_factory=list)
-    exe: dict[str, Executable] = field(default_factory=dict)
+    exe: dict[str, Callable[[Sequence[Any]], list[Any]]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.exe = {k: Executable(p) for k, p in self.scalar.items()}
+
+    def with_c(self) -> Linearized:
+        """The same programs compiled to plain C (`emit_c`) and run through ctypes."""
+        out = Linearized(self.source, self.block, self.scalar, self.data_sizes)
+        out.exe = {k: CProgram(p, f"autolin_{k}") for k, p in self.scalar.items()}
+        return out
 
     @property
     def in_types(self) -> list[str]:
@@ -208,7 +215,7 @@ class Linearized:
 
     def _run(self, name: str, flat: list[Any], batch: tuple[int, ...],
              on_node: Callable[[int, Any], None] | None = None) -> list[Any]:
-        xs = [np.broadcast_to(x, batch) for x in flat]
+        xs = [x if np.shape(x) == batch else np.broadcast_to(x, batch) for x in flat]
         if on_node is not None:
             return S.replay(self.scalar[name], xs, on_node)
         return self.exe[name](xs)
