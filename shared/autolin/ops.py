@@ -12,6 +12,7 @@ quat (w, x, y, z, unit) -> vec3 rotation vector, with the perturbation q' = exp(
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -24,6 +25,7 @@ SIZE = {"scalar": 1, "vec3": 3, "quat": 4, "mat3": 9}
 GRAD = {"scalar": "scalar", "vec3": "vec3", "quat": "vec3", "mat3": "mat3"}
 
 Comps = tuple[Any, ...]
+counters: Counter[str] = Counter()  # bad input met by tracing and execution, by kind
 
 
 # --- component arithmetic, shared by every execution path -------------------------------

@@ -8,7 +8,6 @@ scalar programs, and batched execution with numpy.
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,7 +20,7 @@ from .emit_c import CProgram
 from .memory import Executable
 from .trace import Instr, Program, trace
 
-counters: Counter[str] = Counter()  # bad input seen by execution, by kind
+counters = O.counters
 
 
 class NonFiniteError(FloatingPointError):

@@ -256,10 +256,15 @@ def trace(fn: Callable[..., Any], types: Sequence[str]) -> Program:
         v = tr.prog.var(t)
         tr.prog.inputs.append(v)
         ins.append(WRAP[t](tr, v))
-    out = fn(*ins)
-    outs = list(out) if isinstance(out, (tuple, list)) else [out]
-    for o in outs:
-        if not isinstance(o, Value) or o.tr is not tr:
-            raise TracingError(f"{fn.__name__} returned {type(o).__name__}, not a value traced from its inputs")
+    try:
+        out = fn(*ins)
+        outs = list(out) if isinstance(out, (tuple, list)) else [out]
+        for o in outs:
+            if not isinstance(o, Value) or o.tr is not tr:
+                raise TracingError(f"{getattr(fn, '__name__', 'fn')} returned {type(o).__name__}, not a value "
+                                   "traced from its inputs")
+    except TracingError:
+        O.counters["tracing_error"] += 1
+        raise
     tr.prog.outputs = [o.v for o in outs]
     return tr.prog

@@ -38,8 +38,10 @@ def test_data_dependent_control_flow_names_the_line():
             return x
         return -x
 
+    before = al.counters["tracing_error"]
     with pytest.raises(al.TracingError, match=r"test_autolin\.py:\d+: data-dependent control flow"):
         al.trace(f, ["scalar"])
+    assert al.counters["tracing_error"] == before + 1
     with pytest.raises(al.TracingError, match="control flow"):
         al.trace(lambda x: x if bool(x) else x, ["vec3"])
 

@@ -159,7 +159,7 @@ def chain(*a):
     return q, t + q * p
 
 
-def test_suite3_five_frame_chains_match_torch_func():
+def test_suite3_five_frame_chains_match_torch_func(record_property):
     torch = pytest.importorskip("torch")
     from torch.func import jvp, vjp
 
@@ -209,5 +209,6 @@ def test_suite3_five_frame_chains_match_torch_func():
             r = np.stack([np.sum(r * rv_to_dq(x, np.broadcast_to(e, (N, 3))), axis=1) for e in np.eye(3)], axis=1)
         err.append(g - r)
     mse = np.mean(np.concatenate([e.reshape(-1) for e in err]) ** 2)
+    record_property("mse", float(mse))
     assert mse <= 1e-15
     assert max(np.abs(e).max() for e in err) < 1e-9
