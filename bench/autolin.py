@@ -73,6 +73,8 @@ def counts() -> dict:
     f = al.compile(lambda a, b: a * b, ["quat", "quat"])
     res["quat_chain"] = {"forward": summary(f.scalar["forward"]), "reverse": summary(f.scalar["reverse"]),
                          "linearize": summary(f.scalar["linearize"])}
+    r = al.compile(lambda a, b: a @ b, ["rot3", "rot3"])
+    res["matrix_chain"] = {"forward": summary(r.scalar["forward"]), "reverse": summary(r.scalar["reverse"])}
     q = S.trace_scalar(lambda *x: O.qmul(x[:4], x[4:]), [f"x{i}" for i in range(8)])
     m = S.trace_scalar(lambda *x: O.matmul(x[:9], x[9:]), [f"x{i}" for i in range(18)])
     for name, p in (("scalar_ad_quat", q), ("scalar_ad_matrix", m)):
@@ -223,6 +225,9 @@ def main() -> None:
           f"{bq['forward']['memory_ops']}   (thesis 60 / 56, 20)")
     print(f"  scalar AD, matrix {bm['forward']['instructions']} / {bm['reverse']['instructions']}, "
           f"{bm['forward']['memory_ops']}   (thesis 99 / 90, 45)")
+    mc = res["counts"]["matrix_chain"]
+    print(f"  autolin, matrix   {mc['forward']['instructions']} / {mc['reverse']['instructions']}, "
+          f"{mc['forward']['memory_ops']}   (rotation matrices with rotation-vector gradients)")
     ff = res["counts"]["five_frames"]
     print(f"five-frame chain, instructions forward / reverse: autolin {ff['autolin']['forward']['instructions']} / "
           f"{ff['autolin']['reverse']['instructions']}, scalar AD {ff['scalar_ad']['forward']['instructions']} / "

@@ -6,7 +6,8 @@ forward and reverse rules that use only its stored data (multiplies and adds), o
 then the plain rule applies (the framework's scalar AD of `eval`, on the arguments).
 
 Types and their gradient types: scalar -> scalar, vec3 -> vec3, mat3 -> mat3 (row-major),
-quat (w, x, y, z, unit) -> vec3 rotation vector, with the perturbation q' = exp(v) q.
+quat (w, x, y, z, unit) -> vec3 rotation vector, with the perturbation q' = exp(v) q, and
+rot3 (rotation matrix, row-major) -> vec3 rotation vector, R' = exp([v]x) R.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from . import scalar as S
 
 log = logging.getLogger(__name__)
 
-SIZE = {"scalar": 1, "vec3": 3, "quat": 4, "mat3": 9}
-GRAD = {"scalar": "scalar", "vec3": "vec3", "quat": "vec3", "mat3": "mat3"}
+SIZE = {"scalar": 1, "vec3": 3, "quat": 4, "mat3": 9, "rot3": 9}
+GRAD = {"scalar": "scalar", "vec3": "vec3", "quat": "vec3", "mat3": "mat3", "rot3": "vec3"}
 
 Comps = tuple[Any, ...]
 counters: Counter[str] = Counter()  # bad input met by tracing and execution, by kind
@@ -85,9 +86,30 @@ def retract(q: Comps, v: Comps) -> Comps:
     return tuple(x / n for x in p)
 
 
+def cayley(r: Comps, v: Comps) -> Comps:
+    """R (+) v: cay(v) R, cay(v) = I + k ([u]x + [u]x^2), u = v/2, k = 2 / (1 + |u|^2): exactly
+    orthogonal and equal to exp([v]x) to second order, with no trigonometry."""
+    u = (0.5 * v[0], 0.5 * v[1], 0.5 * v[2])
+    uu = dot(u, u)
+    k = 2.0 / (1.0 + uu)
+    ux = (0.0, -u[2], u[1], u[2], 0.0, -u[0], -u[1], u[0], 0.0)
+    m = tuple((1.0 if i == j else 0.0) + k * (ux[3 * i + j] + u[i] * u[j] - (uu if i == j else 0.0))
+              for i in range(3) for j in range(3))
+    return matmul(m, r)
+
+
+def quat_to_matrix(q: Comps) -> Comps:
+    w, x, y, z = q
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
 def accumulate(typ: str, x: Comps, g: Comps) -> Comps:
     """The addition of a value and a gradient of its gradient type (section 3.2.4)."""
-    return retract(x, g) if typ == "quat" else vadd(x, g)
+    if typ == "quat":
+        return retract(x, g)
+    return cayley(x, g) if typ == "rot3" else vadd(x, g)
 
 
 # --- operator table ---------------------------------------------------------------------
@@ -109,8 +131,8 @@ _warned: set[str] = set()
 def register(op: Op) -> Op:
     """Adds an operator. Without a linearizer the plain rule applies, which needs gradient
     types equal to value types (no quaternions), and says so once when first used."""
-    if op.lin is None and "quat" in op.arg_types + (op.out_type,):
-        raise ValueError(f"operator {op.name!r} on quaternions needs a linearizer: its gradients are "
+    if op.lin is None and {"quat", "rot3"} & set(op.arg_types + (op.out_type,)):
+        raise ValueError(f"operator {op.name!r} on rotations needs a linearizer: its gradients are "
                          "rotation vectors, which the plain rule cannot produce")
     OPS[op.name] = op
     return op
@@ -179,6 +201,16 @@ register(Op("rotate", ("quat", "vec3"), "vec3", qrot, lambda q, v, o: tuple(q) +
 # (exp(v) q)* = q* exp(-v) = exp(-q* v q) q*
 register(Op("conj", ("quat",), "quat", lambda q: (q[0], -q[1], -q[2], -q[3]), lambda q, o: tuple(q),
             lambda L, dq: _neg(qrot_conj(L, dq)), lambda L, g: (_neg(qrot(L, g)),)))
+
+
+# rotation matrices with rotation-vector gradients: chaining stores the first matrix
+register(Op("rmul", ("rot3", "rot3"), "rot3", matmul, lambda a, b, o: tuple(a),
+            lambda L, da, db: vadd(da, matvec(L, db)), lambda L, g: (g, matvec(transpose(L), g))))
+register(Op("rrotate", ("rot3", "vec3"), "vec3", matvec, lambda r, v, o: tuple(r) + tuple(o),
+            lambda L, dr, dv: vadd(cross(dr, L[9:]), matvec(L[:9], dv)),
+            lambda L, g: (cross(L[9:], g), matvec(transpose(L[:9]), g))))
+# a quaternion and its matrix share the rotation-vector gradient: both rules are moves
+register(Op("to_matrix", ("quat",), "rot3", quat_to_matrix, lambda q, o: (), lambda L, dq: dq, lambda L, g: (g,)))
 
 
 def angle_axis_op(axis: tuple[float, float, float]) -> Op:

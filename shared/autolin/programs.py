@@ -168,7 +168,7 @@ def _comps(x: Any, typ: str) -> list[np.ndarray]:
     n = O.SIZE[typ]
     if typ == "scalar":
         return [a]
-    if typ == "mat3":
+    if typ in ("mat3", "rot3"):
         if a.shape[-2:] != (3, 3):
             raise ValueError(f"a mat3 needs trailing shape (3, 3), got {a.shape}")
         a = a.reshape(a.shape[:-2] + (9,))
@@ -182,7 +182,7 @@ def _pack(comps: list[Any], typ: str, batch: tuple[int, ...]) -> np.ndarray:
     if typ == "scalar":
         return np.array(cs[0])
     a = np.stack(cs, axis=-1)
-    return a.reshape(batch + (3, 3)) if typ == "mat3" else a
+    return a.reshape(batch + (3, 3)) if typ in ("mat3", "rot3") else a
 
 
 @dataclass

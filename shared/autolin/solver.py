@@ -105,7 +105,7 @@ class LeastSquares:
 
 
 def _grad_shape(t: str) -> tuple[int, ...]:
-    return {"scalar": (), "vec3": (3,), "quat": (3,), "mat3": (3, 3)}[O.GRAD[t] if t == "quat" else t]
+    return {"scalar": (), "vec3": (3,), "mat3": (3, 3)}[O.GRAD[t]]
 
 
 def _bcast(m: np.ndarray, x: np.ndarray) -> np.ndarray:

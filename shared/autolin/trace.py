@@ -196,7 +196,19 @@ class Quat(Value):
         return self.tr.emit("conj", self)
 
 
-WRAP: dict[str, type[Value]] = {"scalar": Scalar, "vec3": Vec3, "quat": Quat, "mat3": Mat3}
+class Rot3(Value):
+    """A rotation matrix; its gradient is a rotation vector."""
+
+    typ = "rot3"
+
+    def __matmul__(self, o: Any) -> Value:
+        """Rotation chaining, or rotation of a vector."""
+        if isinstance(o, Vec3):
+            return self.tr.emit("rrotate", self, o)
+        return self.tr.emit("rmul", self, self._lift(o, "rot3"))
+
+
+WRAP: dict[str, type[Value]] = {"scalar": Scalar, "vec3": Vec3, "quat": Quat, "mat3": Mat3, "rot3": Rot3}
 
 
 def _tracer_of(*xs: Any) -> Tracer:
@@ -238,6 +250,11 @@ def angle_axis(angle: Scalar, axis: Sequence[float]) -> Value:
     if a.shape != (3,) or not np.isfinite(n) or n == 0.0:
         raise TracingError(f"{user_line()}: angle_axis needs a finite non-zero 3-vector axis, got {axis!r}")
     return angle.tr.emit(O.angle_axis_op(tuple(a / n)).name, angle)
+
+
+def to_matrix(q: Quat) -> Value:
+    """The rotation matrix of a unit quaternion (same rotation-vector gradient)."""
+    return q.tr.emit("to_matrix", q)
 
 
 def call(op: str, *args: Value) -> Value:

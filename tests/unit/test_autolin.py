@@ -198,3 +198,20 @@ def test_static_memory_allocation_reuses_registers():
         xs = [rng.normal(size=4) for _ in p.inputs]
         for got, want in zip(Executable(p)(xs), S.replay(p, xs), strict=True):
             np.testing.assert_array_equal(got, want)
+
+
+def test_rotation_matrices_take_rotation_vector_gradients():
+    f = al.compile(lambda a, b: a @ b, ["rot3", "rot3"])
+    fw, rv = f.scalar["forward"].counts(), f.scalar["reverse"].counts()
+    assert (fw["instructions"], rv["instructions"]) == (18, 15)  # V1 + R1 V2, (V3, R1^T V3)
+    g = al.compile(lambda q, v: al.to_matrix(q) @ v, ["quat", "vec3"])
+    h = al.compile(lambda q, v: q * v, ["quat", "vec3"])
+    rng = np.random.default_rng(8)
+    q, v, d, e = unit_quats(rng, 5), *(rng.normal(size=(5, 3)) for _ in range(3))
+    (y1,), L1 = g.linearize(q, v)
+    (y2,), L2 = h.linearize(q, v)
+    np.testing.assert_allclose(y1, y2, atol=1e-14)
+    np.testing.assert_allclose(g.forward(L1, d, e)[0], h.forward(L2, d, e)[0], atol=1e-14)
+    r = np.stack([np.eye(3)] * 5)
+    (r2,) = al.compile(lambda m: m, ["rot3"]).accumulate([r], [d])
+    np.testing.assert_allclose(r2 @ np.swapaxes(r2, 1, 2), r, atol=1e-14)  # stays a rotation

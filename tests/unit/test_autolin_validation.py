@@ -27,8 +27,20 @@ def qconj(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1, -1, -1])
 
 
+def qmat(q: np.ndarray) -> np.ndarray:
+    return np.stack(O.quat_to_matrix(tuple(np.moveaxis(q, -1, 0))), axis=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def vee(a: np.ndarray) -> np.ndarray:
+    """The vector of the skew-symmetric part of a 3x3 matrix."""
+    s = 0.5 * (a - np.swapaxes(a, -1, -2))
+    return np.stack([s[..., 2, 1], s[..., 0, 2], s[..., 1, 0]], axis=-1)
+
+
 def perturb(typ: str, x: np.ndarray, d: np.ndarray, eps: float) -> np.ndarray:
-    return qm(qexp(eps * d), x) if typ == "quat" else x + eps * d
+    if typ == "quat":
+        return qm(qexp(eps * d), x)
+    return qmat(qexp(eps * d)) @ x if typ == "rot3" else x + eps * d
 
 
 def difference(typ: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -36,19 +48,20 @@ def difference(typ: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if typ == "quat":
         r = qm(a, qconj(b))
         return 2 * r[..., 1:] * np.sign(r[..., :1])
-    return a - b
+    return vee(a @ np.swapaxes(b, -1, -2)) if typ == "rot3" else a - b
 
 
 def sample(typ: str, rng: np.random.Generator, lo: float = -2.0, hi: float = 2.0) -> np.ndarray:
-    if typ == "quat":
+    if typ in ("quat", "rot3"):
         q = rng.normal(size=(N, 4))
-        return q / np.linalg.norm(q, axis=1, keepdims=True)
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        return q if typ == "quat" else qmat(q)
     shape = {"scalar": (N,), "vec3": (N, 3), "mat3": (N, 3, 3)}[typ]
     return rng.uniform(lo, hi, size=shape)
 
 
 def grad_sample(typ: str, rng: np.random.Generator) -> np.ndarray:
-    return rng.normal(size={"scalar": (N,), "vec3": (N, 3), "quat": (N, 3), "mat3": (N, 3, 3)}[typ])
+    return rng.normal(size={"scalar": (N,), "vec3": (N, 3), "mat3": (N, 3, 3)}[O.GRAD[typ]])
 
 
 def inner(a: list[np.ndarray], b: list[np.ndarray]) -> np.ndarray:
@@ -64,6 +77,7 @@ CASES = [
     ("scale", [None, None]), ("dot", [None, None]), ("cross", [None, None]),
     ("matmul", [None, None]), ("matvec", [None, None]),
     ("qmul", [None, None]), ("rotate", [None, None]), ("conj", [None]),
+    ("rmul", [None, None]), ("rrotate", [None, None]), ("to_matrix", [None]),
     ("angle_axis", [(-4.0, 4.0)]),
 ]
 
@@ -114,6 +128,25 @@ def dq_to_rv(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
     return 2 * qm(dq, qconj(q))[..., 1:]
 
 
+def tangent_in(t: str, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """A rotation-vector gradient as the value type's tangent (what scalar AD propagates)."""
+    if t == "quat":
+        return rv_to_dq(x, d)
+    if t == "rot3":
+        z = np.zeros(N)
+        skew = np.stack([z, -d[:, 2], d[:, 1], d[:, 2], z, -d[:, 0], -d[:, 1], d[:, 0], z], 1).reshape(N, 3, 3)
+        return skew @ x
+    return d
+
+
+def tangent_out(t: str, y: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    if t == "quat":
+        return dq_to_rv(y, dy)
+    if t == "rot3":
+        return vee(dy.reshape(N, 3, 3) @ np.swapaxes(y, -1, -2))
+    return dy
+
+
 @pytest.mark.parametrize("name", list(dict.fromkeys(n for n, _ in CASES)))
 def test_suite2_self_test_against_scalar_ad(name: str):
     """Block forward rules against the framework's own scalar AD of each operator's eval."""
@@ -136,14 +169,13 @@ def test_suite2_self_test_against_scalar_ad(name: str):
 
     jp = S.jvp_program(S.trace_scalar(flat_eval, names))
     flat_x = [c for x, t in zip(xs, types, strict=True) for c in np.moveaxis(x.reshape(N, -1), -1, 0)]
-    dq = [rv_to_dq(x, d) if t == "quat" else d for x, d, t in zip(xs, ds, types, strict=True)]
+    dq = [tangent_in(t, x, d) for x, d, t in zip(xs, ds, types, strict=True)]
     flat_d = [c for d in dq for c in np.moveaxis(d.reshape(N, -1), -1, 0)]
     ref = np.stack([np.broadcast_to(r, (N,)) for r in S.replay(jp, flat_x + flat_d)], axis=-1)
     (y,), L = f.linearize(*xs)
     (dy,) = f.forward(L, *ds)
-    if f.out_types[0] == "quat":
-        ref = dq_to_rv(y, ref)
-    np.testing.assert_allclose(dy.reshape(N, -1), ref, rtol=1e-12, atol=1e-12)
+    ref = tangent_out(f.out_types[0], y, ref)
+    np.testing.assert_allclose(dy.reshape(N, -1), ref.reshape(N, -1), rtol=1e-12, atol=1e-12)
 
 
 # --- suite 3: chains of five random coordinate frames against torch.func -----------------
