@@ -1,6 +1,6 @@
 """Recording a program by operator overloading (thesis section 3.2).
 
-`trace(fn, types)` calls `fn` once with traced values (`Scalar`, `Vec3`, `Quat`, `Mat3`);
+`trace(fn, types)` calls `fn` once with traced values (`Scalar`, `Vec3`, `Quat`, `Mat3`, `Rot3`);
 their operators append block instructions to a `Program`. Branching on a traced value is
 data-dependent control flow, which a recording cannot represent: it raises `TracingError`
 naming the user's line.
