@@ -1,0 +1,258 @@
+"""autolin (thesis chapter 3): instruction and memory-operation counts of the generated
+rotation programs, counted from the simplified scalar programs themselves, against a
+scalar-AD baseline (the framework's own scalar tracing of the same functions, forward and
+reverse mode, simplified the same way), and the thesis's figures: forward 33 / reverse 30
+for quaternion chaining against 60 / 56 (quaternion) and 99 / 90 (matrix); 13 memory
+operations against 20 / 45. Also the five-frame chain (q, t, joint angle per frame): counts
+against scalar AD, and the median time of J v and J^T v through the generated programs
+(numpy register plan and plain C, batched; the node-by-node interpreter as the in-run
+baseline) against torch.func's jvp (which evaluates the function again) and the
+pullback of torch.func.vjp (recorded once, like the linearization), on the same function and
+batch, in the same run, one thread each. Writes .bench/autolin.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
+
+import shared.autolin as al  # noqa: E402
+from shared.autolin import ops as O  # noqa: E402
+from shared.autolin import scalar as S  # noqa: E402
+
+THESIS = {"quat_chain": {"forward": 33, "reverse": 30, "memory_ops": 13},
+          "scalar_ad_quat": {"forward": 60, "reverse": 56, "memory_ops": 20},
+          "scalar_ad_matrix": {"forward": 99, "reverse": 90, "memory_ops": 45}}
+AXES = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
+TYPES = ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"]
+
+
+def summary(p: S.ScalarProgram) -> dict[str, int]:
+    c = p.counts()
+    return {k: c[k] for k in ("instructions", "muls", "adds", "loads", "stores", "memory_ops",
+                              "sin", "cos", "sqrt", "div")}
+
+
+def chain(*a):
+    """Five frames composed and applied to a point; each frame turns about its joint axis."""
+    qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
+    q, t = qs[0] * al.angle_axis(th[0], AXES[0]), ts[0]
+    for k in range(1, 5):
+        t = t + q * ts[k]
+        q = q * (qs[k] * al.angle_axis(th[k], AXES[k]))
+    return q, t + q * p
+
+
+def chain_components(*x):
+    """The same function on scalars, for the scalar-AD baseline (quaternion tangents)."""
+    qs = [x[4 * k:4 * k + 4] for k in range(5)]
+    ts = [x[20 + 3 * k:23 + 3 * k] for k in range(5)]
+    th, p = x[35:40], x[40:43]
+
+    def joint(k):
+        h = th[k] * 0.5
+        s = S.sin(h)
+        return O.qmul(qs[k], (S.cos(h), s * AXES[k][0], s * AXES[k][1], s * AXES[k][2]))
+
+    q, t = joint(0), ts[0]
+    for k in range(1, 5):
+        t = O.vadd(t, O.qrot(q, ts[k]))
+        q = O.qmul(q, joint(k))
+    return list(q) + list(O.vadd(t, O.qrot(q, p)))
+
+
+def counts() -> dict:
+    res: dict = {}
+    f = al.compile(lambda a, b: a * b, ["quat", "quat"])
+    res["quat_chain"] = {"forward": summary(f.scalar["forward"]), "reverse": summary(f.scalar["reverse"]),
+                         "linearize": summary(f.scalar["linearize"])}
+    r = al.compile(lambda a, b: a @ b, ["rot3", "rot3"])
+    res["matrix_chain"] = {"forward": summary(r.scalar["forward"]), "reverse": summary(r.scalar["reverse"])}
+    q = S.trace_scalar(lambda *x: O.qmul(x[:4], x[4:]), [f"x{i}" for i in range(8)])
+    m = S.trace_scalar(lambda *x: O.matmul(x[:9], x[9:]), [f"x{i}" for i in range(18)])
+    for name, p in (("scalar_ad_quat", q), ("scalar_ad_matrix", m)):
+        res[name] = {"forward": summary(S.jvp_program(p)), "reverse": summary(S.vjp_program(p))}
+    g = al.compile(chain, TYPES)
+    c = S.trace_scalar(chain_components, [f"x{i}" for i in range(43)])
+    res["five_frames"] = {"autolin": {k: summary(g.scalar[k]) for k in ("linearize", "forward", "reverse")},
+                          "scalar_ad": {"forward": summary(S.jvp_program(c)), "reverse": summary(S.vjp_program(c))}}
+    return res
+
+
+def medians_ms(fns: dict, reps: int) -> dict[str, float]:
+    """Median wall time of each function, interleaved rep by rep so load changes hit all alike."""
+    ts: dict[str, list[float]] = {k: [] for k in fns}
+    for fn in fns.values():
+        fn()  # warm-up
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
+
+
+def chain_batch(batch: int) -> tuple:
+    rng = np.random.default_rng(0)
+    xs = []
+    for t in TYPES:
+        if t == "quat":
+            v = rng.normal(size=(batch, 4))
+            xs.append(v / np.linalg.norm(v, axis=1, keepdims=True))
+        else:
+            xs.append(rng.normal(size=(batch, 3) if t == "vec3" else (batch,)))
+    ds = [rng.normal(size=(batch,) if t == "scalar" else (batch, 3)) for t in TYPES]
+    w = [rng.normal(size=(batch, 3)), rng.normal(size=(batch, 3))]
+    return xs, ds, w
+
+
+def autolin_fns(batch: int) -> dict:
+    """J v and J^T v of the five-frame chain: register plan (numpy), plain C, and the
+    node-by-node interpreter as the in-run baseline."""
+    xs, ds, w = chain_batch(batch)
+    f = al.compile(chain, TYPES)
+    c = f.with_c()
+    _, L = f.linearize(*xs)
+    interp = al.Linearized(f.source, f.block, f.scalar, f.data_sizes)
+    interp.exe = {k: (lambda ins, p=p: S.replay(p, ins)) for k, p in f.scalar.items()}
+    return {"autolin_linearize_ms": lambda: f.linearize(*xs), "autolin_jv_ms": lambda: f.forward(L, *ds),
+            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward(L, *ds),
+            "autolin_c_jtv_ms": lambda: c.reverse(L, *w), "interpreted_jv_ms": lambda: interp.forward(L, *ds),
+            "interpreted_jtv_ms": lambda: interp.reverse(L, *w)}
+
+
+def timings(batch: int, reps: int, with_torch: bool) -> dict:
+    fns = autolin_fns(batch)
+    if with_torch:
+        fns.update(torch_fns(batch))
+    out = {"batch": batch, "reps": reps, **medians_ms(fns, reps)}
+    out["plan_vs_interpreted_jtv"] = out["interpreted_jtv_ms"] / out["autolin_jtv_ms"]
+    out["c_vs_plan_jtv"] = out["autolin_jtv_ms"] / out["autolin_c_jtv_ms"]
+    if with_torch:
+        for k in ("jv", "jtv"):
+            ref = out["torch_jvp_ms" if k == "jv" else "torch_vjp_ms"]
+            out[f"speedup_{k}"] = ref / out[f"autolin_{k}_ms"]
+            out[f"speedup_c_{k}"] = ref / out[f"autolin_c_{k}_ms"]
+    return out
+
+
+def torch_fns(batch: int) -> dict:
+    import torch  # optional heavy dependency, only for the timing comparison
+    from torch.func import jvp, vjp
+
+    torch.set_num_threads(1)
+    xs, ds, w = chain_batch(batch)
+
+    axes = torch.tensor(AXES, dtype=torch.float64)
+    conj = torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
+
+    def tq(a, b):
+        return torch.stack(O.qmul(a.unbind(-1), b.unbind(-1)), -1)
+
+    def trot(q, v):
+        return tq(tq(q, torch.cat([torch.zeros_like(v[..., :1]), v], -1)), q * conj)[..., 1:]
+
+    def ref(*a):
+        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
+
+        def joint(k):
+            h = th[k][..., None] / 2
+            return tq(qs[k], torch.cat([torch.cos(h), torch.sin(h) * axes[k]], -1))
+        q, t = joint(0), ts[0]
+        for k in range(1, 5):
+            t = t + trot(q, ts[k])
+            q = tq(q, joint(k))
+        return q, t + trot(q, p)
+
+    tx = tuple(torch.tensor(x) for x in xs)
+    td = tuple(torch.tensor(np.concatenate([d, np.zeros((batch, 1))], 1)) if t == "quat" else torch.tensor(d)
+               for d, t in zip(ds, TYPES, strict=True))
+    _, pull = vjp(ref, *tx)
+    tw = (torch.tensor(np.concatenate([w[0], np.zeros((batch, 1))], 1)), torch.tensor(w[1]))
+    return {"torch_jvp_ms": lambda: jvp(ref, tx, td), "torch_vjp_ms": lambda: pull(tw)}
+
+
+def bundle(reps: int) -> dict:
+    """GN-CG against scipy least_squares (trf, finite-difference Jacobian) on the same residuals:
+    wall time to each one's final cost, the traced programs compiled beforehand."""
+    from scipy.optimize import least_squares
+
+    from shared.autolin.bundle import make_problem, numpy_residuals, numpy_start, reprojection
+    from shared.autolin.solver import LeastSquares
+
+    pr = make_problem(n_cams=4, n_points=25, noise_px=0.5, seed=1)
+    t0 = time.perf_counter()
+    ls = LeastSquares(reprojection, ["quat", "vec3", "vec3"], ["scalar", "scalar"], [pr.cam, pr.cam, pr.pt])
+    compile_s = time.perf_counter() - t0
+    fixed = [np.arange(len(pr.quats)) == 0, np.arange(len(pr.trans)) == 0, None]
+    out: dict = {}
+    t: dict[str, list[float]] = {"autolin_gn_cg_s": [], "scipy_least_squares_s": []}
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        res = ls.solve([pr.quats, pr.trans, pr.points], [pr.uv[:, 0], pr.uv[:, 1]], fixed=fixed)
+        t["autolin_gn_cg_s"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        ref = least_squares(numpy_residuals, numpy_start(pr), args=(pr,), method="trf", x_scale="jac")
+        t["scipy_least_squares_s"].append(time.perf_counter() - t0)
+    out = {k: float(np.median(v)) for k, v in t.items()}
+    out.update(observations=int(pr.cam.size), compile_s=compile_s, autolin_cost=res.cost, scipy_cost=float(ref.cost),
+               autolin_iterations=res.iterations, autolin_cg_iterations=res.cg_iterations, scipy_nfev=int(ref.nfev))
+    out["speedup"] = out["scipy_least_squares_s"] / out["autolin_gn_cg_s"]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--batch", type=int, default=1024)
+    ap.add_argument("--reps", type=int, default=10)
+    ap.add_argument("--no-timing", action="store_true", help="no torch.func comparison (no torch import)")
+    ap.add_argument("--no-bundle", action="store_true", help="skip the bundle-adjustment comparison")
+    ap.add_argument("--out", default=".bench/autolin.json")
+    args = ap.parse_args()
+    res = {"counts": counts(), "thesis": THESIS}
+    qc, bq, bm = res["counts"]["quat_chain"], res["counts"]["scalar_ad_quat"], res["counts"]["scalar_ad_matrix"]
+    print("quaternion chaining, instructions forward / reverse, memory operations (forward):")
+    print(f"  autolin           {qc['forward']['instructions']} / {qc['reverse']['instructions']}, "
+          f"{qc['forward']['memory_ops']}   (thesis 33 / 30, 13)")
+    print(f"  scalar AD, quat   {bq['forward']['instructions']} / {bq['reverse']['instructions']}, "
+          f"{bq['forward']['memory_ops']}   (thesis 60 / 56, 20)")
+    print(f"  scalar AD, matrix {bm['forward']['instructions']} / {bm['reverse']['instructions']}, "
+          f"{bm['forward']['memory_ops']}   (thesis 99 / 90, 45)")
+    mc = res["counts"]["matrix_chain"]
+    print(f"  autolin, matrix   {mc['forward']['instructions']} / {mc['reverse']['instructions']}, "
+          f"{mc['forward']['memory_ops']}   (rotation matrices with rotation-vector gradients)")
+    ff = res["counts"]["five_frames"]
+    print(f"five-frame chain, instructions forward / reverse: autolin {ff['autolin']['forward']['instructions']} / "
+          f"{ff['autolin']['reverse']['instructions']}, scalar AD {ff['scalar_ad']['forward']['instructions']} / "
+          f"{ff['scalar_ad']['reverse']['instructions']}")
+    res["match_thesis"] = all(res["counts"][k][d]["instructions"] == v[d] for k, v in THESIS.items()
+                              for d in ("forward", "reverse")) and all(
+        res["counts"][k]["forward"]["memory_ops"] == v["memory_ops"] for k, v in THESIS.items())
+    t = timings(args.batch, args.reps, not args.no_timing)
+    res["timing"] = t
+    print(f"five-frame chain, batch {t['batch']}, median of {t['reps']} (one thread, noisy machine): J v "
+          f"{t['autolin_jv_ms']:.2f} ms (C {t['autolin_c_jv_ms']:.2f}), J^T v {t['autolin_jtv_ms']:.2f} ms "
+          f"(C {t['autolin_c_jtv_ms']:.2f}); node-by-node interpreter J^T v {t['interpreted_jtv_ms']:.2f} ms")
+    if not args.no_timing:
+        print(f"  against torch.func: jvp {t['torch_jvp_ms']:.2f} ms ({t['speedup_jv']:.1f}x, C "
+              f"{t['speedup_c_jv']:.1f}x), vjp pullback {t['torch_vjp_ms']:.2f} ms ({t['speedup_jtv']:.1f}x, C "
+              f"{t['speedup_c_jtv']:.1f}x); target >= 2x")
+    if not args.no_bundle:
+        b = bundle(3)
+        res["bundle"] = b
+        print(f"bundle adjustment, {b['observations']} observations, median of 3: GN-CG {b['autolin_gn_cg_s']:.2f} s "
+              f"(cost {b['autolin_cost']:.6f}) vs scipy least_squares {b['scipy_least_squares_s']:.2f} s "
+              f"(cost {b['scipy_cost']:.6f}), {b['speedup']:.1f}x; tracing and generation {b['compile_s']:.2f} s")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()
