@@ -173,9 +173,9 @@ def read_info(recording: str | Path) -> RecordingInfo:
     try:
         for seg in info.segments:
             check_mcap(seg)
-            if is_being_written(seg):
+            if is_being_written(seg):  # read once it is closed: a growing file would be re-read every scan
                 info.recording_now = True
-            if is_complete(seg):
+            elif is_complete(seg):
                 with seg.open("rb") as f:
                     reader = SeekingReader(f)
                     summary = reader.get_summary()
@@ -187,15 +187,13 @@ def read_info(recording: str | Path) -> RecordingInfo:
                     if counts.get(SESSION_KEY) or any(c.topic == SESSION_KEY for c in summary.channels.values()):
                         for _s, _c, m in reader.iter_messages(topics=[SESSION_KEY]):
                             _session_task(m.data, info.tasks)
-            else:  # cut by a crash, or still being written: a streaming pass up to the last whole chunk
-                cut: list[str] = []
-                for m in read_messages([seg], cut=cut):
+            else:  # cut by a crash: a streaming pass up to the last whole chunk
+                for m in read_messages([seg]):
                     counts[m.key] += 1
                     _span(info, m.log_time, m.log_time)
                     if m.key == SESSION_KEY:
                         _session_task(m.data, info.tasks)
-                if not info.recording_now:
-                    info.cut.append(seg.name)
+                info.cut.append(seg.name)
     except (RecordingError, OSError, ValueError) as exc:
         info.error = str(exc)
     except Exception as exc:  # mcap raises several unrelated types for damaged files
@@ -235,9 +233,9 @@ def problems_of(path: Path, info: RecordingInfo, meta_error: str, task: str | No
         out.append("being recorded")
     for seg in info.cut:
         out.append(f"cut by a crash ({seg} has no footer): `xm record --repair {path.parent / seg}`")
-    if not info.error and not info.messages:
+    if not info.error and not info.messages and not info.recording_now:
         out.append("no messages")
-    elif not info.error:
+    elif not info.error and not info.recording_now:
         missing = [k for k in REQUIRED_KEYS if not info.messages.get(k)]
         if missing:
             out.append(f"missing keys: {', '.join(missing)}")
@@ -339,20 +337,23 @@ def _slug(text: str) -> str:
 
 
 def table(entries: Iterable[Entry], selected: Path | None = None) -> str:
-    """The library as a markdown table: name, duration, keys, label, split, outcome, state."""
-    rows = ["| demonstration | s | keys | label | split | outcome | state |", "|---|---|---|---|---|---|---|"]
+    """The library as markdown: a table (name, duration, keys, label, split, outcome), then the
+    trims and, for each recording that cannot be learned from, why."""
+    rows = ["| demonstration | s | keys | label | split | outcome |", "|---|---|---|---|---|---|"]
+    notes = []
     for e in entries:
         name = f"**{e.name}**" if selected is not None and e.path == selected else e.name
         dur = f"{e.info.duration_s:.1f}" if e.info.messages else "-"
-        state = "; ".join(e.problems) if e.problems else ("trainable" if e.trainable else "ok")
+        rows.append(f"| {name} | {dur} | {len(e.info.messages)} | {_cell(e.meta.label)} | {e.meta.split} | "
+                    f"{e.meta.outcome} |")
         if e.meta.trim_start_s or e.meta.trim_end_s is not None:
             lo, hi = e.meta.window(e.info.duration_s)
-            state += f"; trimmed {lo:.1f}-{hi:.1f} s"
-        rows.append(f"| {name} | {dur} | {len(e.info.messages)} | {_cell(e.meta.label)} | {e.meta.split} | "
-                    f"{e.meta.outcome} | {_cell(state)} |")
+            notes.append(f"- {e.name}: trimmed to {lo:.1f}-{hi:.1f} s")
+        if e.problems:
+            notes.append(f"- {e.name}: **not trainable**: {_cell('; '.join(e.problems))}")
     if len(rows) == 2:
         return "no recordings yet"
-    return "\n".join(rows)
+    return "\n".join(rows + ([""] + notes if notes else []))
 
 
 def _cell(text: str) -> str:

@@ -10,6 +10,7 @@ from mcap.reader import make_reader
 
 from services.panel import library, replay
 from services.panel.library import DemoMeta, Library, MetaError
+from services.recorder.writer import McapRecorder
 from tests.unit.panel_recordings import write_demo
 
 
@@ -28,7 +29,8 @@ def test_library_lists_every_recording_with_duration_keys_and_default_metadata(t
     assert b.info.duration_s == pytest.approx(3.0)
     assert not b.usable and b.problems == ["missing keys: xm/world/sim/session"]
     text = library.table(entries)
-    assert "| a | 2.0 | 5 |" in text and "missing keys" in text
+    assert "| a | 2.0 | 5 | - | train | unknown |" in text
+    assert "- b: **not trainable**: missing keys: xm/world/sim/session" in text
 
 
 def test_metadata_is_stored_in_a_sidecar_and_the_recording_is_untouched(tmp_path):
@@ -42,7 +44,7 @@ def test_metadata_is_stored_in_a_sidecar_and_the_recording_is_untouched(tmp_path
     entry = lib.scan()[0]
     assert entry.meta.label == "pour left" and entry.usable and not entry.trainable  # validation
     assert entry.meta.window(entry.info.duration_s) == (0.25, 1.5)
-    assert "trimmed 0.2-1.5 s" in library.table([entry]) or "trimmed 0.3-1.5 s" in library.table([entry])
+    assert "- demo: trimmed to 0.2-1.5 s" in library.table([entry])
     with open(path, "rb") as f:  # a stock MCAP reader still reads the whole file
         assert sum(1 for _ in make_reader(f).iter_messages()) == sum(entry.info.messages.values())
 
@@ -70,8 +72,11 @@ def test_bad_recordings_are_listed_with_their_reason(tmp_path):
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap at all")
     write_demo(tmp_path / "badmeta.mcap")
     (tmp_path / "badmeta.demo.json").write_text("{not json")
+    live = McapRecorder(tmp_path / "live.mcap")  # a recorder still writing it
     entries = {e.name: e for e in Library(tmp_path).scan(task="pick_place")}
-    assert set(entries) == {"badmeta", "cut", "junk", "other"}
+    live.close()
+    assert set(entries) == {"badmeta", "cut", "junk", "live", "other"}
+    assert entries["live"].problems == ["being recorded"]
     assert any("cut by a crash" in p and "xm record --repair" in p for p in entries["cut"].problems)
     assert entries["cut"].info.messages["xm/recon/main/scene"] > 0  # read up to the cut
     assert entries["other"].problems == ["another task: assembly (the session's is pick_place)"]

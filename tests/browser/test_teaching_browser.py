@@ -1,0 +1,223 @@
+"""The teaching folders in a real browser: headless Chromium (DevTools protocol, real mouse and
+keyboard events) starts a teaching session, records two demonstrations through a stand-in recorder
+that writes real MCAP files, labels one for validation in the library, reviews a third with the
+scrubber (the rendered scene changes with its position), plays it and trims its start.
+Screenshots: .cache/teaching_*.png."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from shared import msgs
+from tests.browser._cdp import Chromium, find_chromium
+from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
+from tests.unit.panel_recordings import write_demo
+
+CHROMIUM = find_chromium()
+pytestmark = [pytest.mark.browser,
+              pytest.mark.skipif(CHROMIUM is None, reason="needs /usr/bin/chromium (apt-get install chromium)")]
+
+PAGE_TEXT = "document.body ? document.body.innerText : ''"
+ROW = "(label) => [...document.querySelectorAll('label')].find(l => l.textContent.trim() === label)" \
+      "?.closest('.mantine-Flex-root')"
+
+
+def world_session() -> object:
+    return msgs.make("xm_msgs/msg/Session", header=msgs.header(time.time()), task="pick_place", demo=0,
+                     phase="approach", tactile_hand="right", seed_layout='{"cup": [0.1, 0.0]}')
+
+
+def centre(browser: Chromium, element_js: str) -> tuple[float, float] | None:
+    """Viewport centre of the element ``element_js`` evaluates to, scrolled into view; None if absent."""
+    return browser.evaluate(f"(() => {{ const e = {element_js}; if (!e) return null; e.scrollIntoView({{block: "
+                            "'center'}); const r = e.getBoundingClientRect(); return [r.x + r.width / 2, "
+                            "r.y + r.height / 2, r.width]; })()")
+
+
+def mouse_click(browser: Chromium, x: float, y: float) -> None:
+    for kind in ("mousePressed", "mouseReleased"):
+        browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+
+def click_button(browser: Chromium, text: str) -> None:
+    at = wait_until(lambda: centre(browser, f"[...document.querySelectorAll('button')].find(b => "
+                                            f"b.textContent.trim() === {text!r})"), 30, f"a button {text!r}")
+    mouse_click(browser, at[0], at[1])
+
+
+def field(label: str) -> str:
+    return f"({ROW})({label!r})?.querySelector('input:not([type=hidden])')"
+
+
+def type_into(browser: Chromium, label: str, text: str) -> None:
+    """Click the text field labelled ``label``, replace its text, press Enter."""
+    at = wait_until(lambda: centre(browser, field(label)), 30, f"a field labelled {label!r}")
+    mouse_click(browser, at[0], at[1])
+    browser.evaluate(f"{field(label)}.select()")
+    browser.call("Input.insertText", text=text)
+    for kind in ("keyDown", "keyUp"):
+        browser.call("Input.dispatchKeyEvent", type=kind, key="Enter", code="Enter", windowsVirtualKeyCode=13)
+
+
+def choose(browser: Chromium, label: str, option: str) -> None:
+    """Open the dropdown labelled ``label`` and click ``option`` in its list."""
+    at = wait_until(lambda: centre(browser, field(label)), 30, f"a dropdown labelled {label!r}")
+    mouse_click(browser, at[0], at[1])
+    opt = wait_until(lambda: centre(browser, f"[...document.querySelectorAll('[role=option]')].find(o => "
+                                             f"o.textContent.trim() === {option!r})"), 20,
+                     f"option {option!r} of {label!r}")
+    mouse_click(browser, opt[0], opt[1])
+    wait_until(lambda: browser.evaluate(f"{field(label)}.value") == option, 20, f"{label!r} showing {option!r}")
+
+
+def value_of(browser: Chromium, label: str) -> str:
+    return browser.evaluate(f"{field(label)}?.value ?? ''")
+
+
+def viewport(shot: Path) -> np.ndarray:
+    """The 3D view, clear of the GUI panel on the right and the notifications."""
+    return cv2.imread(str(shot)).astype(float)[150:-150, 100:800]
+
+
+def sidecar(path: Path) -> dict:
+    return json.loads(path.with_name(path.name[:-len(".mcap")] + ".demo.json").read_text())
+
+
+def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_path):
+    endpoint, session = router
+    rec_dir = tmp_path / "recordings"
+    rec_dir.mkdir()
+    write_demo(rec_dir / "earlier.mcap", seconds=4.0, masked=(1.0, 2.0), lost=(2.5, 7))
+    port = free_port()
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"panel": {"main": {
+        "port": port, "fps": 10.0, "health_period_s": 2.0, "recordings": str(rec_dir)}}})
+    requests: list[tuple[str, dict]] = []
+
+    def fake_recorder(query) -> None:  # stands in for the recorder service: stop writes a real MCAP
+        verb = str(query.key_expr).rsplit("/", 1)[-1]
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        req = json.loads(payload or b"{}")
+        requests.append((verb, req))
+        path = Path(next(r for v, r in reversed(requests) if v == "start")["path"])
+        if verb == "stop":
+            write_demo(path, seconds=1.0)
+        query.reply(str(query.key_expr), json.dumps({"ok": True, "path": str(path), "messages": {"k": 1},
+                                                     "bytes": 1000}))
+
+    queryables = [session.declare_queryable(f"xm/recorder/main/@cmd/{v}", fake_recorder) for v in ("start", "stop")]
+    pub = session.declare_publisher("xm/world/sim/session")
+    stop = threading.Event()
+
+    def feed() -> None:  # the world's label at 2 Hz, stamped now
+        while not stop.wait(0.5):
+            pub.put(msgs.serialize(world_session()))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    panel = ServiceProcess("panel", dep, "main", tmp_path / "panel.log")
+    browser = None
+    cache = ROOT / ".cache"
+    cache.mkdir(exist_ok=True)
+    try:
+        feeder.start()
+        assert wait_for(lambda: query_json(session, "xm/panel/main/@health"), 30), panel.output()
+        browser = Chromium(CHROMIUM, tmp_path / "profile", size=(1280, 1000))
+        browser.navigate(f"http://127.0.0.1:{port}")
+        wait_until(lambda: "earlier" in browser.evaluate(PAGE_TEXT), 60, lambda: "the library listing the "
+                   f"recording already there; page: {browser.evaluate(PAGE_TEXT)[:800]}", period=0.5)
+
+        # 1. a teaching session: the task comes from the world's label, the teacher is typed
+        wait_until(lambda: value_of(browser, "task") == "pick_place", 30, "the task filled from the world's session")
+        type_into(browser, "teacher", "ada")
+        wait_until(lambda: value_of(browser, "teacher") == "ada", 10, "the typed teacher")
+        choose(browser, "glove hand", "left")
+        click_button(browser, "Start session")
+        wait_until(lambda: "teacher ada, glove on the left hand, 0 demonstrations" in browser.evaluate(PAGE_TEXT),
+                   30, lambda: f"the session line; page: {browser.evaluate(PAGE_TEXT)[:800]}", period=0.3)
+
+        # 2. two demonstrations, each one recording with a label, layout and outcome
+        demos = []
+        for label, outcome in (("first grasp", "success"), ("second grasp", "failure")):
+            type_into(browser, "next label", label)
+            n = len(requests)
+            click_button(browser, "Start recording")
+            wait_until(lambda n=n: len(requests) > n, 20, "the start query")
+            verb, req = requests[-1]
+            assert verb == "start" and req["keys"] == "xm/**" and Path(req["path"]).parent == rec_dir.resolve()
+            assert Path(req["path"]).name.startswith("pick_place-ada-")
+            wait_until(lambda: "recording to" in browser.evaluate(PAGE_TEXT), 20, "the recorder's reply shown")
+            click_button(browser, outcome)
+            path = Path(req["path"])
+            wait_until(lambda p=path, o=outcome: p.exists() and sidecar(p)["outcome"] == o, 30,
+                       f"{outcome} stored beside {path.name}")
+            meta = sidecar(path)
+            assert (meta["label"], meta["task"], meta["teacher"], meta["glove_hand"], meta["split"]) == \
+                (label, "pick_place", "ada", "left", "train")
+            assert meta["layout"] == '{"cup": [0.1, 0.0]}'  # the world's seed layout
+            demos.append(path)
+        wait_until(lambda: "second grasp" in browser.evaluate(PAGE_TEXT), 30, "the library listing both")
+        browser.screenshot(cache / "teaching_session.png")
+
+        # 3. the library: the first demonstration becomes validation data
+        choose(browser, "demonstration", demos[0].name[:-len(".mcap")])
+        wait_until(lambda: value_of(browser, "label") == "first grasp", 20, "the picked demonstration's label")
+        choose(browser, "split", "validation")
+        click_button(browser, "Save")
+        wait_until(lambda: sidecar(demos[0])["split"] == "validation", 20, "the split saved in the sidecar")
+        assert sidecar(demos[1])["split"] == "train"
+        wait_until(lambda: "2 for training, 1 for validation" in browser.evaluate(PAGE_TEXT), 20,
+                   lambda: f"the library's counts; page: {browser.evaluate(PAGE_TEXT)[-1500:]}")
+        browser.screenshot(cache / "teaching_library.png")
+
+        # 4. review: the scrubber moves the replayed scene
+        choose(browser, "demonstration", "earlier")
+        click_button(browser, "Review")
+        wait_until(lambda: "reviewing earlier" in browser.evaluate(PAGE_TEXT), 60, "the review opened")
+        text = browser.evaluate(PAGE_TEXT)
+        assert "keypoints unobserved in 20 of 81 scenes" in text and "right glove lost 7 frames" in text, text[-1500:]
+        before = wait_until(lambda: (s := browser.screenshot(tmp_path / "a.png")) and viewport(s).std() > 5 and s,
+                            30, "a drawn 3D view")
+        before_px = viewport(before)
+        track = wait_until(lambda: centre(browser, f"({ROW})('time')?.querySelector('.mantine-Slider-root')"), 20,
+                           "the time slider")
+        mouse_click(browser, track[0] + 0.4 * track[2], track[1])  # 90 % of the way: 3.6 s
+        wait_until(lambda: float(value_of(browser, "time") or 0) > 3.0, 20,
+                   lambda: f"the slider at the clicked time (shows {value_of(browser, 'time')})")
+
+        def moved():
+            shot = browser.screenshot(tmp_path / "b.png")
+            return shot if np.abs(viewport(shot) - before_px).sum(axis=2).__gt__(60).mean() > 0.002 else None
+
+        shot = wait_until(moved, 30, "the 3D view changed by the scrubber", period=0.5)
+        shutil.copy(shot, cache / "teaching_review.png")
+
+        # 5. play from the start of the kept part, pause, trim
+        mouse_click(browser, track[0] - 0.45 * track[2], track[1])  # 5 %: 0.2 s
+        wait_until(lambda: float(value_of(browser, "time") or 9) < 1.0, 20, "the slider back near the start")
+        click_button(browser, "play")
+        wait_until(lambda: float(value_of(browser, "time") or 0) > 1.5, 30, "the slider moving while playing")
+        click_button(browser, "pause")
+        click_button(browser, "start here")
+        earlier = rec_dir / "earlier.mcap"
+        trimmed = wait_until(lambda: sidecar(earlier)["trim_start_s"] if (earlier.with_name("earlier.demo.json")
+                                                                          .exists()) else None, 20, "a stored trim")
+        assert 1.0 < trimmed < 4.0
+        wait_until(lambda: "the file is unchanged" in browser.evaluate(PAGE_TEXT), 20, "the trim confirmed")
+        health = query_json(session, "xm/panel/main/@health")[0]
+        assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error"))}, \
+            health["errors"]
+    finally:
+        stop.set()
+        feeder.join(5)
+        if browser is not None:
+            browser.close()
+        for q in queryables:
+            q.undeclare()
+        assert panel.stop() in (0, -15), panel.output()
