@@ -289,3 +289,19 @@ def marks_text(timeline: Timeline) -> str:
     extra = f"; {sum(timeline.skipped.values())} messages did not decode" if timeline.skipped else ""
     cut = "; cut by a crash: " + "; ".join(timeline.cut) if timeline.cut else ""
     return f"{seen}; {gloves}{extra}{cut}"
+
+
+def signals(timeline: Timeline, points: int = 300) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Signals to plot over the recording, held between messages on ``points`` evenly spaced times:
+    the share of unobserved hand keypoints (%) and each glove's mean pressure (kPa)."""
+    t = np.linspace(0.0, max(timeline.duration, 1e-3), points)
+    out: dict[str, np.ndarray] = {}
+    if len(timeline.scene_times):
+        i = np.clip(np.searchsorted(timeline.scene_times, t, side="right") - 1, 0, None)
+        out["keypoints unobserved %"] = 100.0 * timeline.unobserved[i]
+    for name, s in sorted(timeline.series.items()):
+        if name.startswith("tactile/"):
+            mean = np.array([float(np.mean(m.pressure)) if len(m.pressure) else 0.0 for m in s.items])
+            i = np.clip(np.searchsorted(np.asarray(s.times), t, side="right") - 1, 0, None)
+            out[f"{name.split('/', 1)[1]} glove kPa"] = mean[i]
+    return t, out

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import viser
+from viser import uplot
 
 from services.panel import library, replay, view
 from services.panel.library import OUTCOMES, SPLITS, DemoMeta, Entry, Library, MetaError
@@ -97,7 +98,7 @@ class Teaching:
             gui.add_button("Save").on_click(lambda _e: self._save())
             gui.add_button("Review").on_click(lambda _e: self._open_review())
             self.library_md = gui.add_markdown(f"directory `{self.library.directory}`")
-        with gui.add_folder("Review"):
+        with gui.add_folder("Review") as self.review_folder:
             self.review_md = gui.add_markdown("pick a demonstration and press Review")
             self.strip = gui.add_image(np.full((28, STRIP_WIDTH, 3), 235, np.uint8), label="marks", format="png")
             self.time = gui.add_slider("time", min=0.0, max=1.0, step=0.01, initial_value=0.0, disabled=True)
@@ -111,6 +112,7 @@ class Teaching:
             self.view = gui.add_dropdown("cameras", ("grid", *CAMERAS), initial_value="grid")
             self.cameras = gui.add_image(np.full((120, 160, 3), 60, np.uint8), label="recorded views", format="jpeg")
             self.marks_md = gui.add_markdown("")
+            self.plot: Any = None  # the signals of the reviewed demonstration (uPlot; legend entries toggle them)
             gui.add_button("Close review").on_click(lambda _e: self._close_review())
 
     # --- teaching session ------------------------------------------------------------------------
@@ -278,6 +280,22 @@ class Teaching:
                                   f"kept {lo:.2f}-{hi:.2f} s")
         self.marks_md.content = "marks: red, keypoints unobserved; orange, glove frames lost. " + \
             replay.marks_text(timeline)
+        self._plot(timeline)
+
+    def _plot(self, timeline: replay.Timeline) -> None:
+        t, series = replay.signals(timeline)
+        if self.plot is not None:
+            self.plot.remove()
+            self.plot = None
+        if not series:
+            return
+        colors = ("#dc2828", "#e6781e", "#1e64dc", "#3c9c3c")
+        with self.review_folder:
+            self.plot = self.server.gui.add_uplot(
+                (t, *series.values()),
+                (uplot.Series(label="s"), *(uplot.Series(label=name, stroke=colors[i % len(colors)], width=1.5)
+                                            for i, name in enumerate(series))),
+                title="signals", aspect=1.6)
 
     def _close_review(self) -> None:
         self.review = None

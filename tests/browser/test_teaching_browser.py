@@ -44,7 +44,7 @@ def centre(browser: Chromium, element_js: str) -> tuple[float, float] | None:
 
 def mouse_click(browser: Chromium, x: float, y: float) -> None:
     for kind in ("mousePressed", "mouseReleased"):
-        browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+        browser.call("Input.dispatchMouseEvent", timeout=90.0, type=kind, x=x, y=y, button="left", clickCount=1)
 
 
 def click_button(browser: Chromium, text: str) -> None:
@@ -62,9 +62,10 @@ def type_into(browser: Chromium, label: str, text: str) -> None:
     at = wait_until(lambda: centre(browser, field(label)), 30, f"a field labelled {label!r}")
     mouse_click(browser, at[0], at[1])
     browser.evaluate(f"{field(label)}.select()")
-    browser.call("Input.insertText", text=text)
+    browser.call("Input.insertText", timeout=90.0, text=text)
     for kind in ("keyDown", "keyUp"):
-        browser.call("Input.dispatchKeyEvent", type=kind, key="Enter", code="Enter", windowsVirtualKeyCode=13)
+        browser.call("Input.dispatchKeyEvent", timeout=90.0, type=kind, key="Enter", code="Enter",
+                     windowsVirtualKeyCode=13)
 
 
 def choose(browser: Chromium, label: str, option: str) -> None:
@@ -182,6 +183,8 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         wait_until(lambda: "reviewing earlier" in browser.evaluate(PAGE_TEXT), 60, "the review opened")
         text = browser.evaluate(PAGE_TEXT)
         assert "keypoints unobserved in 20 of 81 scenes" in text and "right glove lost 7 frames" in text, text[-1500:]
+        wait_until(lambda: browser.evaluate("document.querySelectorAll('.uplot canvas').length") >= 1, 30,
+                   "the signals plot")
         before = wait_until(lambda: (s := browser.screenshot(tmp_path / "a.png")) and viewport(s).std() > 5 and s,
                             30, "a drawn 3D view")
         before_px = viewport(before)

@@ -138,6 +138,17 @@ def test_marks_find_unobserved_keypoints_and_lost_glove_frames(tmp_path):
     assert "keypoints unobserved in 10 of 41 scenes" in text and "right glove lost 7 frames in 1 gaps" in text
 
 
+def test_signals_hold_each_stream_between_its_messages(tmp_path):
+    tl = replay.load_timeline(write_demo(tmp_path / "demo.mcap", seconds=2.0, masked=(0.5, 1.0)))
+    t, series = replay.signals(tl, points=201)
+    assert t[0] == 0.0 and t[-1] == pytest.approx(2.0)
+    assert set(series) == {"keypoints unobserved %", "right glove kPa"}
+    unobserved = series["keypoints unobserved %"]
+    assert unobserved[70] == pytest.approx(100 * 11 / 42) and unobserved[30] == 0 and unobserved[150] == 0
+    kpa = series["right glove kPa"]
+    assert kpa[0] == pytest.approx(0.0, abs=0.5) and kpa[-1] == pytest.approx(30.0, abs=0.5)  # ramps 0 -> 30
+
+
 def test_glove_gaps_count_counter_jumps_and_long_silences_not_jitter():
     t = [0.0, 0.01, 0.02, 0.05, 0.06, 0.5, 0.51]
     gaps = replay.glove_gaps("left", t, [1, 2, 3, 4, 5, 6, 7])
