@@ -95,7 +95,8 @@ class PanelService:
     def _health_extra(self) -> dict:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
-                "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible)}
+                "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
+                **self.teaching.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)

@@ -95,6 +95,7 @@ class Teaching:
             self.label = gui.add_text("label", initial_value="")
             self.split = gui.add_dropdown("split", SPLITS, initial_value="train")
             self.outcome = gui.add_dropdown("outcome", OUTCOMES, initial_value="unknown")
+            self.picked_layout = gui.add_text("layout", initial_value="")
             gui.add_button("Save").on_click(lambda _e: self._save())
             gui.add_button("Review").on_click(lambda _e: self._open_review())
             self.library_md = gui.add_markdown(f"directory `{self.library.directory}`")
@@ -235,6 +236,7 @@ class Teaching:
         e = self.picked()
         if e is not None:
             self.label.value, self.split.value, self.outcome.value = e.meta.label, e.meta.split, e.meta.outcome
+            self.picked_layout.value = e.meta.layout
 
     def _save(self) -> None:
         e = self.picked()
@@ -242,7 +244,8 @@ class Teaching:
             self.library_md.content = "**error**: no demonstration picked"
             return
         self.worker.submit(self._do_save, e.path, {"label": self.label.value.strip(), "split": self.split.value,
-                                                   "outcome": self.outcome.value})
+                                                   "outcome": self.outcome.value,
+                                                   "layout": self.picked_layout.value.strip()})
 
     def _do_save(self, path: Path, changes: dict) -> None:
         try:
@@ -305,6 +308,14 @@ class Teaching:
     @property
     def reviewing(self) -> bool:
         return self.review is not None
+
+    def health(self) -> dict:
+        """@health extras: the library's size and what is being reviewed."""
+        r = self.review
+        return {"recordings": len(self.entries), "trainable": sum(e.trainable for e in self.entries),
+                "session": self.session.id if self.session else None,
+                "reviewing": None if r is None else {"name": r.entry.name, "at_s": round(r.head.position, 3),
+                                                     "playing": r.head.playing}}
 
     def _on_slider(self, event: Any) -> None:
         r = self.review

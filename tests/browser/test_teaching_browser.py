@@ -207,6 +207,14 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         click_button(browser, "play")
         wait_until(lambda: float(value_of(browser, "time") or 0) > 1.5, 30, "the slider moving while playing")
         click_button(browser, "pause")
+
+        def review() -> dict:
+            return query_json(session, "xm/panel/main/@health")[0]["reviewing"]
+
+        paused = wait_until(lambda: (r := review()) and not r["playing"] and r, 20, "paused")
+        click_button(browser, ">")  # one scene on (scenes every 0.05 s)
+        stepped = wait_until(lambda: (r := review())["at_s"] != paused["at_s"] and r, 20, "a step")
+        assert 0.0 < stepped["at_s"] - paused["at_s"] <= 0.051 and stepped["name"] == "earlier"
         click_button(browser, "start here")
         earlier = rec_dir / "earlier.mcap"
         trimmed = wait_until(lambda: sidecar(earlier)["trim_start_s"] if (earlier.with_name("earlier.demo.json")
