@@ -8,6 +8,7 @@ messages that changed, which the panel draws with its live drawing code.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -165,6 +166,7 @@ class Teaching:
             self.record_md.content += f"; **metadata not stored**: {exc}"
             self.count("library_error")
         self.recording = path
+        self.next_label.value = ""  # the next demonstration gets its own label (or the default)
         s.demos += 1
         self._session_line()
 
@@ -276,7 +278,7 @@ class Teaching:
         lo, hi = e.meta.window(timeline.duration)
         head = replay.Playhead(lo, hi, lo, speed=float(self.speed.value))
         self.review = Review(e, timeline, head, timeline.step_times(), {}, time.monotonic())
-        self.time.max = max(timeline.duration, 0.01)
+        self.time.max = max(math.ceil(timeline.duration * 100) / 100, 0.01)  # the slider's 0.01 s steps
         self.time.disabled = False
         self.time.value = lo
         self.review_md.content = (f"reviewing **{e.name}** ({e.meta.label or 'no label'}), {timeline.duration:.1f} s, "
