@@ -29,7 +29,7 @@ from services.recorder.writer import (
     check_mcap,
     is_being_written,
     is_complete,
-    read_messages,
+    read_segment,
 )
 from shared import msgs
 from shared.recording_files import recording_segments, segment_key
@@ -188,7 +188,7 @@ def read_info(recording: str | Path) -> RecordingInfo:
                         for _s, _c, m in reader.iter_messages(topics=[SESSION_KEY]):
                             _session_task(m.data, info.tasks)
             else:  # cut by a crash: a streaming pass up to the last whole chunk
-                for m in read_messages([seg]):
+                for m in read_segment(seg):
                     counts[m.key] += 1
                     _span(info, m.log_time, m.log_time)
                     if m.key == SESSION_KEY:

@@ -3,7 +3,8 @@
 ``load_timeline`` reads a recording once (a worker thread's job: it decodes every message the
 review draws) into per-stream time series; ``Timeline.frame(t)`` gives the newest message of each
 stream at or before ``t``, keyed as the panel's live state is (``scene``, ``tactile/left``,
-``image/cam0``, ...), so the live drawing code draws a replayed frame unchanged. ``Playhead`` is
+``image/cam0``, ...), so the live drawing code draws a replayed frame unchanged. Camera images
+stay in the file (``ImageRef``) and are read when shown, so a long recording does not fill memory. ``Playhead`` is
 the scrubber's state (position, play, speed, step), the marks say where the hands' keypoints were
 unobserved and where a glove lost frames, and ``timeline_strip`` / ``camera_grid`` draw them.
 """
@@ -11,15 +12,16 @@ unobserved and where a glove lost frames, and ``timeline_strip`` / ``camera_grid
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+from mcap.reader import SeekingReader
 
-from services.recorder.writer import read_messages
+from services.recorder.writer import is_complete, read_segment, recording_files
 from shared import msgs
 from shared.keys import CAMERAS
 
@@ -50,7 +52,7 @@ def stream_of(key: str) -> str | None:
 @dataclass
 class Series:
     times: list[float] = field(default_factory=list)  # seconds from the recording's start
-    items: list[Any] = field(default_factory=list)  # decoded messages (images stay JPEG until shown)
+    items: list[Any] = field(default_factory=list)  # decoded messages; images of indexed segments: ImageRef
 
     def at(self, t: float) -> Any:
         i = bisect.bisect_right(self.times, t) - 1
@@ -123,56 +125,99 @@ def glove_gaps(hand: str, times: Sequence[float], sequences: Sequence[int],
     return out
 
 
-def build_timeline(stored: Iterable[Any], cut: list[str] | None = None) -> Timeline:
-    """Timeline of recorded messages (``services.recorder.writer.Stored``), in any order."""
-    raw: dict[str, list[tuple[int, str, str, bytes]]] = {}
-    for m in stored:
-        name = stream_of(m.key)
-        if name is not None:
-            raw.setdefault(name, []).append((m.log_time, m.key, m.msgtype, m.data))
-    if not raw:
-        raise ReplayError("no message the review can draw (scene, robot state, gloves, cameras, plan, session)")
-    t0 = min(min(x[0] for x in v) for v in raw.values())
-    t_end = max(max(x[0] for x in v) for v in raw.values())
+@dataclass(frozen=True)
+class ImageRef:
+    """A recorded camera image left in its (complete, indexed) segment: read when shown."""
+    segment: Path
+    key: str
+    log_time: int
+
+
+def build_timeline(stored: Iterable[tuple[Any, Path | None]], cut: list[str] | None = None) -> Timeline:
+    """Timeline of recorded messages (``services.recorder.writer.Stored``), each with the complete
+    segment holding it (its images are then read when shown) or None (kept in memory). Streaming:
+    only what the review keeps is held, never the whole recording."""
     series: dict[str, Series] = {}
     skipped: dict[str, int] = {}
-    scene_t, unobserved, gaps = [], [], []
-    for name, items in raw.items():
-        items.sort(key=lambda x: x[0])
+    sequences: dict[str, tuple[list[int], list[int]]] = {}  # hand -> (log times, sequence numbers)
+    span = [None, None]
+    for m, segment in stored:
+        name = stream_of(m.key)
+        if name is None:
+            continue
+        span[0] = m.log_time if span[0] is None else min(span[0], m.log_time)
+        span[1] = m.log_time if span[1] is None else max(span[1], m.log_time)
         s = series.setdefault(name, Series())
-        keep_dt = 1.0 / TACTILE_KEEP_HZ if name.startswith("tactile/") else \
-            1.0 / MESH_KEEP_HZ if name == "tactile_mesh" else 0.0
-        seq_t, seq = [], []
-        for log_time, key, msgtype, data in items:
-            t = (log_time - t0) * 1e-9
-            if keep_dt and s.times and t - s.times[-1] < keep_dt and not name.startswith("tactile/"):
+        if name.startswith("image/") and segment is not None:
+            s.times.append(m.log_time)
+            s.items.append(ImageRef(segment, m.key, m.log_time))
+            continue
+        if name == "tactile_mesh" and s.times and m.log_time - s.times[-1] < 1e9 / MESH_KEEP_HZ:
+            continue
+        try:
+            msg = msgs.deserialize(m.data, m.msgtype)
+        except msgs.MessageError:
+            skipped[m.key] = skipped.get(m.key, 0) + 1
+            continue
+        if name.startswith("tactile/"):
+            times, seqs = sequences.setdefault(name.split("/", 1)[1], ([], []))
+            times.append(m.log_time)
+            seqs.append(int(msg.sequence))
+            if s.times and m.log_time - s.times[-1] < 1e9 / TACTILE_KEEP_HZ:
                 continue
-            try:
-                msg = msgs.deserialize(data, msgtype)
-            except msgs.MessageError:
-                skipped[key] = skipped.get(key, 0) + 1
-                continue
-            if name.startswith("tactile/"):
-                seq_t.append(t)
-                seq.append(int(msg.sequence))
-                if s.times and t - s.times[-1] < keep_dt:
-                    continue
-            if name == "scene":
-                scene_t.append(t)
-                unobserved.append(unobserved_fraction(msg.hand_mask, len(msg.hand_names)))
-            s.times.append(t)
-            s.items.append(msg)
-        if seq:
-            gaps += glove_gaps(name.split("/", 1)[1], seq_t, seq)
-    series = {k: v for k, v in series.items() if v.times}
-    return Timeline((t_end - t0) * 1e-9, series, np.asarray(scene_t), np.asarray(unobserved),
-                    sorted(gaps, key=lambda g: g.t), skipped, list(cut or []))
+        s.times.append(m.log_time)
+        s.items.append(msg)
+    if span[0] is None:
+        raise ReplayError("no message the review can draw (scene, robot state, gloves, cameras, plan, session)")
+    t0 = span[0]
+    for s in series.values():  # seconds from the start, in time order (a cut segment may be slightly out of it)
+        order = np.argsort(np.asarray(s.times, np.int64), kind="stable")
+        s.times = ((np.asarray(s.times, np.int64)[order] - t0) * 1e-9).tolist()
+        s.items = [s.items[i] for i in order]
+    gaps = []
+    for hand, (times, seqs) in sequences.items():
+        order = np.argsort(np.asarray(times, np.int64), kind="stable")
+        gaps += glove_gaps(hand, (np.asarray(times, np.int64)[order] - t0) * 1e-9, np.asarray(seqs)[order])
+    scenes = series.get("scene", Series())
+    unobserved = [unobserved_fraction(m.hand_mask, len(m.hand_names)) for m in scenes.items]
+    return Timeline((span[1] - t0) * 1e-9, {k: v for k, v in series.items() if v.times},
+                    np.asarray(scenes.times), np.asarray(unobserved), sorted(gaps, key=lambda g: g.t), skipped,
+                    list(cut or []))
 
 
 def load_timeline(recording: str | Path) -> Timeline:
     """Read a whole recording (complete or cut) into a Timeline: slow, run it off the event loop."""
     cut: list[str] = []
-    return build_timeline(read_messages(recording, cut=cut), cut)
+
+    def stored() -> Iterator[tuple[Any, Path | None]]:
+        for seg in recording_files(recording):
+            indexed = seg if is_complete(seg) else None
+            for m in read_segment(seg, cut=cut):
+                yield m, indexed
+
+    return build_timeline(stored(), cut)
+
+
+def image_bytes(items: dict[str, Any]) -> dict[str, bytes]:
+    """JPEG bytes of replayed images by camera: ``ImageRef`` read from its segment (one indexed read
+    per segment for all cameras), messages kept in memory as they are. OSError / ValueError when a
+    segment is gone or damaged."""
+    out: dict[str, bytes] = {}
+    wanted: dict[Path, dict[str, tuple[str, int]]] = {}
+    for cam, item in items.items():
+        if isinstance(item, ImageRef):
+            wanted.setdefault(item.segment, {})[item.key] = (cam, item.log_time)
+        else:
+            out[cam] = bytes(item.data)
+    for segment, keys in wanted.items():
+        times = [t for _, t in keys.values()]
+        with segment.open("rb") as f:
+            for schema, channel, message in SeekingReader(f).iter_messages(
+                    topics=list(keys), starting_at=min(times), ending_at=max(times)):
+                cam, log_time = keys[channel.topic]
+                if message.log_time == log_time and schema is not None:
+                    out[cam] = bytes(msgs.deserialize(message.data, schema.name).data)
+    return out
 
 
 @dataclass

@@ -381,7 +381,8 @@ class Teaching:
         if pos != before or abs(self.time.value - pos) > 0.005:
             self.time.value = round(pos, 2)
         frame = r.timeline.frame(pos)
-        changed = {k: m for k, m in frame.items() if r.shown.get(k) is not m}
+        # camera images go to the recorded views (read and decoded on the worker), not to the live thumbnail
+        changed = {k: m for k, m in frame.items() if r.shown.get(k) is not m and not k.startswith("image/")}
         r.shown.update(changed)
         if abs(r.strip_at - pos) > 1e-3:
             r.strip_at = pos
@@ -395,13 +396,20 @@ class Teaching:
         return changed
 
     def _compose(self, images: dict[str, Any], view_choice: str) -> None:
-        """Worker: decode the recorded JPEGs and show them as a grid or one camera, large."""
+        """Worker: read and decode the recorded JPEGs, show them as a grid or one camera, large."""
+        if view_choice != "grid":
+            images = {c: m for c, m in images.items() if c == view_choice}
+        try:
+            jpegs = replay.image_bytes(images)
+        except Exception as exc:  # a segment deleted or damaged under the review: say so, keep going
+            self.count("review_error")
+            self.marks_md.content = f"**error** reading the recorded images: {exc!r}"
+            return
+        decoded = {c: replay.decode_jpeg(data) for c, data in jpegs.items()}
         if view_choice == "grid":
-            decoded = {c: replay.decode_jpeg(m.data) for c, m in images.items()}
             img = replay.camera_grid(decoded)
         else:
-            msg = images.get(view_choice)
-            img = replay.decode_jpeg(msg.data) if msg is not None else None
+            img = decoded.get(view_choice)
             if img is None:
                 img = np.full((120, 160, 3), 60, np.uint8)
         self.cameras.image = img

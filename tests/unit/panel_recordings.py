@@ -57,15 +57,16 @@ def image(t: float, cam: str, shade: int) -> bytes:
 
 def write_demo(path: Path, seconds: float = 2.0, task: str = "pick_place", masked: tuple[float, float] = (0.5, 1.0),
                lost: tuple[float, int] = (1.2, 7), cameras: tuple[str, ...] = ("cam0", "cam1"),
-               keys: tuple[str, ...] = ("scene", "session", "tactile", "image"), close: bool = True) -> Path:
+               keys: tuple[str, ...] = ("scene", "session", "tactile", "image"), close: bool = True,
+               offset: float = 0.0) -> Path:
     """A recording of ``seconds``: scenes at 20 Hz (hands moving along x from 0 to 0.2 m, half the
     left hand unobserved within ``masked``), the right glove at 100 Hz losing ``lost[1]`` frames at
     ``lost[0]`` s, camera images at 5 Hz growing brighter, session labels at 1 Hz. ``close=False``
-    leaves it as a killed recorder would (flushed, no footer)."""
+    leaves it as a killed recorder would (flushed, no footer); ``offset`` shifts every log time (s)."""
     rec = McapRecorder(path if close else path.with_name("whole-" + path.name), {"deployment": "test"})
 
     def put(key: str, msgtype: str, t: float, data: bytes) -> None:
-        rec.write(key, msgtype, data, log_time_ns=T0 + int(round(t * 1e9)))
+        rec.write(key, msgtype, data, log_time_ns=T0 + int(round((t + offset) * 1e9)))
 
     events: list[tuple[float, str, str, bytes]] = []
     if "scene" in keys:

@@ -116,10 +116,27 @@ def test_timeline_replays_each_stream_at_the_scrubbed_time(tmp_path):
     assert {"scene", "session", "tactile/right", "image/cam0", "image/cam1"} <= set(early)
     x_early, x_late = early["scene"].object_keypoints[0], late["scene"].object_keypoints[0]
     assert x_late - x_early == pytest.approx(0.18, abs=1e-4)  # the scene moves 0.2 m over 2 s
-    shade = [replay.decode_jpeg(f["image/cam0"].data).mean() for f in (early, late)]
+    assert isinstance(early["image/cam0"], replay.ImageRef)  # left in the file until shown
+    shade = [replay.decode_jpeg(replay.image_bytes({"cam0": f["image/cam0"]})["cam0"]).mean() for f in (early, late)]
     assert shade[1] > shade[0] + 100
     assert float(np.mean(late["tactile/right"].pressure)) > float(np.mean(early["tactile/right"].pressure))
     assert tl.frame(-1.0) == {}
+
+
+def test_a_segmented_recording_with_a_cut_last_segment_reviews_as_one(tmp_path):
+    write_demo(tmp_path / "rec.mcap", seconds=2.0)
+    write_demo(tmp_path / "rec.seg0001.mcap", seconds=2.0, offset=2.05, close=False)
+    entry = Library(tmp_path).scan()[0]
+    assert [p.name for p in entry.info.segments] == ["rec.mcap", "rec.seg0001.mcap"]
+    assert entry.info.duration_s == pytest.approx(4.05, abs=0.3)  # the cut segment loses its open chunk
+    assert entry.problems[0].startswith("cut by a crash (rec.seg0001.mcap has no footer)")
+    tl = replay.load_timeline(tmp_path / "rec.mcap")
+    assert tl.duration == pytest.approx(entry.info.duration_s) and "no footer" in replay.marks_text(tl)
+    first, second = tl.frame(1.0), tl.frame(tl.duration)
+    assert isinstance(first["image/cam1"], replay.ImageRef) and not isinstance(second["image/cam1"], replay.ImageRef)
+    jpegs = replay.image_bytes({"a": first["image/cam1"], "b": second["image/cam1"]})
+    assert replay.decode_jpeg(jpegs["a"]).mean() < replay.decode_jpeg(jpegs["b"]).mean()
+    assert len(tl.scene_times) == len(set(tl.scene_times.tolist())) > 41  # each segment read once
 
 
 def test_marks_find_unobserved_keypoints_and_lost_glove_frames(tmp_path):
