@@ -176,8 +176,11 @@ class Teaching:
         if replies is None:
             return
         self.record_md.content = view.recorder_text("stop", replies)
-        if self.recording is not None and replies and replies[0].get("ok"):
-            path, self.recording = self.recording, None
+        self.recording = None
+        stopped = replies[0].get("path") if replies and replies[0].get("ok") else None
+        # a demonstration has its metadata beside it (also one a restarted panel started): store the outcome
+        if isinstance(stopped, str) and stopped.endswith(".mcap") and library.sidecar_path(stopped).exists():
+            path = Path(stopped)
             self._select = path.name[:-len(".mcap")]
             self.worker.submit(self._store_outcome, path, outcome)
         self.request_scan()

@@ -1,5 +1,6 @@
 """The dashboard's teaching folders against the real recorder service: a demonstration recorded
-from a teaching session lands where the library looks, with its metadata beside it, and reviews."""
+from a teaching session lands where the library looks, with its metadata beside it, and reviews;
+a panel restarted while it records still stores the outcome at Stop."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from tests.unit.panel_recordings import scene, session
 
 
 def test_a_demonstration_recorded_by_the_recorder_service_is_listed_labelled_and_replayable(router, tmp_path):
+    """Recorded from one panel, stopped from a restarted one."""
     recorder, zsession = start_recorder(router, tmp_path)
     recs = tmp_path / "recs"
 
@@ -26,8 +28,10 @@ def test_a_demonstration_recorded_by_the_recorder_service_is_listed_labelled_and
                 if r.ok is not None]
 
     server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    restarted = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
     errors: list[str] = []
     teaching = Teaching(server, recs, ask, lambda: None, errors.append)
+    fresh = Teaching(restarted, recs, ask, lambda: None, errors.append)  # the panel after a restart: no session
     stop = threading.Event()
     scenes = zsession.declare_publisher("xm/recon/main/scene")
     labels = zsession.declare_publisher("xm/world/sim/session")
@@ -54,17 +58,17 @@ def test_a_demonstration_recorded_by_the_recorder_service_is_listed_labelled_and
         assert teaching.entries[0].problems == ["being recorded"]
         wait_until(lambda: (r := ask("status", {})) and r[0]["current"] and
                    r[0]["current"]["messages"].get("xm/recon/main/scene", 0) >= 20, 20, "20 scenes recorded")
-        teaching._stop_recording("success")
-        assert "saved" in teaching.record_md.content, teaching.record_md.content
+        fresh._stop_recording("success")
+        assert "saved" in fresh.record_md.content, fresh.record_md.content
 
         def listed():
-            teaching.request_scan()
-            teaching._scan.result(10)
-            e = teaching.picked()
+            fresh.request_scan()
+            fresh._scan.result(10)
+            e = fresh.picked()
             return e if e is not None and e.path == path and e.meta.outcome == "success" else None
 
         entry = wait_until(listed, 20, lambda: f"the demonstration listed with its outcome; library: "
-                           f"{teaching.table_md.content}")
+                           f"{fresh.table_md.content}")
         assert entry.trainable and entry.info.duration_s > 0.5 and entry.info.tasks == ["pick_place"]
         meta = json.loads(Path(str(path)[:-len(".mcap")] + ".demo.json").read_text())
         assert (meta["label"], meta["layout"], meta["teacher"], meta["glove_hand"]) == \
@@ -75,6 +79,7 @@ def test_a_demonstration_recorded_by_the_recorder_service_is_listed_labelled_and
     finally:
         stop.set()
         feeder.join(5)
-        teaching.close()
-        server.stop()
+        for t, srv in ((teaching, server), (fresh, restarted)):
+            t.close()
+            srv.stop()
         assert recorder.stop() in (0, -15), recorder.output()
