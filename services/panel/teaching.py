@@ -8,6 +8,7 @@ messages that changed, which the panel draws with its live drawing code.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from services.panel import library, replay, view
 from services.panel.library import OUTCOMES, SPLITS, DemoMeta, Entry, Library, MetaError
 from shared.keys import CAMERAS, GLOVES
 
+log = logging.getLogger("xm")
 SCAN_PERIOD_S = 5.0  # the library notices recordings made elsewhere (xm record, another panel) this often
 SPEEDS = ("0.25", "0.5", "1", "2", "4")
 CAMERA_HZ = 5.0  # review camera views, composed on the worker
@@ -117,6 +119,19 @@ class Teaching:
             self.plot: Any = None  # the signals of the reviewed demonstration (uPlot; legend entries toggle them)
             gui.add_button("Close review").on_click(lambda _e: self._close_review())
 
+    def _submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """Run ``fn`` on the worker; an exception it raises is counted, logged and shown, never lost."""
+        future = self.worker.submit(fn, *args)
+        future.add_done_callback(self._check)
+        return future
+
+    def _check(self, future: Future) -> None:
+        exc = None if future.cancelled() else future.exception()
+        if exc is not None:
+            self.count("worker_error")
+            log.warning("panel worker: %r", exc, exc_info=exc)
+            self.library_md.content = f"**error**: {exc!r}"
+
     # --- teaching session ------------------------------------------------------------------------
     def offer_world_session(self, session: Any) -> None:
         """Fill task and glove hand from the world's label until the teacher starts a session."""
@@ -182,7 +197,7 @@ class Teaching:
         if isinstance(stopped, str) and stopped.endswith(".mcap") and library.sidecar_path(stopped).exists():
             path = Path(stopped)
             self._select = path.name[:-len(".mcap")]
-            self.worker.submit(self._store_outcome, path, outcome)
+            self._submit(self._store_outcome, path, outcome)
         self.request_scan()
 
     def _store_outcome(self, path: Path, outcome: str) -> None:
@@ -208,7 +223,7 @@ class Teaching:
     def request_scan(self, now: float | None = None) -> None:
         self._last_scan = time.monotonic() if now is None else now
         if self._scan is None or self._scan.done():
-            self._scan = self.worker.submit(self._do_scan)
+            self._scan = self._submit(self._do_scan)
 
     def _do_scan(self) -> None:
         try:
@@ -248,7 +263,7 @@ class Teaching:
         if e is None:
             self.library_md.content = "**error**: no demonstration picked"
             return
-        self.worker.submit(self._do_save, e.path, {"label": self.label.value.strip(), "split": self.split.value,
+        self._submit(self._do_save, e.path, {"label": self.label.value.strip(), "split": self.split.value,
                                                    "outcome": self.outcome.value,
                                                    "layout": self.picked_layout.value.strip()})
 
@@ -269,7 +284,7 @@ class Teaching:
             self.review_md.content = "**error**: no demonstration picked"
             return
         self.review_md.content = f"reading `{e.name}`..."
-        self.worker.submit(self._load, e)
+        self._submit(self._load, e)
 
     def _load(self, e: Entry) -> None:
         try:
@@ -357,7 +372,7 @@ class Teaching:
             end = pos
         else:
             start, end = 0.0, None
-        self.worker.submit(self._do_trim, r, start, end)
+        self._submit(self._do_trim, r, start, end)
 
     def _do_trim(self, r: Review, start: float, end: float | None) -> None:
         try:
@@ -395,7 +410,7 @@ class Teaching:
             shows = (self.view.value, *(id(m) for m in images.values()))
             if shows != r.cameras_of:
                 r.last_cameras, r.cameras_of = now, shows
-                self._cameras = self.worker.submit(self._compose, images, self.view.value)
+                self._cameras = self._submit(self._compose, images, self.view.value)
         return changed
 
     def _compose(self, images: dict[str, Any], view_choice: str) -> None:
