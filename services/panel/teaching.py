@@ -246,8 +246,10 @@ class Teaching:
             self.table_md.content = text
         trainable = sum(e.trainable for e in entries)
         validation = sum(e.usable and e.meta.split == "validation" for e in entries)
-        self.library_md.content = (f"`{self.library.directory}`: {len(entries)} recordings, {trainable} for "
-                                   f"training, {validation} for validation")
+        line = (f"`{self.library.directory}`: {len(entries)} recordings, {trainable} for training, "
+                f"{validation} for validation")
+        if self.library_md.content != line:  # a rescan that finds nothing new sends nothing to the browsers
+            self.library_md.content = line
 
     def picked(self) -> Entry | None:
         return next((e for e in self.entries if e.name == self.pick.value), None)
