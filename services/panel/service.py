@@ -13,7 +13,8 @@ import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -21,7 +22,9 @@ import trimesh
 import viser
 
 from services.panel import view
+from services.panel.teaching import Teaching
 from shared import msgs
+from shared.config import ConfigError, load_deployment
 from shared.geometry import wxyz
 from shared.keys import CAMERAS, GLOVES
 from shared.kinematics import RobotModel, URDFError, load_robot
@@ -35,6 +38,9 @@ TACTILE_MESH_STALE_S = 2.0  # a hand's tactile mesh is hidden when recon has not
 
 
 class PanelService:
+    # Set by __main__ from --deployment: an empty ``recordings`` is the recorder's directory there.
+    deployment: ClassVar[str] = ""
+
     @dataclass
     class Params:
         port: int = 8080
@@ -44,6 +50,7 @@ class PanelService:
         camera: str = "cam0"  # initial thumbnail camera
         health_period_s: float = 2.0
         robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
+        recordings: str = ""  # the demonstration library; empty: [services.recorder.main] directory
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -59,6 +66,7 @@ class PanelService:
             self.robot_problem = str(exc)
             node.log.warning("no robot model, drawing joint markers: %s", exc)
         self.latest: dict[str, Any] = {}
+        self.world_session: Any = None  # the newest Session message drawn
         self.camera_choice = params.camera if params.camera in CAMERAS else CAMERAS[0]
         self.frames_drawn = 0
         self._last_images = 0.0
@@ -72,6 +80,8 @@ class PanelService:
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
+        self.teaching = Teaching(self.server, recordings_directory(params.recordings, self.deployment),
+                                 self._query_recorder, lambda: self.world_session, node.stats.count)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
@@ -85,7 +95,8 @@ class PanelService:
     def _health_extra(self) -> dict:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
-                "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible)}
+                "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
+                **self.teaching.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
@@ -144,12 +155,6 @@ class PanelService:
             dropdown = gui.add_dropdown("camera", list(CAMERAS), initial_value=self.camera_choice)
             dropdown.on_update(lambda _e: setattr(self, "camera_choice", dropdown.value))
             self.camera_image = gui.add_image(np.zeros((120, 160, 3), np.uint8), label="view", format="jpeg")
-        with gui.add_folder("Recording"):
-            start = gui.add_button("Start recording", color="red")
-            stop = gui.add_button("Stop recording")
-            self.record_md = gui.add_markdown("not recording")
-            start.on_click(lambda _e: self._recorder("start", {"keys": "xm/**"}))
-            stop.on_click(lambda _e: self._recorder("stop", {}))
         with gui.add_folder("Services"):
             self.status_md = gui.add_markdown("querying `xm/**/@health`...")
 
@@ -160,18 +165,11 @@ class PanelService:
         if pose is not None and event.client is not None:
             event.client.camera.position, event.client.camera.look_at = pose
 
-    def _recorder(self, verb: str, request: dict) -> None:
+    def _query_recorder(self, verb: str, request: dict) -> list[dict]:
         """viser worker thread: a blocking query is fine here."""
-        self.record_md.content = f"{verb}: asking the recorder..."
-        replies = []
-        try:
-            for r in self.node.session.get(f"{RECORDER}/{verb}", payload=json.dumps(request), timeout=5.0):
-                if r.ok is not None:
-                    replies.append(json.loads(r.ok.payload.to_bytes()))
-        except Exception as exc:  # a dead session or garbage reply: show it, keep the panel alive
-            self.record_md.content = f"**error**: {exc!r}"
-            return
-        self.record_md.content = view.recorder_text(verb, replies)
+        return [json.loads(r.ok.payload.to_bytes())
+                for r in self.node.session.get(f"{RECORDER}/{verb}", payload=json.dumps(request), timeout=5.0)
+                if r.ok is not None]
 
     # --- loops --------------------------------------------------------------------------
     async def run(self) -> None:
@@ -195,20 +193,32 @@ class PanelService:
         return self.latest.pop(key, None)
 
     def _draw(self, now: float) -> None:
-        self._draw_robot(self._pop("state"))
-        self._draw_scene(self._pop("scene"))
-        self._draw_plan(self._pop("plan"))
+        """The live state, or while a demonstration is reviewed its replayed messages at the scrubber."""
+        self.teaching.tick(now)
+        if self.teaching.reviewing:
+            replayed = self.teaching.review_frame(now)
+
+            def take(key: str) -> Any:
+                return replayed.pop(key, None)
+        else:
+            take = self._pop
+        self._draw_robot(take("state"))
+        self._draw_scene(take("scene"))
+        self._draw_plan(take("plan"))
         for cam in CAMERAS:
-            info = self._pop(f"info/{cam}")
+            info = take(f"info/{cam}")
             if info is not None:
                 self._draw_frustum(cam, info)
-        session = self._pop("session")
+        session = take("session")
         if session is not None:
+            if not self.teaching.reviewing:
+                self.world_session = session
+                self.teaching.offer_world_session(session)
             self.session_md.content = view.session_text(session, msgs.stamp_seconds(session.header.stamp))
         if now - self._last_images >= 1.0 / self.p.tactile_hz:
             self._last_images = now
-            self._draw_images()
-            self._draw_tactile_mesh(self._pop("tactile_mesh"), now)
+            self._draw_images(take)
+            self._draw_tactile_mesh(take("tactile_mesh"), now)
 
     def _draw_robot(self, state: Any) -> None:
         if state is None:
@@ -271,13 +281,13 @@ class PanelService:
             color=(40, 40, 40), thickness=0.002)
         self.server.scene.add_label(f"/cameras/{cam}/label", cam)
 
-    def _draw_images(self) -> None:
+    def _draw_images(self, take: Callable[[str], Any]) -> None:
         for hand in GLOVES:
-            msg = self._pop(f"tactile/{hand}")
+            msg = take(f"tactile/{hand}")
             if msg is not None:
                 self.tactile_images[hand].image = view.tactile_image(msg.pressure, msg.mask, int(msg.rows),
                                                                      int(msg.cols), scale=8)
-        image = self._pop(f"image/{self.camera_choice}")
+        image = take(f"image/{self.camera_choice}")
         if image is not None:
             bgr = cv2.imdecode(np.frombuffer(bytes(image.data), np.uint8), cv2.IMREAD_COLOR)
             if bgr is None:
@@ -326,7 +336,22 @@ class PanelService:
         return out
 
     async def close(self) -> None:
+        self.teaching.close()
         self.server.stop()
+
+
+def recordings_directory(param: str, deployment: str) -> Path:
+    """The library's directory: the parameter, else the deployment's recorder's, else ``recordings``."""
+    if param:
+        return Path(param)
+    if deployment:
+        try:
+            directory = load_deployment(deployment).services.get("recorder", {}).get("main", {}).get("directory")
+        except (ConfigError, OSError):
+            directory = None
+        if isinstance(directory, str) and directory:
+            return Path(directory)
+    return Path("recordings")
 
 
 def port_message(host: str, port: int, why: str) -> str:

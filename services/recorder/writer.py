@@ -281,6 +281,12 @@ def read_messages(source: str | Path | Iterable[str | Path], keys: set[str] | No
         yield from _read_file(path, keys, cut)
 
 
+def read_segment(path: str | Path, keys: set[str] | None = None, cut: list[str] | None = None) -> Iterator[Stored]:
+    """Messages of one MCAP file alone (not the segments beside it), read as ``read_messages`` reads each."""
+    check_mcap(path)
+    yield from _read_file(Path(path), keys, cut)
+
+
 def _read_file(path: Path, keys: set[str] | None, cut: list[str] | None) -> Iterator[Stored]:
     with Path(path).open("rb") as f:
         if is_complete(path):

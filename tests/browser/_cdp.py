@@ -49,7 +49,7 @@ class Chromium:
         self._ws = None
         try:
             port = self._devtools_port(profile / "DevToolsActivePort", timeout)
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5) as resp:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=timeout) as resp:
                 pages = [t for t in json.load(resp) if t.get("type") == "page"]
             if not pages:
                 raise CDPError("chromium opened no page target")

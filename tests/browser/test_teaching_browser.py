@@ -1,0 +1,251 @@
+"""The teaching folders in a real browser: headless Chromium (DevTools protocol, mouse and input
+events dispatched in the page) starts a teaching session, records two demonstrations through a stand-in recorder
+that writes real MCAP files, labels one for validation in the library, reviews a third with the
+scrubber (the rendered scene changes with its position), plays, pauses, steps it and trims its start.
+Screenshots: .cache/teaching_*.png."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from shared import msgs
+from tests.browser._cdp import Chromium, find_chromium
+from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
+from tests.unit.panel_recordings import write_demo
+
+CHROMIUM = find_chromium()
+pytestmark = [pytest.mark.browser,
+              pytest.mark.skipif(CHROMIUM is None, reason="needs /usr/bin/chromium (apt-get install chromium)")]
+
+PAGE_TEXT = "document.body ? document.body.innerText : ''"
+WAIT = 180  # seconds for anything the page shows: tens of seconds per DevTools call on a loaded host
+PATIENCE_S = 240.0  # one DevTools call: software WebGL on a loaded 2-core host can hold the page's thread that long
+ROW = "(label) => [...document.querySelectorAll('label')].find(l => l.textContent.trim() === label)" \
+      "?.closest('.mantine-Flex-root')"
+
+
+def world_session() -> object:
+    return msgs.make("xm_msgs/msg/Session", header=msgs.header(time.time()), task="pick_place", demo=0,
+                     phase="approach", tactile_hand="right", seed_layout='{"cup": [0.1, 0.0]}')
+
+
+# Mouse events are dispatched from the page's JavaScript (as the panel's own browser test clicks):
+# the DevTools Input domain waits for the renderer to take the event, which on a loaded 2-core host
+# with software WebGL was seen to take over 90 s.
+PRESS = """(el) => {{ if (!el) return false; el.scrollIntoView({{block: 'center'}});
+  const r = el.getBoundingClientRect();
+  const o = {{bubbles: true, cancelable: true, view: window, button: 0, buttons: 1,
+             clientX: r.x + r.width / 2, clientY: r.y + r.height / 2}};
+  for (const [T, kind] of [[PointerEvent, 'pointerdown'], [MouseEvent, 'mousedown'], [PointerEvent, 'pointerup'],
+                           [MouseEvent, 'mouseup'], [MouseEvent, 'click']]) el.dispatchEvent(new T(kind, o));
+  return true; }}"""
+
+
+def press(browser: Chromium, element_js: str) -> bool:
+    """Press and release the mouse on the middle of the element ``element_js`` evaluates to; False
+    when there is no such element."""
+    return browser.evaluate(f"({PRESS.format()})({element_js})", PATIENCE_S)
+
+
+def button(text: str) -> str:
+    return f"[...document.querySelectorAll('button')].find(b => b.textContent.trim() === {text!r})"
+
+
+def click_button(browser: Chromium, text: str) -> None:
+    wait_until(lambda: press(browser, button(text)), WAIT, f"a button {text!r}")
+
+
+def field(label: str) -> str:
+    return f"({ROW})({label!r})?.querySelector('input:not([type=hidden])')"
+
+
+def type_into(browser: Chromium, label: str, text: str) -> None:
+    """Replace the text of the field labelled ``label`` as typing does (React hears an input event)."""
+    wait_until(lambda: browser.evaluate(f"!!{field(label)}", PATIENCE_S), WAIT, f"a field labelled {label!r}")
+    browser.evaluate(f"(() => {{ const e = {field(label)}; e.focus(); Object.getOwnPropertyDescriptor("
+                     f"HTMLInputElement.prototype, 'value').set.call(e, {text!r}); "
+                     "e.dispatchEvent(new Event('input', {bubbles: true})); })()", PATIENCE_S)
+
+
+def choose(browser: Chromium, label: str, option: str) -> None:
+    """Open the dropdown labelled ``label`` and click ``option`` in its list."""
+    wait_until(lambda: press(browser, field(label)), WAIT, f"a dropdown labelled {label!r}")
+    wait_until(lambda: press(browser, f"[...document.querySelectorAll('[role=option]')].find(o => "
+                                      f"o.textContent.trim() === {option!r})"), WAIT, f"option {option!r} of {label!r}")
+    wait_until(lambda: browser.evaluate(f"{field(label)}.value", PATIENCE_S) == option, WAIT,
+               f"{label!r} showing {option!r}")
+
+
+def key(browser: Chromium, label: str, name: str) -> None:
+    """A key pressed on the slider labelled ``label`` (Home, End, ArrowLeft, ...), as the keyboard does."""
+    thumb = f"({ROW})({label!r})?.querySelector('[role=slider]')"
+    wait_until(lambda: browser.evaluate(f"(() => {{ const e = {thumb}; if (!e) return false; e.dispatchEvent("
+                                        f"new KeyboardEvent('keydown', {{key: {name!r}, code: {name!r}, bubbles: true, "
+                                        "cancelable: true})); return true; })()", PATIENCE_S), WAIT,
+               f"the slider labelled {label!r}")
+
+
+def value_of(browser: Chromium, label: str) -> str:
+    return browser.evaluate(f"{field(label)}?.value ?? ''", PATIENCE_S)
+
+
+def page_text(browser: Chromium) -> str:
+    return browser.evaluate(PAGE_TEXT, PATIENCE_S)
+
+
+def viewport(shot: Path) -> np.ndarray:
+    """The 3D view, clear of the GUI panel on the right and the notifications."""
+    return cv2.imread(str(shot)).astype(float)[150:-150, 100:600]
+
+
+def sidecar(path: Path) -> dict:
+    return json.loads(path.with_name(path.name[:-len(".mcap")] + ".demo.json").read_text())
+
+
+@pytest.mark.timeout(600)  # 20 s on an idle host; software WebGL beside a busy cell takes minutes
+def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_path):
+    endpoint, session = router
+    rec_dir = tmp_path / "recordings"
+    rec_dir.mkdir()
+    write_demo(rec_dir / "earlier.mcap", seconds=4.0, masked=(1.0, 2.0), lost=(2.5, 7))
+    port = free_port()
+    dep = write_deployment(tmp_path / "d.toml", endpoint, {"panel": {"main": {
+        "port": port, "fps": 10.0, "health_period_s": 2.0, "recordings": str(rec_dir)}}})
+    requests: list[tuple[str, dict]] = []
+
+    def fake_recorder(query) -> None:  # stands in for the recorder service: stop writes a real MCAP
+        verb = str(query.key_expr).rsplit("/", 1)[-1]
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        req = json.loads(payload or b"{}")
+        requests.append((verb, req))
+        path = Path(next(r for v, r in reversed(requests) if v == "start")["path"])
+        if verb == "stop":
+            write_demo(path, seconds=1.0)
+        query.reply(str(query.key_expr), json.dumps({"ok": True, "path": str(path), "messages": {"k": 1},
+                                                     "bytes": 1000}))
+
+    queryables = [session.declare_queryable(f"xm/recorder/main/@cmd/{v}", fake_recorder) for v in ("start", "stop")]
+    pub = session.declare_publisher("xm/world/sim/session")
+    stop = threading.Event()
+
+    def feed() -> None:  # the world's label at 2 Hz, stamped now
+        while not stop.wait(0.5):
+            pub.put(msgs.serialize(world_session()))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    panel = ServiceProcess("panel", dep, "main", tmp_path / "panel.log")
+    browser = None
+    cache = ROOT / ".cache"
+    cache.mkdir(exist_ok=True)
+    try:
+        feeder.start()
+        assert wait_for(lambda: query_json(session, "xm/panel/main/@health"), 90), panel.output()
+        browser = Chromium(CHROMIUM, tmp_path / "profile", size=(1024, 800))  # fewer pixels to rasterize
+        browser.navigate(f"http://127.0.0.1:{port}")
+        wait_until(lambda: "earlier" in page_text(browser), WAIT, lambda: "the library listing the "
+                   f"recording already there; page: {page_text(browser)[:800]}", period=0.5)
+
+        # 1. a teaching session: the task comes from the world's label, the teacher is typed
+        wait_until(lambda: value_of(browser, "task") == "pick_place", WAIT, "the task filled from the world's session")
+        type_into(browser, "teacher", "ada")
+        wait_until(lambda: value_of(browser, "teacher") == "ada", WAIT, "the typed teacher")
+        choose(browser, "glove hand", "left")
+        click_button(browser, "Start session")
+        wait_until(lambda: "teacher ada, glove on the left hand, 0 demonstrations" in page_text(browser),
+                   WAIT, lambda: f"the session line; page: {page_text(browser)[:800]}", period=0.3)
+
+        # 2. two demonstrations, each one recording with a label, layout and outcome
+        demos = []
+        for label, outcome in (("first grasp", "success"), ("second grasp", "failure")):
+            type_into(browser, "next label", label)
+            n = len(requests)
+            click_button(browser, "Start recording")
+            wait_until(lambda n=n: len(requests) > n, WAIT, "the start query")
+            verb, req = requests[-1]
+            assert verb == "start" and req["keys"] == "xm/**" and Path(req["path"]).parent == rec_dir.resolve()
+            assert Path(req["path"]).name.startswith("pick_place-ada-")
+            wait_until(lambda: "recording to" in page_text(browser), WAIT, "the recorder's reply shown")
+            click_button(browser, outcome)
+            path = Path(req["path"])
+            wait_until(lambda p=path, o=outcome: p.exists() and sidecar(p)["outcome"] == o, WAIT,
+                       f"{outcome} stored beside {path.name}")
+            meta = sidecar(path)
+            assert (meta["label"], meta["task"], meta["teacher"], meta["glove_hand"], meta["split"]) == \
+                (label, "pick_place", "ada", "left", "train")
+            assert meta["layout"] == '{"cup": [0.1, 0.0]}'  # the world's seed layout
+            demos.append(path)
+        wait_until(lambda: "second grasp" in page_text(browser), WAIT, "the library listing both")
+        browser.screenshot(cache / "teaching_session.png", PATIENCE_S)
+
+        # 3. the library: the first demonstration becomes validation data
+        choose(browser, "demonstration", demos[0].name[:-len(".mcap")])
+        wait_until(lambda: value_of(browser, "label") == "first grasp", WAIT, "the picked demonstration's label")
+        choose(browser, "split", "validation")
+        click_button(browser, "Save")
+        wait_until(lambda: sidecar(demos[0])["split"] == "validation", WAIT, "the split saved in the sidecar")
+        assert sidecar(demos[1])["split"] == "train"
+        wait_until(lambda: "2 for training, 1 for validation" in page_text(browser), WAIT,
+                   lambda: f"the library's counts; page: {page_text(browser)[-1500:]}")
+        browser.screenshot(cache / "teaching_library.png", PATIENCE_S)
+
+        # 4. review: the scrubber moves the replayed scene
+        choose(browser, "demonstration", "earlier")
+        click_button(browser, "Review")
+        wait_until(lambda: "reviewing earlier" in page_text(browser), WAIT, "the review opened")
+        text = page_text(browser)
+        assert "keypoints unobserved in 20 of 81 scenes" in text and "right glove lost 7 frames" in text, text[-1500:]
+        wait_until(lambda: browser.evaluate("document.querySelectorAll('.uplot canvas').length", PATIENCE_S) >= 1, WAIT,
+                   "the signals plot")
+        before = wait_until(lambda: (s := browser.screenshot(tmp_path / "a.png", PATIENCE_S)) and
+                            viewport(s).std() > 5 and s, WAIT, "a drawn 3D view")
+        before_px = viewport(before)
+        key(browser, "time", "End")  # the scrubber to the end: 4 s, the hands 0.2 m further along x
+        wait_until(lambda: float(value_of(browser, "time") or 0) > 3.0, WAIT,
+                   lambda: f"the slider at the end (shows {value_of(browser, 'time')})")
+
+        def moved():
+            shot = browser.screenshot(tmp_path / "b.png", PATIENCE_S)
+            return shot if np.abs(viewport(shot) - before_px).sum(axis=2).__gt__(60).mean() > 0.002 else None
+
+        shot = wait_until(moved, WAIT, "the 3D view changed by the scrubber", period=0.5)
+        shutil.copy(shot, cache / "teaching_review.png")
+
+        # 5. play from the start of the kept part, pause, trim
+        key(browser, "time", "Home")
+        wait_until(lambda: float(value_of(browser, "time") or 9) < 1.0, WAIT, "the slider back at the start")
+        click_button(browser, "play")
+        wait_until(lambda: float(value_of(browser, "time") or 0) > 1.5, WAIT, "the slider moving while playing")
+        click_button(browser, "pause")
+
+        def review() -> dict:
+            return query_json(session, "xm/panel/main/@health")[0]["reviewing"]
+
+        paused = wait_until(lambda: (r := review()) and not r["playing"] and r, WAIT, "paused")
+        click_button(browser, "<")  # one scene back (scenes every 0.05 s; playing may have reached the end)
+        stepped = wait_until(lambda: (r := review())["at_s"] != paused["at_s"] and r, WAIT, "a step")
+        assert 0.0 < paused["at_s"] - stepped["at_s"] <= 0.051 and stepped["name"] == "earlier"
+        click_button(browser, "start here")
+        earlier = rec_dir / "earlier.mcap"
+        trimmed = wait_until(lambda: sidecar(earlier)["trim_start_s"] if (earlier.with_name("earlier.demo.json")
+                                                                          .exists()) else None, WAIT, "a stored trim")
+        assert 1.0 < trimmed < 4.0
+        wait_until(lambda: "the file is unchanged" in page_text(browser), WAIT, "the trim confirmed")
+        health = query_json(session, "xm/panel/main/@health")[0]
+        assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error"))}, \
+            health["errors"]
+    finally:
+        stop.set()
+        feeder.join(5)
+        if browser is not None:
+            browser.close()
+        for q in queryables:
+            q.undeclare()
+        assert panel.stop() in (0, -15), panel.output()
