@@ -106,8 +106,9 @@ def config_changes(items: list[str]) -> dict:
                 if value.lower() not in ("true", "false", "1", "0"):
                     raise ValueError
                 changes[key] = value.lower() in ("true", "1")
-            elif isinstance(current, (tuple, list)):
-                changes[key] = tuple(type(current[0])(v) for v in value.split(","))
+            elif isinstance(current, (tuple, list)):  # an empty default (window) holds integers
+                kind = type(current[0]) if current else int
+                changes[key] = tuple(kind(v) for v in value.split(",")) if value else ()
             else:
                 changes[key] = type(current)(value)
         except ValueError:

@@ -136,6 +136,11 @@ def test_config_changes_are_typed_like_their_fields_and_bad_ones_named():
             config_changes([bad])
     with pytest.raises(ValueError, match="unknown recipe field"):
         preset("multimodal", candidates=2)
+    # the window's default is empty: its values are integers, and an empty value is no window
+    assert config_changes(["window=8,4,2,1,1"]) == {"window": (8, 4, 2, 1, 1)}
+    assert config_changes(["window="]) == {"window": ()}
+    with pytest.raises(ValueError, match="not a tuple"):
+        config_changes(["window=8,x"])
 
 
 def test_body_dynamics_trains_j_where_the_holding_hand_hides_its_pinch():
