@@ -7,7 +7,7 @@ object keypoints, with and without the validation occlusion masks. Writes result
 results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
 scale), rollout_<method>.png (one example rollout per method) and rollouts_<method>.npz (every
 rollout, so that `xm eval --rescore` recomputes the scores without fitting again) into --out,
-and for rows (1)-(3) the scored net as policy_<method>.pt (`xm eval --execute --checkpoint`).
+and for rows (1)-(4) the scored net as policy_<method>.pt (`xm eval --execute --checkpoint`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from tqdm import tqdm
 
 from evaluation.anchors import AnchorError, mine_anchors
 from evaluation.baselines import make
-from evaluation.baselines.mlp import quick_budget
 from evaluation.execute import execute_layout
 from evaluation.reconstructed import (
     DETECTORS,
@@ -40,7 +39,7 @@ from evaluation.reconstructed import (
 )
 from learning.metrics import SCORE_KEYS, trajectory_scores
 from learning.ours import Ours
-from learning.presets import PRESETS, config_changes
+from learning.presets import PRESETS, config_changes, quick_budget
 from services.policy.model import Policy, PolicyError
 from services.world.teacher import assembly_protocol
 from shared.demo import Demo
@@ -62,7 +61,7 @@ class EvaluationError(ValueError):
 
 
 def make_method(name: str, quick: bool = False, seed: int = 0, draw: int = 0, changes: dict | None = None):
-    """A fresh unfitted method by its Table 7.1 name. Rows (1)-(3) are presets of learning/presets.py
+    """A fresh unfitted method by its Table 7.1 name. Rows (1)-(4) are presets of learning/presets.py
     whose ``TrainConfig.seed`` is ``draw``, with ``changes`` to their recipe; the other baselines
     take ``seed``."""
     if name in PRESETS:
@@ -116,7 +115,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
     ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
     noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md).
-    ``changes``: recipe fields changed in rows (1)-(3) (`xm eval --set`).
+    ``changes``: recipe fields changed in rows (1)-(4) (`xm eval --set`).
     ``recon``: every method observes the demonstrations as recon reconstructs them from rendered
     images (evaluation/reconstructed.py; cached in ``recon_cache``): it trains on the reconstructed
     training demonstrations and rolls out from the reconstructed validation start states; the
@@ -160,7 +159,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         t2 = time.perf_counter()
         results[name] = score(outs, val)
         save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
-        if hasattr(method, "save"):  # rows (1)-(3): the very net scored, for `xm eval --execute --checkpoint`
+        if hasattr(method, "save"):  # rows (1)-(4): the very net scored, for `xm eval --execute --checkpoint`
             method.save(str(out / f"policy_{name}.pt"))
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
         results = in_table_order(results)
@@ -250,7 +249,7 @@ def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool 
     ref = results.get(REFERENCE)
     lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}"
              + (f", training draw {draw}" if draw else "")
-             + (", rows (1)-(3) with " + ", ".join(f"{k}={v}" for k, v in changes.items()) if changes else "")
+             + (", rows (1)-(4) with " + ", ".join(f"{k}={v}" for k, v in changes.items()) if changes else "")
              + f": {n_train} train / {n_val} validation demos"
              + (f", observed {observed}" if observed != "truth" else "")
              + (" (--quick: tiny training budgets, numbers meaningless)" if quick else ""),
@@ -330,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="xm eval", description="Table 7.1 protocol: fit every method on 3 teacher demonstrations, roll out "
         "from 12 validation start states, score with the symmetric closest-point distance. Writes results.json, "
-        "results.md, results.png, rollout_<method>.png and, for rows (1)-(3), the scored net policy_<method>.pt "
+        "results.md, results.png, rollout_<method>.png and, for rows (1)-(4), the scored net policy_<method>.pt "
         "into --out.")
     parser.add_argument("--task", default="assembly", choices=["assembly"],
                         help="demonstrated task (default %(default)s)")
@@ -342,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="training draw: the learned methods start from other random numbers (initial weights, "
                         "batches, noise), the demonstrations stay; one training run is one draw (default %(default)s)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="change a recipe field (ModelConfig, TrainConfig or InferenceConfig) of rows (1)-(3), "
+                        help="change a recipe field (ModelConfig, TrainConfig or InferenceConfig) of rows (1)-(4), "
                         "e.g. --set reservoir_periods=0.25,8 (repeatable)")
     parser.add_argument("--observations", default="truth", choices=OBSERVATIONS,
                         help="what the methods observe: the teacher's truth, or the demonstrations as recon "
@@ -388,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                         "perfect policy)")
     args = parser.parse_args(argv)
     if args.set and (args.execute or args.rescore):
-        print("error: --set changes the training of rows (1)-(3); --execute runs the checkpoint with its own config "
+        print("error: --set changes the training of rows (1)-(4); --execute runs the checkpoint with its own config "
               "and --rescore trains nothing (drop --set, or train first: xm eval --set ... or xm train --set ...)",
               file=sys.stderr)
         return 2

@@ -19,6 +19,7 @@ import torch
 
 from services.policy.model import MAX_TACTILE_KPA, Policy
 from services.policy.network import TACTILE_SCALE, VEL_SCALE
+from services.policy.window import block_means, push_history
 from shared.demo import KEYPOINTS_PER_HAND
 
 
@@ -30,9 +31,14 @@ def network_outputs(policy: Policy, state: dict) -> dict[str, np.ndarray]:
     def t(x: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
 
+    window = wmask = None
+    if policy.cfg.window:
+        means, seen = block_means(s["window_pos"], s["window_mask"], policy.cfg.window)
+        window, wmask = t(means[None]), t(seen[None])
     with torch.inference_mode():
         x = net.inputs(t(s["pos"][None]), t(s["vel"][None]), t(vm[None]), t(s["tactile"][None]),
-                       t(s["tmask"][None].astype(np.float32)), t(s["H"][None]) if policy.cfg.memory else None)
+                       t(s["tmask"][None].astype(np.float32)), t(s["H"][None]) if policy.cfg.memory else None,
+                       window, wmask)
         out = net(x)
     return {k: v[0].numpy().astype(np.float64) for k, v in out.items()}
 
@@ -73,6 +79,9 @@ def reference_step(policy: Policy, state: dict, dt: float | None = None) -> dict
         dH = out["dH"] * (policy.net.dH_std / policy.net.H_std).numpy()
         w = inf.w_memory_prior
         nxt["H"] = np.clip((w * out["H"] + state["H"] + dH * dt) / (1.0 + w), -5.0, 5.0)
+    if cfg.window:
+        nxt["window_pos"] = push_history(state["window_pos"], state["pos"])
+        nxt["window_mask"] = push_history(state["window_mask"], state["mask"])
     return nxt
 
 

@@ -1,8 +1,9 @@
 """Demonstrations -> training arrays of the chapter-7 policy (pure numpy, no I/O but the MCAP reader).
 
 A state has P = 42 + K keypoints (left hand 21, right hand 21, then the K object points), their
-velocities, per-point observed masks, tactile (2 hands x 6 regions) with its glove mask, and the
-reservoir activations (7.2.8). One training sample is the step t -> t+1 of a demonstration.
+velocities, per-point observed masks, tactile (2 hands x 6 regions) with its glove mask, the
+reservoir activations (7.2.8) and, with a time window, its older block means. One training sample
+is the step t -> t+1 of a demonstration.
 
 Augmentation: left/right mirroring (y -> -y, hands swapped) of every demonstration, hand-swap
 sampling (left-grasping samples with probability 0.6, thesis 7.6.8), rotation about gravity
@@ -21,6 +22,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from learning.reservoir import Reservoir
+from services.policy.window import step_windows
 from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 from shared.recording_files import recording_segments
@@ -148,13 +150,17 @@ class StepData:
     demo_index: np.ndarray  # (N,)
     step_index: np.ndarray  # (N,)
     dt: float
+    window: np.ndarray | None = None  # (N,B-1,P,3) the time window's older block means (services/policy/window.py)
+    wmask: np.ndarray | None = None  # (N,B-1,P) each block observed the point throughout
 
     def __len__(self) -> int:
         return len(self.pos)
 
 
-def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left_probability: float = 0.6) -> StepData:
-    """Flatten demonstrations into transitions; ``reservoir`` (reservoir.Reservoir) adds H (7.2.8)."""
+def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left_probability: float = 0.6,
+              window: tuple[int, ...] = ()) -> StepData:
+    """Flatten demonstrations into transitions; ``reservoir`` (reservoir.Reservoir) adds H (7.2.8),
+    ``window`` (block lengths, ModelConfig.window) the time window's block means."""
     if not arrays:
         raise DatasetError("no demonstrations to learn from")
     dts = {round(a.dt, 9) for a in arrays}
@@ -186,11 +192,13 @@ def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left
         cols["demo_index"].append(np.full(a.steps - 1, i))
         cols["step_index"].append(np.arange(a.steps - 1))
     cat = {k: np.concatenate(v, axis=1 if k in ("H", "next_H") else 0) if v else None for k, v in cols.items()}
+    win, wmask = step_windows(cat["pos"], cat["mask"], cat["step_index"], window) if window else (None, None)
     return StepData(pos=cat["pos"], vel=cat["vel"], vmask=cat["vmask"], mask=cat["mask"], next_pos=cat["next_pos"],
                     next_vel=cat["next_vel"], next_vmask=cat["next_vmask"], next_mask=cat["next_mask"],
                     tactile=cat["tactile"], next_tactile=cat["next_tactile"], tmask=cat["tmask"], H=cat["H"],
                     next_H=cat["next_H"], prob=hand_weights(cat["left"], left_probability),
-                    demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt)
+                    demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt, window=win,
+                    wmask=wmask)
 
 
 def sample_batch(data: StepData, rng: np.random.Generator, n: int, rotate: bool = True) -> dict[str, np.ndarray]:
@@ -209,6 +217,9 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
            "vmask": data.vmask[idx], "mask": data.mask[idx], "next_vmask": data.next_vmask[idx],
            "next_mask": data.next_mask[idx], "tactile": data.tactile[idx], "next_tactile": data.next_tactile[idx],
            "tmask": data.tmask[idx], "angle": angle, "index": idx, "phase": data.step_index[idx] * data.dt}
+    if data.window is not None:
+        out["window"] = rotate_z(data.window[idx], angle[:, None, None])
+        out["wmask"] = data.wmask[idx]
     if data.H is not None:
         out["H"] = Reservoir.rotated(data.H[:, idx], angle)
         out["next_H"] = Reservoir.rotated(data.next_H[:, idx], angle)

@@ -1,7 +1,8 @@
 """The learning method of thesis chapter 7 behind the common method interface (fit / rollout).
 
 ``Ours(recipe)`` trains a ``services.policy.model.Policy`` from a ``Recipe`` (or a preset name:
-"multimodal" = Table 7.1 row 1, "no_tactile" = row 2, "single_state" = row 3). Training samples
+"multimodal" = Table 7.1 row 1, "no_tactile" = row 2, "single_state" = row 3, "time_window" =
+row 4). Training samples
 (7.2.2): positions corrupted by exponentially scaled noise (7.6), the same noise times f_n
 subtracted from the target velocities (7.7); reservoir activations corrupted alike and denoised
 (7.9-7.10). Rollouts run the trained policy's compiled loop, as the node does.
@@ -29,7 +30,7 @@ def _t(x: np.ndarray) -> torch.Tensor:
 
 
 class Ours:
-    """Method (1)-(3) of Table 7.1 and every switch of its recipe."""
+    """Methods (1)-(4) of Table 7.1 and every switch of its recipe."""
 
     def __init__(self, recipe: Recipe | str = "multimodal") -> None:
         self.recipe = preset(recipe) if isinstance(recipe, str) else recipe
@@ -63,7 +64,7 @@ class Ours:
             self.policy.extra_tensors = {"reservoir.W_R": torch.from_numpy(self.reservoir.W_R),
                                          "reservoir.W_I": torch.from_numpy(self.reservoir.W_I)}
         arrays = [D.demo_arrays(d) for d in D.augmented(train, tc.mirror)]
-        data = D.step_data(arrays, self.reservoir, tc.left_probability)
+        data = D.step_data(arrays, self.reservoir, tc.left_probability, m.window)
         if m.memory:
             rng = np.random.default_rng(tc.seed + 1)
             angle = rng.uniform(0, 2 * np.pi, len(data)) if tc.rotate else 0.0
@@ -132,8 +133,12 @@ class Ours:
 
     def batch_inputs(self, b: dict) -> torch.Tensor:
         mask = b["mask"] if self.recipe.model.masks else np.ones_like(b["mask"])
+        window = wmask = None
+        if "window" in b:
+            window = _t(b["window"])
+            wmask = _t(b["wmask"] if self.recipe.model.masks else np.ones_like(b["wmask"]))
         return self.net.inputs(_t(b["pos"]), _t(b["vel"]), _t(mask), _t(b["tactile"]), _t(b["tmask"]),
-                               _t(b["H_in"]) if "H_in" in b else None)
+                               _t(b["H_in"]) if "H_in" in b else None, window, wmask)
 
     def loss(self, b: dict) -> tuple[torch.Tensor, dict[str, float]]:
         """Masked losses of every active output for one batch (denoising targets)."""

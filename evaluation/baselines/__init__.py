@@ -1,19 +1,18 @@
 """Baselines of thesis Table 7.1 behind the common ``Method`` interface (fit / rollout).
 
-One module per family: naive replay (10), DMP (5), ProMP (6, 7), Diffusion Policy (8, 9),
-state MLPs (3, 4). ``make(name, quick)`` builds one by its table name.
+One module per family: naive replay (10), DMP (5), ProMP (6, 7), Diffusion Policy (8, 9).
+``make(name, quick)`` builds one by its table name. Rows (3) single state and (4) time window are
+presets of our own network (learning/presets.py), built by evaluation.evaluate.make_method.
 """
 
 from __future__ import annotations
 
 from evaluation.baselines.diffusion import DiffusionConfig, DiffusionPolicy
 from evaluation.baselines.dmp import DMPBaseline
-from evaluation.baselines.mlp import make_state_policy
 from evaluation.baselines.promp import ProMPBaseline
 from services.policy.naive import NaiveReplay
 
-BASELINES = ("single_state", "time_window", "dmp", "promp_conditional", "promp_simple",
-             "diffusion_unet", "diffusion_transformer", "naive")
+BASELINES = ("dmp", "promp_conditional", "promp_simple", "diffusion_unet", "diffusion_transformer", "naive")
 
 
 def make(name: str, quick: bool = False, seed: int = 0):
@@ -26,6 +25,4 @@ def make(name: str, quick: bool = False, seed: int = 0):
         return ProMPBaseline(conditional=name == "promp_conditional")
     if name in ("diffusion_unet", "diffusion_transformer"):
         return DiffusionPolicy(DiffusionConfig.preset(name.split("_")[1], quick=quick, seed=seed))
-    if name in ("single_state", "time_window"):
-        return make_state_policy(name, quick=quick, seed=seed)
     raise KeyError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")

@@ -18,7 +18,8 @@ import numba
 import numpy as np
 
 from services.policy.folded import FoldedNet
-from services.policy.network import TACTILE_SCALE, VEL_SCALE
+from services.policy.network import POS_SCALE, TACTILE_SCALE, VEL_SCALE
+from services.policy.window import block_starts, history_length
 
 OK, NET_NAN, POS_NAN = 0, 1, 2
 
@@ -64,25 +65,40 @@ class CompiledRollout:
         else:
             self.dH_gain = np.zeros(0)
         self.w_prior, self.vmax, self.max_tactile = float(inf.w_memory_prior), float(inf.max_speed), max_tactile
+        self.window = tuple(cfg.window)  # the time window's older blocks: first history index and length of each
+        self.w_start = block_starts(self.window)
+        self.w_len = np.array(self.window[:-1], np.int64)
 
     def __call__(self, state: dict, steps: int, dt: float, w_dyn: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
         """Rolls ``steps`` steps of ``dt`` from ``state``. Returns positions (S,P,3), tactile
         (S,2,R), memory (S,size), the observed-point mask after the last step (P,) and a status
-        (OK, NET_NAN, POS_NAN)."""
+        (OK, NET_NAN, POS_NAN). A time-window net reads ``state``'s history (window_pos, window_mask:
+        model.Policy.start_window) and carries it along the steps."""
         tact0 = np.ascontiguousarray(state["tactile"], dtype=np.float64).reshape(-1)
         H0 = np.ascontiguousarray(state["H"], dtype=np.float64) if "H" in state else np.zeros(0)
         pos = np.empty((steps, self.P, 3))
         tact = np.empty((steps, tact0.size))
         mem = np.empty((steps, H0.size))
         mask = np.array(state["mask"], np.bool_)  # a copy: the loop updates it in place
+        if self.window:
+            if "window_pos" not in state or "window_mask" not in state:
+                raise ValueError(f"a time-window net ({self.window}) needs the state's window history "
+                                 f"(Policy.start_window)")
+            hist = np.ascontiguousarray(state["window_pos"], dtype=np.float64)
+            hist_mask = np.ascontiguousarray(state["window_mask"], dtype=np.bool_)
+            if hist.shape != (history_length(self.window), self.P, 3) or hist_mask.shape != hist.shape[:2]:
+                raise ValueError(f"window history {hist.shape} / {hist_mask.shape}; the window {self.window} "
+                                 f"needs ({history_length(self.window)}, {self.P}, 3)")
+        else:
+            hist, hist_mask = np.zeros((0, self.P, 3)), np.zeros((0, self.P), np.bool_)
         status = _rollout(np.ascontiguousarray(state["pos"], dtype=np.float64), tact0,
                           np.ascontiguousarray(state["tmask"], dtype=np.float64).reshape(-1), H0,
                           mask, steps, float(dt), float(w_dyn), self.w1t,
                           self.b1, self.hidden_w, self.hidden_b, self.hidden_shape, self.head_t, self.head_b,
                           *self.lin, self.mask_rows, self.mean_small, self.parts, self.pool, self.pinch, self.body,
                           self.flags, self.dH_gain, self.w_prior, self.vmax, self.max_tactile, TACTILE_SCALE,
-                          VEL_SCALE, pos, tact, mem)
+                          VEL_SCALE, self.w_start, self.w_len, hist, hist_mask, POS_SCALE, pos, tact, mem)
         return pos, tact.reshape(steps, 2, -1), mem, mask, int(status)
 
 
@@ -100,6 +116,7 @@ def warm() -> None:
              np.zeros((P, 4), f32), np.zeros(2 + H, f32),
              np.array([[0, 6], [6, 8], [8, 10], [10, 12], [12, 13], [13, 14]], i64), np.eye(K), np.zeros((2, 2), i64),
              np.array([0, 1], i64), np.ones(5, np.bool_), np.ones(H), 0.01, 1.5, 500.0, TACTILE_SCALE, VEL_SCALE,
+             np.zeros(0, i64), np.zeros(0, i64), np.zeros((0, P, 3)), np.zeros((0, P), np.bool_), POS_SCALE,
              np.zeros((1, P, 3)), np.zeros((1, 2)), np.zeros((1, H)))
 
 
@@ -176,9 +193,12 @@ def _follow_bodies(v: np.ndarray, p: np.ndarray, trusted: np.ndarray, body: np.n
 @numba.njit(cache=True)
 def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, hidden_b, hidden_shape, head_t, head_b,
              plus, minus, scale, mean_lin, m_a, m_b, lin_rows, mask_rows, mean_small, parts, pool, pinch, body,
-             flags, dH_gain, w_prior, vmax, max_tactile, tactile_scale, vel_scale, pos_out, tact_out, mem_out):
+             flags, dH_gain, w_prior, vmax, max_tactile, tactile_scale, vel_scale, w_start, w_len, hist_pos0,
+             hist_mask0, pos_scale, pos_out, tact_out, mem_out):
     """The policy step ``steps`` times (folded forward pass + consistency solve), writing each step's
-    positions, tactile and memory; ``mask`` is updated in place. Returns the status."""
+    positions, tactile and memory; ``mask`` is updated in place. ``w_start``/``w_len``: the time
+    window's older blocks in the history ``hist_pos0`` (W-1,P,3) / ``hist_mask0`` (W-1,P), which the
+    loop carries on (window.py). Returns the status."""
     masks, follow, dynamics, tactile, memory = flags[0], flags[1], flags[2], flags[3], flags[4]
     P = pos0.shape[0]
     K = pool.shape[0]
@@ -186,6 +206,9 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
     pos = pos0.copy()
     tac = tact0.copy()
     H = H0.copy()
+    hist = hist_pos0.copy()
+    hist_mask = hist_mask0.copy()
+    n_hist = hist.shape[0]
     n_pos, n_t = 3 * P, tac.size
     x = np.zeros(w1t.shape[0], np.float32)
     z = np.zeros(n_pos + 1)
@@ -205,6 +228,22 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
             off = i - n_pos
             for j in range(H.size):
                 x[i + j] = np.float32(H[j]) - mean_small[off + j]
+            i += H.size
+        if w_len.size > 0:  # window.block_means relative to the current positions, as PolicyNet.inputs
+            off = i - n_pos
+            for b in range(w_len.size):
+                lo, hi = w_start[b], w_start[b] + w_len[b]
+                for p in range(P):
+                    seen = mask[p]
+                    for q in range(lo, hi):
+                        seen = seen and hist_mask[q, p]
+                    for a in range(3):
+                        m = 0.0
+                        for q in range(lo, hi):
+                            m += hist[q, p, a]
+                        k = (b * P + p) * 3 + a
+                        f = np.float32(np.float32(m / w_len[b] - pos[p, a]) * np.float32(pos_scale))
+                        x[i + k] = (f - mean_small[off + k]) * np.float32(1.0 if seen else 0.0)
         h = _dense_relu(x, w1t, b1, False)
         if masks:  # masked features back to zero: each feature touching a hidden point, once
             for f in range(plus.size):
@@ -256,6 +295,12 @@ def _rollout(pos0, tact0, tmask, H0, mask, steps, dt, w_dyn, w1t, b1, hidden_w, 
             keep[:n_hand] = True
             v = _follow_bodies(v, pos, keep, body)
         nxt = pos + v * dt
+        if n_hist > 0:  # this step's sample joins the window's history (window.push_history)
+            for q in range(n_hist - 1):
+                hist[q] = hist[q + 1]
+                hist_mask[q] = hist_mask[q + 1]
+            hist[n_hist - 1] = pos
+            hist_mask[n_hist - 1] = mask
         if masks:
             for p in range(P):
                 mask[p] = out[parts[2, 0] + p] > 0.0

@@ -24,6 +24,9 @@ class ModelConfig:
     reservoir_radius: float = 0.98
     reservoir_periods: tuple[float, float] = (0.0, 0.0)  # s; > 0: W_R turns with these periods (log-spaced)
     hidden: tuple[int, ...] = (2048, 512, 512, 512)
+    # time window (Table 7.1 row 4, window.py): block lengths of past samples, oldest first, the last
+    # block the current sample; each older block's mean position adds inputs. (): the current sample only
+    window: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ class FoldedNet:
             n_lin = net.n_geo - 3 * P - P  # local, pairs, heights
             T = geo[:, :n_lin].double().T  # (n_lin, 3P)
             mask0 = n_lin + 3 * P  # after the velocity slots (masked off) the masks; then tactile, glove mask,
-            # memory: used as they are
+            # memory and the time window's offsets: used as they are (compiled.py computes the window's)
         # each linear feature is s * (pos[plus] - pos[minus]) (minus = 3P: a zero)
         Tn = T.numpy()
         plus = np.argmax(Tn > 0, axis=1)

@@ -18,6 +18,7 @@ from services.policy import compiled as C
 from services.policy.config import InferenceConfig, ModelConfig, from_json, to_json
 from services.policy.folded import FoldedNet
 from services.policy.network import PolicyNet
+from services.policy.window import pad_history, push_history
 from shared.demo import KEYPOINTS_PER_HAND, Demo
 
 MAX_TACTILE_KPA = 500.0  # above any glove reading: bounds the tactile feedback of an untrained net
@@ -84,7 +85,15 @@ class Policy:
                  "tactile": start.tactile[0].astype(np.float64), "tmask": start.tactile_mask[0].astype(bool)}
         if self.cfg.memory:
             state["H"] = self.initial_memory()
-        return state
+        return self.start_window(state)
+
+    def start_window(self, state: dict) -> dict:
+        """``state`` with the time window's history at an episode start (its samples padded with this
+        one), where the net has a window; the state itself otherwise."""
+        if not self.cfg.window:
+            return state
+        return dict(state, window_pos=pad_history(state["pos"], self.cfg.window),
+                    window_mask=pad_history(state["mask"], self.cfg.window))
 
     def initial_memory(self) -> np.ndarray:
         """The normalized reservoir state at an episode start (the training starts' mean)."""
@@ -120,8 +129,8 @@ class Policy:
 
     def step(self, state: dict, dt: float | None = None, observed_objects: np.ndarray | None = None) -> dict:
         """One policy step with the consistency solve; returns the next state (positions, velocities,
-        mask, tactile, memory, time). ``observed_objects`` (K,3), where given, replace the predicted
-        object points (live-driven neural simulation)."""
+        mask, tactile, memory, time window history, time). ``observed_objects`` (K,3), where given,
+        replace the predicted object points (live-driven neural simulation)."""
         dt = dt or self.dt
         pos, tact, mem, mask = self._roll(state, 1, dt)
         nxt = dict(state)
@@ -136,6 +145,9 @@ class Policy:
             nxt["tactile"] = tact[0]
         if self.cfg.memory:
             nxt["H"] = mem[0]
+        if self.cfg.window:  # the step's own sample joins the history
+            nxt["window_pos"] = push_history(state["window_pos"], state["pos"])
+            nxt["window_mask"] = push_history(state["window_mask"], state["mask"])
         return nxt
 
     def rollout(self, start: Demo, steps: int) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,9 @@
 
 Inputs (7.2.1, 7.2.3, 7.2.5): each hand's points relative to its wrist, pairwise translations
 between anchors (wrists, fingertips, object points), anchor heights (gravity matters, 7.2.4),
-observed masks, tactile with its glove mask (7.2.10) and reservoir activations (7.2.8). Inputs are
+observed masks, tactile with its glove mask (7.2.10), reservoir activations (7.2.8) and, with a time
+window (row 4 of Table 7.1, window.py), each older block's mean position relative to the current
+position (masked where the point is unobserved now or anywhere in the block). Inputs are
 standardized with training statistics and multiplied by their masks after normalization (7.2.5).
 The input vector keeps a block of 3P keypoint-velocity slots whose mask is always zero: the
 trained presets' first layer has those columns, and the statistics and initial weights are drawn
@@ -26,6 +28,7 @@ import torch
 from torch import nn
 
 from services.policy.config import ModelConfig
+from services.policy.window import check_blocks
 from shared.demo import KEYPOINTS_PER_HAND, TACTILE_REGIONS
 
 POS_SCALE = 10.0  # 10 cm -> 1
@@ -81,6 +84,7 @@ class PolicyNet(nn.Module):
 
     def __init__(self, cfg: ModelConfig, K: int) -> None:
         super().__init__()
+        check_blocks(cfg.window)
         self.cfg, self.layout = cfg, Layout(K)
         lay = self.layout
         self.register_buffer("anchors", torch.as_tensor(lay.anchors))
@@ -95,7 +99,8 @@ class PolicyNet(nn.Module):
         self.register_buffer("m_pj", torch.as_tensor(np.repeat(lay.anchors[lay.pair_j], 3)))
         self.register_buffer("m_vel", torch.as_tensor(np.repeat(np.arange(lay.P), 3)))
         n_geo = HAND_POINTS * 3 + lay.pairs * 3 + len(lay.anchors) + lay.P * 3 + lay.P
-        n_in = n_geo + (2 * 2 * REGIONS if cfg.tactile else 0) + (cfg.reservoir if cfg.memory else 0)
+        self.n_window = max(len(cfg.window) - 1, 0) * lay.P * 3
+        n_in = n_geo + (2 * 2 * REGIONS if cfg.tactile else 0) + (cfg.reservoir if cfg.memory else 0) + self.n_window
         self.n_geo, self.n_in = n_geo, n_in
         self.register_buffer("mean", torch.zeros(n_in))
         self.register_buffer("std", torch.ones(n_in))
@@ -130,8 +135,10 @@ class PolicyNet(nn.Module):
         return feats, fmask
 
     def inputs(self, pos: torch.Tensor, vel: torch.Tensor, mask: torch.Tensor, tactile: torch.Tensor | None = None,
-               tmask: torch.Tensor | None = None, H: torch.Tensor | None = None) -> torch.Tensor:
-        """Normalized, masked input vector (B, n_in)."""
+               tmask: torch.Tensor | None = None, H: torch.Tensor | None = None,
+               window: torch.Tensor | None = None, wmask: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalized, masked input vector (B, n_in). ``window`` (B, blocks-1, P, 3): the older blocks'
+        mean positions, ``wmask`` (B, blocks-1, P) whether each observed its points throughout."""
         cfg = self.cfg
         geo, gmask = self.geometry(pos, vel, mask)
         parts, masks = [geo], [gmask]
@@ -143,6 +150,12 @@ class PolicyNet(nn.Module):
         if cfg.memory:
             parts.append(H)
             masks.append(torch.ones_like(H))
+        if self.n_window:
+            if window is None or wmask is None:
+                raise ValueError(f"a time-window net ({cfg.window}) needs the window's block means and masks")
+            B = len(geo)
+            parts.append(((window - pos[:, None]) * POS_SCALE).reshape(B, -1))
+            masks.append((wmask * mask[:, None]).repeat_interleave(3, dim=2).reshape(B, -1))
         x = torch.cat(parts, dim=1)
         return (x - self.mean) / self.std * torch.cat(masks, dim=1)
 

@@ -60,6 +60,8 @@ def simulate(model: Policy, start_state: Demo | dict, steps: int,
              observed_objects: np.ndarray | None = None) -> Rollout:
     """Recursive neural simulation for ``steps`` samples (the first is the start state)."""
     state = model.initial_state(start_state) if isinstance(start_state, Demo) else dict(start_state)
+    if "window_pos" not in state:  # a state given without its history starts an episode
+        state = model.start_window(state)
     if observed_objects is not None:
         observed_objects = np.asarray(observed_objects, float)
         if observed_objects.shape[1:] != (model.K, 3) or len(observed_objects) < steps:
@@ -113,7 +115,7 @@ class PolicyRunner:
                      "tactile": np.zeros((2, len(TACTILE_REGIONS))), "tmask": np.zeros((2, len(TACTILE_REGIONS)), bool)}
             if m.cfg.memory:
                 start["H"] = m.initial_memory()
-            self.state = start
+            self.state = m.start_window(start)
         else:
             prev = self.state["pos"]
             merged = np.where(mask[:, None], pos, prev)
@@ -136,7 +138,8 @@ class PolicyRunner:
         state = self.observe(scene_obs) if scene_obs is not None else self.state
         nxt = self.model.step(state)
         self._check(nxt["pos"])
-        self.state = dict(state, H=nxt["H"]) if "H" in nxt else state
+        carried = {k: nxt[k] for k in ("H", "window_pos", "window_mask") if k in nxt}  # memory, window history
+        self.state = dict(state, **carried)
         self.efforts = nxt["tactile"]
         return nxt["pos"]
 

@@ -114,11 +114,14 @@ def test_xm_eval_and_train_refuse_an_unknown_config_change(tmp_path, capsys):
 @pytest.mark.slow
 def test_xm_eval_keeps_the_net_it_scored(tmp_path, demos):
     """policy_<row>.pt is the very net of the row: reloaded, it scores the same; baselines leave none."""
-    rows = evaluate(methods=["single_state", "promp_simple"], out_dir=tmp_path, quick=True, progress=False,
-                    demos=demos, changes={"max_speed": 1.2})
-    assert "rows (1)-(3) with max_speed=1.2" in (tmp_path / "results.md").read_text()
-    assert sorted(p.name for p in tmp_path.glob("policy_*.pt")) == ["policy_single_state.pt"]
+    rows = evaluate(methods=["single_state", "time_window", "promp_simple"], out_dir=tmp_path, quick=True,
+                    progress=False, demos=demos, changes={"max_speed": 1.2})
+    assert "rows (1)-(4) with max_speed=1.2" in (tmp_path / "results.md").read_text()
+    assert sorted(p.name for p in tmp_path.glob("policy_*.pt")) == ["policy_single_state.pt",
+                                                                    "policy_time_window.pt"]
     val = split(demos)[1]
-    reloaded = Policy.load(str(tmp_path / "policy_single_state.pt"))
-    assert reloaded.inference.max_speed == 1.2
-    assert score(rollouts(reloaded, val, False), val) == pytest.approx(rows["single_state"], abs=1e-9)
+    for name in ("single_state", "time_window"):
+        reloaded = Policy.load(str(tmp_path / f"policy_{name}.pt"))
+        assert reloaded.inference.max_speed == 1.2
+        assert score(rollouts(reloaded, val, False), val) == pytest.approx(rows[name], abs=1e-9)
+    assert Policy.load(str(tmp_path / "policy_time_window.pt")).cfg.window == (8, 4, 2, 1, 1)

@@ -52,17 +52,25 @@ def untrained(demos, **changes) -> Policy:
 
 
 def hidden_state(policy: Policy, demo: Demo, seed: int = 0) -> dict:
-    """A start state with points hidden on both hands and an object, and touch on both gloves."""
+    """A start state with points hidden on both hands and an object, and touch on both gloves (and a
+    time window's history where the net has one)."""
     rng = np.random.default_rng(seed)
     state = policy.initial_state(demo)
     mask = np.ones(len(state["pos"]), bool)
     mask[[3, 21, 22, 44]] = False
+    if "window_pos" in state:  # a history that moved, with points hidden in some of its samples
+        seen = state["window_mask"].copy()
+        seen[-2:, 5], seen[0, 30] = False, False
+        state = dict(state, window_pos=state["window_pos"] + rng.normal(0, 0.01, state["window_pos"].shape),
+                     window_mask=seen)
     return dict(state, mask=mask, tactile=rng.uniform(0, 30, (2, 6)), tmask=rng.random((2, 6)) < 0.5)
 
 
 CASES = {"multimodal": {}, "no_tactile": {"tactile": False}, "single_state": {"tactile": False, "memory": False},
          "no_masks": {"masks": False}, "no_dynamics": {"dynamics": False}, "no_follow": {"follow_unobserved": False},
-         "per_point_dynamics": {"body_dynamics": False}}
+         "per_point_dynamics": {"body_dynamics": False},
+         "time_window": {"tactile": False, "memory": False, "window": (8, 4, 2, 1, 1)},
+         "window_multimodal": {"window": (2, 1, 1)}}
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
@@ -82,7 +90,7 @@ def test_compiled_rollout_equals_the_torch_reference(demos, case):
                                        err_msg=f"{name}, dt {dt}")
 
 
-@pytest.mark.parametrize("case", ["multimodal", "no_masks", "single_state"])
+@pytest.mark.parametrize("case", ["multimodal", "no_masks", "single_state", "time_window"])
 def test_one_compiled_step_is_the_reference_step(demos, case):
     """Every field of the next state (positions, velocities, mask, tactile, memory, time)."""
     policy = untrained(demos, **CASES[case])

@@ -4,6 +4,7 @@ recipe switches, the training loop and its checkpoints."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -135,6 +136,11 @@ def test_config_changes_are_typed_like_their_fields_and_bad_ones_named():
             config_changes([bad])
     with pytest.raises(ValueError, match="unknown recipe field"):
         preset("multimodal", candidates=2)
+    # the window's default is empty: its values are integers, and an empty value is no window
+    assert config_changes(["window=8,4,2,1,1"]) == {"window": (8, 4, 2, 1, 1)}
+    assert config_changes(["window="]) == {"window": ()}
+    with pytest.raises(ValueError, match="not a tuple"):
+        config_changes(["window=8,x"])
 
 
 def test_body_dynamics_trains_j_where_the_holding_hand_hides_its_pinch():
@@ -169,6 +175,7 @@ SWITCHES = {
     "no_lag_noise": {"lag_noise": 0.0},
     "no_follow": {"follow_unobserved": False},
     "no_memory_prior": {"w_memory_prior": 0.0},
+    "time_window": {"window": (8, 4, 2, 1, 1)},
 }
 
 
@@ -268,6 +275,7 @@ def test_checkpoint_round_trip_weights_only_with_the_training_demonstrations(dem
 
 
 def test_presets_differ_only_in_their_modalities():
-    mm, nt, ss = (PRESETS[k] for k in ("multimodal", "no_tactile", "single_state"))
+    mm, nt, ss, tw = (PRESETS[k] for k in ("multimodal", "no_tactile", "single_state", "time_window"))
     assert mm.model.tactile and not nt.model.tactile and not ss.model.memory
-    assert mm.train == nt.train == ss.train and mm.inference == nt.inference == ss.inference
+    assert tw.model == replace(ss.model, window=(8, 4, 2, 1, 1))  # row (4): row (3) fed the thesis's window
+    assert mm.train == nt.train == ss.train == tw.train and mm.inference == nt.inference == ss.inference == tw.inference
