@@ -5,10 +5,11 @@ Reports per kill the time until the killed service publishes again (every one of
 keys, or for services without keys its @health answering from the new process), the outage of
 every key around the kill (from live arrivals), the recording's largest gap per key around the
 kill beyond the key's nominal period, each restarted service's start-up (its "ready" log line),
-stuck services (not back within --stuck-after), spurious brakes (the robot's watchdog
-braking while trajectories flow, sampled from its @health) and the RSS of every service over
-time. Writes .bench/soak.json. Targets: every kill recovered within 3 s (p100), 0 stuck, a
-recording gap per kill <= 1 s on every key, RSS growth <= 10 %, 0 spurious brakes.
+stuck services (not back within --stuck-after), spurious brakes (the board's watchdog braking
+while trajectories flow and no kill on the command path is being recovered, counted by the
+world's simulated board) and the RSS of every service over time. Writes .bench/soak.json.
+Targets: every kill recovered within 3 s (p100), 0 stuck, a recording gap per kill <= 1 s on
+every key, RSS growth <= 10 %, 0 spurious brakes.
 
 On a host shared with other work, ``--autogroup-nice -10`` keeps that work from distorting the
 figures: the soak, the cell (every service, spare and restarted process) and its hog share the
@@ -321,24 +322,46 @@ def rss_growth(series: dict) -> dict:
 
 
 def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: dict) -> None:
-    """Samples the robot's watchdog at ~5 Hz: braking while a trajectory arrived in the last 0.5 s
-    and no kill of trajopt/robot/world is being recovered is spurious."""
+    """Counts the board's watchdog brakes (the world's counter, exact) and sorts each one by the
+    sequence of the command before it: a kill of a service on the command path being recovered
+    (trajopt, robot, world, or their inputs), or no trajectory in the last 0.5 s: expected; else
+    spurious, and of those, the ones after a gap over 9 ms in the robot service's own command
+    stream (its process stalled: ``after_host_gap``) and the others (the pty or the world starved
+    the board's watchdog). Also samples the watchdog state at ~5 Hz: braking while commanded."""
     key = "xm/trajopt/main/trajectory"
-    prev = "ok"
+    prev_state, prev_board, last_poll = "ok", None, time.monotonic()
     while not stop.is_set():
         h = monitor.health(f"xm/robot/{robot}/@health", 0.5)
         now = time.monotonic()
+        last = monitor.last_before(key, now)
+        commanded = last is not None and now - last < 0.5
+        quiet = result["recovering"] or now - result["recovered_at"] < now - last_poll + 0.5
         if h:
             state = h[0].get("watchdog", "unknown")
-            last = monitor.last_before(key, now)
-            flowing = last is not None and now - last < 0.5 and not result["recovering"]
             result["samples"] += 1
-            if state == "braking" and flowing:
+            if state == "braking" and commanded and not quiet:
                 result["braking_samples_while_commanded"] += 1
-                if prev != "braking":
-                    result["spurious_brakes"] += 1
-                    result["events"].append(round(now - result["t0"], 1))
-            prev = state
+                if prev_state != "braking":
+                    result["braking_seen_while_commanded"] += 1
+            prev_state = state
+        w = monitor.health("xm/world/sim/@health", 0.5)
+        board = (w[0].get("devices") or {}).get("robot") if w else None
+        if board is not None and h:
+            pid, count = w[0].get("pid"), board.get("watchdog_brakes", 0)
+            if prev_board is not None and prev_board[0] == pid and count > prev_board[1]:
+                new = board.get("brakes_after", [])[-(count - prev_board[1]):]
+                host_gaps = set(h[0].get("command_stream", {}).get("gaps_after", []))
+                for seq in new:
+                    if quiet or not commanded:
+                        result["board_brakes_expected"] += 1
+                    else:
+                        result["spurious_brakes"] += 1
+                        kind = "after_host_gap" if seq in host_gaps else "board_starved"
+                        result["spurious_by_cause"][kind] += 1
+                        result["events"].append({"t": round(now - result["t0"], 1), "after_sequence": seq,
+                                                 "cause": kind})
+            prev_board = (pid, count)
+        last_poll = now
         stop.wait(0.2)
 
 
@@ -398,8 +421,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         robot = next((c["instance"] for c in monitor.children() if c["service"] == "robot"), "workcell")
         t0 = time.monotonic()
-        brakes = {"t0": t0, "samples": 0, "braking_samples_while_commanded": 0, "spurious_brakes": 0,
-                  "events": [], "recovering": False}
+        brakes = {"t0": t0, "samples": 0, "braking_samples_while_commanded": 0, "braking_seen_while_commanded": 0,
+                  "spurious_brakes": 0, "spurious_by_cause": {"after_host_gap": 0, "board_starved": 0},
+                  "board_brakes_expected": 0, "events": [], "recovering": False, "recovered_at": -np.inf}
         stop = threading.Event()
         sampler = threading.Thread(target=brake_sampler, args=(monitor, robot, stop, brakes), daemon=True)
         sampler.start()
@@ -423,6 +447,8 @@ def main(argv: list[str] | None = None) -> int:
                                                                 "camhub")
                     kill = measure_kill(monitor, child, args.stuck_after)
                     time.sleep(3.0)  # let downstream services settle before judging brakes again
+                    if brakes["recovering"]:
+                        brakes["recovered_at"] = time.monotonic()
                     brakes["recovering"] = False
                     kill["outage_s"] = outages(monitor, kill["t_kill_mono"], time.monotonic())
                     kill["t"] = round(kill.pop("t_kill_mono") - t0, 1)
@@ -437,8 +463,8 @@ def main(argv: list[str] | None = None) -> int:
         stop.set()
         sampler.join(2)
         report["loadavg"] = rss.pop("_loadavg")
-        brakes.pop("t0")
-        brakes.pop("recovering")
+        for k in ("t0", "recovering", "recovered_at"):
+            brakes.pop(k)
         report["brakes"] = brakes
         report["rss"] = dict(rss)
         report["rss_growth"] = rss_growth(rss)
