@@ -397,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
                           stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
     procs = [up]
     report: dict = {"deployment": str(args.deployment), "minutes": args.minutes, "kill_every_s": args.kill_every,
-                    "hog": args.hog, "standby": args.standby, "cpus": os.cpu_count(),
+                    "hog": args.hog, "standby": args.standby, "cpus": os.cpu_count(), "commit": git_commit(),
                     "loadavg_start": os.getloadavg(), "kills": []}
     monitor = None
     boost_stop = threading.Event()
@@ -507,6 +507,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def git_commit() -> str | None:
+    """The checkout's commit, with "+dirty" when its tracked files differ from it."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=ROOT).returncode != 0
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+dirty" if dirty else "")
+
+
 def save(out: Path, report: dict) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
@@ -546,6 +557,8 @@ def summarize(report: dict) -> dict:
         if report.get("loadavg") else None,
         "rss_growth_max": max(growth) if growth else None,
         "spurious_brakes": report["brakes"]["spurious_brakes"],
+        "spurious_brakes_by_cause": report["brakes"]["spurious_by_cause"],
+        "board_brakes_expected": report["brakes"]["board_brakes_expected"],
         "targets": {"recovered_p100_s": RECOVERY_TARGET_S, "stuck": 0, "recording_gap_s": GAP_TARGET_S,
                     "rss_growth": RSS_GROWTH_TARGET, "spurious_brakes": 0},
     }
