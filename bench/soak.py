@@ -243,6 +243,29 @@ def outages(monitor: Monitor, t_kill: float, until: float) -> dict[str, float]:
     return out
 
 
+def unplanned_exits(up_log: Path, kills: list[dict]) -> list[dict]:
+    """Exits the soak did not cause, from the supervisor's log: every exit other than SIGKILL, and
+    SIGKILLs of a service beyond the soak's kills of it (a crash, an abort, the OOM killer)."""
+    killed = defaultdict(int)
+    for k in kills:
+        killed[k["service"]] += 1
+    out = []
+    try:
+        lines = up_log.read_text(errors="replace").splitlines()
+    except OSError:
+        return out
+    for line in lines:
+        m = re.match(r"(\S+) WARNING supervisor: (\S+) exited code=(-?\d+) ran_s=(\S+)", line)
+        if not m:
+            continue
+        at, name, code, ran = m.group(1), m.group(2), int(m.group(3)), float(m.group(4))
+        if code == -signal.SIGKILL and killed[name] > 0:
+            killed[name] -= 1
+            continue
+        out.append({"at": at, "service": name, "code": code, "ran_s": ran})
+    return out
+
+
 def recording_gaps(path: Path, kills: list[dict]) -> dict:
     """Per kill and key: what the kill cost the recording. The largest interval between recorded
     messages (log time) from 1 s before the kill to WINDOW_S after it, less the key's nominal
@@ -468,6 +491,7 @@ def main(argv: list[str] | None = None) -> int:
         report["brakes"] = brakes
         report["rss"] = dict(rss)
         report["rss_growth"] = rss_growth(rss)
+        report["unplanned_exits"] = unplanned_exits(tmp / "up.log", report["kills"])
         report["final_health"] = {f"{h['service']}/{h['instance']}": {
             k: h.get(k) for k in ("status", "message", "errors", "rejected", "dropped", "clock_jumps")}
             for h in monitor.health("xm/**/@health", 2.0)}
@@ -546,6 +570,7 @@ def summarize(report: dict) -> dict:
         "recovery_by_service_s": dict(by_service),
         "ready_after_process_start_s": dict(ready),
         "stuck": sum(k["stuck"] for k in kills),
+        "unplanned_exits": len(report.get("unplanned_exits", [])),
         "recording_gap_max_per_kill_s": gap,
         "recording_gap_over_target": sum(g > GAP_TARGET_S for g in gap),
         "recording_gap_max_on_other_services_keys_s": others,
