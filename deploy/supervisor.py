@@ -180,7 +180,9 @@ class Supervisor:
     async def _spawn(self, child: Child, spare: bool) -> tuple[asyncio.subprocess.Process, list[asyncio.Task]]:
         cmd = [sys.executable, "-m", f"services.{child.service}",
                "--deployment", str(self.deployment.path), "--instance", child.instance]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # PYTHONFAULTHANDLER: a native crash (SIGSEGV, SIGABRT from a corrupted heap) leaves every
+        # thread's Python stack in the service's log.
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         proc = await asyncio.create_subprocess_exec(

@@ -54,12 +54,13 @@ class FrameSet:
 class SimRig:
     """The simulated hub. Call ``trigger`` from one and the same worker thread (the GL context lives there)."""
 
-    def __init__(self, session, names: list[str], width: int, height: int, timeout_s: float = 1.0) -> None:
+    def __init__(self, session, names: list[str], width: int, height: int, timeout_s: float = 1.0,
+                 renderer: object | None = None) -> None:
         self._session = session
         self._timeout = timeout_s
         self._size = (width, height)
         self._names = list(names)
-        self._renderer = None
+        self._renderer = renderer  # one built ahead (``warm_renderer``, a standby spare), else at the first frame
 
     def trigger(self, windows: dict[str, Roi], now: float) -> FrameSet:
         from services.world.render import SceneRenderer, Snapshot  # MuJoCo + GL: only the sim source needs them
@@ -87,6 +88,16 @@ class SimRig:
     def close(self) -> None:
         if self._renderer is not None:
             self._renderer.close()
+
+
+def warm_renderer(task: str, width: int, height: int, robot: str) -> object:
+    """A SceneRenderer that has drawn one frame (GL context, shaders, textures: ~0.7 s of a first
+    frame, more on a busy host); build it on the thread that will render with it."""
+    from services.world.render import SceneRenderer, snapshot  # MuJoCo + GL: only the sim source needs them
+
+    renderer = SceneRenderer(task, width, height, robot=robot)
+    renderer.render(snapshot(task, renderer.data, robot))
+    return renderer
 
 
 class V4L2Source:

@@ -10,16 +10,27 @@ from __future__ import annotations
 import asyncio
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from services.camhub.camera_info import camera_info, encode_jpeg, from_calibration
-from services.camhub.driver import DeviceRig, FileSource, FrameSet, RigError, SimRig, SizeMismatchError, V4L2Source
+from services.camhub.driver import (
+    DeviceRig,
+    FileSource,
+    FrameSet,
+    RigError,
+    SimRig,
+    SizeMismatchError,
+    V4L2Source,
+    warm_renderer,
+)
 from services.camhub.roi import CameraGeometry, RoiParams, full_frame, missing_hand, rig_windows, tracked_points
 from services.world.model import camera_specs
 from shared import calibration, msgs
-from shared.config import ConfigError
+from shared.config import ConfigError, Deployment
 from shared.keys import CAMERAS
+from shared.robots.registry import DEFAULT_ROBOT
 from shared.runtime import Node
 
 SOURCES = ("sim", "v4l2", "files")
@@ -46,6 +57,24 @@ class CamhubService:
         roi_reacquire_every: int = 10
         roi_reacquire_lost_every: int = 2
 
+    # A standby spare's rig thread and the renderer built on it, by its params.
+    _prepared: ClassVar[dict[str, tuple[ThreadPoolExecutor, object]]] = {}
+
+    @classmethod
+    def prepare(cls, params: Params, deployment: Deployment | None = None) -> None:
+        """A standby spare of the simulated rig builds its renderer for the deployment's world
+        (task, robot) and draws one frame before it takes over: MuJoCo's import, the model, the
+        GL context and the first frame are most of camhub's first trigger. A world on another
+        task makes the rig build another renderer at its first frame."""
+        if params.source != "sim":
+            return
+        world = next(iter((deployment.services.get("world", {}) if deployment else {}).values()), {})
+        task = str(world.get("task", "assembly"))
+        robot = str(world.get("robot", deployment.robot if deployment else DEFAULT_ROBOT))
+        worker = ThreadPoolExecutor(1, thread_name_prefix="rig")  # the GL context is current on this thread only
+        renderer = worker.submit(warm_renderer, task, params.width, params.height, robot).result()
+        cls._prepared[repr(params)] = (worker, renderer)
+
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.params = params
@@ -53,8 +82,10 @@ class CamhubService:
         self.cameras, self.intrinsics = self._geometry(params)
         self.roi_params = RoiParams(params.roi_margin_m, params.roi_min_px, params.roi_max_age_s,
                                     params.roi_reacquire_every, params.roi_reacquire_lost_every)
-        self.rig = self._rig(params)
-        self.worker = ThreadPoolExecutor(1, thread_name_prefix="rig")  # the rig's GL context lives on this thread
+        prepared = self._prepared.pop(repr(params), None)
+        # The rig's GL context lives on this thread.
+        self.worker = prepared[0] if prepared else ThreadPoolExecutor(1, thread_name_prefix="rig")
+        self.rig = self._rig(params, prepared[1] if prepared else None)
         self.pubs = {name: (node.output("image", name), node.output("info", name))
                      for name in self.names}
         # (stamp, tracked keypoints, a hand missing) of the last scene
@@ -87,9 +118,9 @@ class CamhubService:
         return ([CameraGeometry(n, p.width, p.height, truth[n].K, np.zeros(5), truth[n].world_T_cam)
                  for n in self.names], "the world's true cameras (no calibration file given)")
 
-    def _rig(self, p: Params) -> SimRig | DeviceRig:
+    def _rig(self, p: Params, renderer: object | None = None) -> SimRig | DeviceRig:
         if p.source == "sim":
-            return SimRig(self.node.session, self.names, p.width, p.height)
+            return SimRig(self.node.session, self.names, p.width, p.height, renderer=renderer)
         paths, what = (p.devices, "devices") if p.source == "v4l2" else (p.files, "files")
         if len(paths) != len(self.names):
             raise ConfigError(f"camhub source {p.source!r}: {len(paths)} {what} for {len(self.names)} cameras "

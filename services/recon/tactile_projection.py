@@ -109,9 +109,10 @@ class TactileProjector:
         return pose(keypoints, side, self.template), self.template.faces(side), self.sample(pressure)
 
     def message(self, stamp: float, hand_names: list[str], hands: np.ndarray, hand_mask: np.ndarray,
-                pressures: dict[str, np.ndarray]) -> tuple[Any | None, dict[str, str]]:
+                pressures: dict[str, np.ndarray]) -> tuple[Any, dict[str, str]]:
         """The TactileMesh of every hand with a glove frame in ``pressures`` and all 21 keypoints
-        (None when there is none), and why each other gloved hand was left out."""
+        (a message of no hands when there is none: the key keeps the frame sets' pace, and a
+        consumer knows the meshes are gone), and why each other gloved hand was left out."""
         names, verts, faces, values, skipped = [], [], [], [], {}
         for i, name in enumerate(hand_names):
             if name not in pressures:
@@ -129,7 +130,9 @@ class TactileProjector:
             faces.append(f)
             values.append(p)
         if not names:
-            return None, skipped
+            n = self.template.n_vertices
+            return tactile_mesh_message(stamp, [], np.zeros((0, n, 3)), np.zeros((0, 0, 3)), np.zeros((0, n)),
+                                        self.sensed), skipped
         return tactile_mesh_message(stamp, names, np.stack(verts), np.stack(faces), np.stack(values),
                                     self.sensed), skipped
 

@@ -73,6 +73,9 @@ class RobotService:
         # SCHED_FIFO priority of the command thread and of the serial reader (0: normal priority);
         # refused by the OS -> nice -10 or normal priority, logged (shared/realtime.py).
         rt_priority: int = 10
+        # SCHED_FIFO priority of the service's other threads (event loop, Zenoh's), which share the
+        # command thread's GIL (0: nice -10); only while the command thread is real-time.
+        process_rt_priority: int = 5
         config_period_s: float = 1.0  # the limits config frame is repeated this often (a board may reset)
 
     def __init__(self, node: Node, params: Params) -> None:
@@ -136,9 +139,10 @@ class RobotService:
         """Commands on wall time, one per period: the board's watchdog must be fed even if the sim
         clock stalls or the event loop is busy. A late wake-up sends one command, never a burst."""
         self.stream["priority"] = raise_priority("robot command stream", self.node.log, self.p.rt_priority)
-        # the GIL ties this thread to every other of the process: they must not wait behind other processes
+        # The GIL ties this thread to every other of the process: one holding it must not wait for a CPU
+        # behind other processes (at nice -10 it still did, and the board braked after a 10 ms gap).
         if self.p.rt_priority > 0:
-            raise_process_priority("robot", self.node.log)
+            raise_process_priority("robot", self.node.log, rt_priority=self.p.process_rt_priority)
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
         last_sent: float | None = None

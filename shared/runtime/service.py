@@ -12,14 +12,16 @@ its ``ports.py`` declares ``PORTS`` (shared/ports.py), and its ``__main__.py`` c
 With ``--standby`` the process stops after its imports and waits for a line on stdin before it
 connects: the supervisor keeps such a spare per service and hands over to it when the service
 dies, so a restart skips the interpreter's start and the imports. A service class may also
-define ``prepare(params)`` (a classmethod): work that needs no connection (decoders, solvers),
-which a spare does before it waits, so the takeover skips it too.
+define ``prepare(params)`` (a classmethod): work that needs no connection (decoders, solvers,
+networks, renderers), which a spare does before it waits, so the takeover skips it too; one that
+also declares a ``deployment`` parameter gets the loaded deployment (camhub: the world's task).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import inspect
 import os
 import signal
 import sys
@@ -103,8 +105,12 @@ def prepare_spare(service: str, cls: type, deployment_path: str, instance: str) 
     if not hasattr(cls, "prepare"):
         return
     try:
-        params = load_deployment(deployment_path).service_params(cls.Params, service, instance)
-        cls.prepare(params)
+        deployment = load_deployment(deployment_path)
+        params = deployment.service_params(cls.Params, service, instance)
+        if "deployment" in inspect.signature(cls.prepare).parameters:
+            cls.prepare(params, deployment=deployment)
+        else:
+            cls.prepare(params)
     except Exception as exc:  # the service's own start meets the same problem and reports it
         print(f"standby: prepare failed ({exc!r}); the service does it when it starts", file=sys.stderr)
 

@@ -45,3 +45,53 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
         finally:
             if session is not None:
                 session.close()
+
+
+def test_a_kill_before_the_spare_is_ready_or_after_it_died_still_recovers(tmp_path):
+    """The service dies while its spare is not yet reading its "go" (stopped here, as if still
+    importing): the spare takes over once it runs. Then the spare itself dies first: the next kill
+    is recovered by a fresh process, and a new spare follows."""
+    from shared.runtime import open_client
+
+    router = free_endpoint()
+    dep = write_deployment(tmp_path / "d.toml", router, {"recorder": {"main": {"directory": str(tmp_path / "rec")}}})
+    log = tmp_path / "up.log"
+    session = None
+    with xm_up(dep, log, "--standby"):
+        try:
+            def child() -> dict | None:
+                nonlocal session
+                if session is None:
+                    try:
+                        session = open_client(router)
+                    except Exception:  # the router is not up yet
+                        return None
+                sup = query_json(session, "xm/deploy/supervisor/@health")
+                return sup[0]["children"][0] if sup else None
+
+            first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
+            assert first, log.read_text()
+            spare = first["spare_pid"]
+            os.kill(spare, signal.SIGSTOP)  # busy: it cannot read the supervisor's "go"
+            try:
+                os.kill(first["pid"], signal.SIGKILL)
+                waiting = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c, 30)
+                assert waiting and waiting["pid"] == spare and waiting["state"] == "recovering", waiting
+            finally:
+                os.kill(spare, signal.SIGCONT)
+            took = wait_for(lambda: (c := child()) and c["state"] == "ok" and c, 30)
+            assert took and took["pid"] == spare, (log.read_text(), took)
+            health = wait_for(lambda: query_json(session, "xm/recorder/main/@health"), 10)
+            assert health and health[0]["pid"] == spare
+
+            nxt = wait_for(lambda: (c := child()) and c["spare_ready"] and c, 60)
+            assert nxt, "no new spare after the takeover"
+            os.kill(nxt["spare_pid"], signal.SIGKILL)
+            assert wait_for(lambda: (c := child()) and c["spare_pid"] is None and c, 10), "the dead spare is listed"
+            os.kill(nxt["pid"], signal.SIGKILL)
+            cold = wait_for(lambda: (c := child()) and c["restarts"] == 2 and c["state"] == "ok" and c, 60)
+            assert cold and cold["pid"] not in (nxt["pid"], nxt["spare_pid"]), (log.read_text(), cold)
+            assert wait_for(lambda: (c := child()) and c["spare_ready"] and c, 60), "no spare after a cold start"
+        finally:
+            if session is not None:
+                session.close()

@@ -31,3 +31,22 @@ def test_a_spare_prepares_with_its_instance_params_and_survives_a_failing_prepar
     assert Prepared.seen == [Prepared.Params(segment_s=5.0)]
     assert "prepare failed" in capsys.readouterr().err
     prepare_spare("recorder", object, str(dep), "a")  # no prepare: nothing to do
+
+
+class NeedsDeployment:
+    seen: list = []
+
+    @dataclass
+    class Params:
+        width: int = 64
+
+    @classmethod
+    def prepare(cls, params: Params, deployment=None) -> None:
+        cls.seen.append((params, deployment.services["world"]["sim"]["task"]))
+
+
+def test_a_prepare_that_declares_deployment_gets_the_loaded_deployment(tmp_path):
+    dep = write_deployment(tmp_path / "d.toml", "tcp/127.0.0.1:7999",
+                           {"world": {"sim": {"task": "pouring"}}, "camhub": {"main": {"width": 32}}})
+    prepare_spare("camhub", NeedsDeployment, str(dep), "main")
+    assert NeedsDeployment.seen == [(NeedsDeployment.Params(width=32), "pouring")]

@@ -21,6 +21,7 @@ from services.recon.triangulation import project
 from services.world.model import camera_specs
 from shared import msgs
 from shared.demo import TACTILE_REGIONS
+from shared.runtime.validate import check
 from tests.unit.test_recon_service_paths import FakeNode, _info, _jpeg
 from tests.unit.test_recon_stages import _shape
 
@@ -207,7 +208,15 @@ def test_tactile_mesh_message_round_trip(projector):
     msg, skipped = projector.message(4.6, ["left", "right"], hands, mask, {"right": p, "left": p})
     assert list(msg.hand_names) == ["left"] and skipped == {"right": "incomplete_hand"}
     msg, skipped = projector.message(4.7, ["left", "right"], hands, np.ones((2, 21)), {"left": np.zeros(12)})
-    assert msg is None and skipped == {"left": "bad_input"}
+    assert list(msg.hand_names) == [] and skipped == {"left": "bad_input"}
+    # No hand to mesh is still a message, one per frame set: valid, and nothing for the panel to draw.
+    back = msgs.deserialize(msgs.serialize(msg), "xm_msgs/msg/TactileMesh")
+    check(back, "xm_msgs/msg/TactileMesh", None)  # the receivers' validation accepts it
+    assert back.vertex_count == len(projector.sensed) and len(back.vertices) == len(back.faces) == 0
+    assert view.tactile_mesh_arrays(back.hand_names, back.vertex_count, back.vertices, back.faces,
+                                    back.pressure) == []
+    msg, skipped = projector.message(4.8, ["left", "right"], hands, mask, {})
+    assert list(msg.hand_names) == [] and skipped == {}, "no glove frame: no hand, nothing skipped"
 
 
 def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
@@ -240,7 +249,8 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
             node.handlers["image"](_jpeg(spec, t), f"xm/camhub/{spec.name}/image")
             node.handlers["info"](_info(spec, t), f"xm/camhub/{spec.name}/info")
     meshes = [m for m in node.published if m.__msgtype__ == "xm_msgs/msg/TactileMesh"]
-    assert len(meshes) == 1, [m.__msgtype__ for m in node.published]
+    assert len(meshes) == 2, [m.__msgtype__ for m in node.published]  # one per frame set
+    assert list(meshes[1].hand_names) == [], "the glove frame is stale for the second set: no hand"
     (name, verts, _, values), = view.tactile_mesh_arrays(meshes[0].hand_names, meshes[0].vertex_count,
                                                          meshes[0].vertices, meshes[0].faces, meshes[0].pressure)
     assert name == "right"
