@@ -213,8 +213,8 @@ def nearest(series: dict[str, list[tuple[float, np.ndarray]]], stamp: float) -> 
 
 def tactile_meshes(frames: Frames, scenes: list) -> tuple[list, dict[str, int]]:
     """The glove's cells on the reconstructed hands (services/recon/tactile_projection.py), one
-    TactileMesh per frame set that has a gloved hand with all its keypoints; and per reason, the
-    hands left out."""
+    TactileMesh per frame set as live recon publishes them (no hands where no gloved hand has all
+    its keypoints); and per reason, the hands left out."""
     projector, out, skipped = TactileProjector(), [], {}
     for scene in scenes:
         stamp = msgs.stamp_seconds(scene.header.stamp)
@@ -224,8 +224,7 @@ def tactile_meshes(frames: Frames, scenes: list) -> tuple[list, dict[str, int]]:
         msg, why = projector.message(stamp, names, hands, mask, nearest(frames.pressure, stamp))
         for reason in why.values():
             skipped[reason] = skipped.get(reason, 0) + 1
-        if msg is not None:
-            out.append(msg)
+        out.append(msg)
     return out, skipped
 
 

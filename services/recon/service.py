@@ -256,5 +256,4 @@ class ReconService:
         self.times[-1]["tactile_mesh"] = time.perf_counter() - t0  # a stage of @health's stage_ms_median
         for hand, why in skipped.items():  # keypoints missing, or a bad glove frame
             self.node.stats.count(f"tactile_mesh_{why}", hand)
-        if msg is not None:
-            self.mesh_pub.put(msg)
+        self.mesh_pub.put(msg)

@@ -87,8 +87,9 @@ def test_offline_recon_writes_one_refined_scene_per_frame_set(tmp_path):
     assert "xm/world/sim/truth" in kept, "the rest of the recording is copied"
     # The glove's cells ride on the refined right hand: one mesh per frame set with the whole hand.
     meshes = [msgs.deserialize(s.data, s.msgtype) for s in read_messages(dst) if s.key == MESH_KEY]
+    assert len(meshes) == len(scenes), "one per frame set, as live"
     complete = sum(bool(m[KEYPOINTS_PER_HAND:].all()) for m in mask)
-    assert len(meshes) == complete > 0
+    assert sum(bool(len(m.hand_names)) for m in meshes) == complete > 0
     m = meshes[-1]
     assert list(m.hand_names) == ["right"]
     verts = np.asarray(m.vertices).reshape(-1, 3)
