@@ -24,11 +24,13 @@ from shared.runtime.node import Stats
 
 
 class FakeNode:
-    """What ReconService uses of a Node: declared ports as handlers and a list of published messages."""
+    """What ReconService uses of a Node: declared ports as handlers and the messages published per
+    output (``published``: the scenes)."""
 
     def __init__(self) -> None:
         self.handlers: dict[str, object] = {}
-        self.published: list = []
+        self.outputs: dict[str, list] = {}
+        self.published = self.outputs.setdefault("scene", [])
         self.stats = Stats()
         self.log = logging.getLogger("test-recon")
         self.status, self.message = "starting", ""
@@ -38,7 +40,7 @@ class FakeNode:
         self.handlers[port] = handler
 
     def output(self, port: str):
-        return SimpleNamespace(put=self.published.append)
+        return SimpleNamespace(put=self.outputs.setdefault(port, []).append)
 
     def set_status(self, status: str, message: str = "") -> None:
         self.status, self.message = status, message
@@ -159,6 +161,7 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
         node.handlers["image"](_jpeg(spec, 1.0, b"\xff\xd8bad" if spec.name == "cam3" else None),
                                f"xm/camhub/{spec.name}/image")
     assert len(node.published) == 1
+    assert len(node.outputs["tactile_mesh"]) == 1, "a mesh message per frame set, with no hands here"
     assert node.stats.errors["corrupt_jpeg:cam3"] == 1
     assert "cam3" not in seen_views[0] and len(seen_views[0]) == 6
     for spec in specs[:5]:  # frame set 2.0: cam5 and cam6 late; 3.0 and 4.0 begin
