@@ -147,29 +147,12 @@ def torch_fns(batch: int) -> dict:
     import torch  # optional heavy dependency, only for the timing comparison
     from torch.func import jvp, vjp
 
+    from shared.autolin.torch_reference import five_frame_chain
+
     torch.set_num_threads(1)
     xs, ds, w = chain_batch(batch)
 
-    axes = torch.tensor(AXES, dtype=torch.float64)
-    conj = torch.tensor([1.0, -1, -1, -1], dtype=torch.float64)
-
-    def tq(a, b):
-        return torch.stack(O.qmul(a.unbind(-1), b.unbind(-1)), -1)
-
-    def trot(q, v):
-        return tq(tq(q, torch.cat([torch.zeros_like(v[..., :1]), v], -1)), q * conj)[..., 1:]
-
-    def ref(*a):
-        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-
-        def joint(k):
-            h = th[k][..., None] / 2
-            return tq(qs[k], torch.cat([torch.cos(h), torch.sin(h) * axes[k]], -1))
-        q, t = joint(0), ts[0]
-        for k in range(1, 5):
-            t = t + trot(q, ts[k])
-            q = tq(q, joint(k))
-        return q, t + trot(q, p)
+    ref = five_frame_chain(AXES)
 
     tx = tuple(torch.tensor(x) for x in xs)
     td = tuple(torch.tensor(np.concatenate([d, np.zeros((batch, 1))], 1)) if t == "quat" else torch.tensor(d)

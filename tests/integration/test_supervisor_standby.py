@@ -12,63 +12,63 @@ from tests.conftest import free_endpoint, query_json, wait_for, write_deployment
 pytestmark = pytest.mark.slow
 
 
-def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
-    from shared.runtime import open_client
+class Supervised:
+    """The supervisor's view of the deployment's one child, through a client session opened once
+    the router is up."""
 
+    def __init__(self, router: str) -> None:
+        self.router, self.session = router, None
+
+    def child(self) -> dict | None:
+        from shared.runtime import open_client
+
+        if self.session is None:
+            try:
+                self.session = open_client(self.router)
+            except Exception:  # the router is not up yet
+                return None
+        sup = query_json(self.session, "xm/deploy/supervisor/@health")
+        return sup[0]["children"][0] if sup else None
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+
+
+def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
     router = free_endpoint()
     dep = write_deployment(tmp_path / "d.toml", router, {"recorder": {"main": {"directory": str(tmp_path / "rec")}}})
-    session = None
+    sup = Supervised(router)
+    child = sup.child
     with xm_up(dep, tmp_path / "up.log", "--standby"):
         try:
-            def child() -> dict | None:
-                nonlocal session
-                if session is None:
-                    try:
-                        session = open_client(router)
-                    except Exception:  # the router is not up yet
-                        return None
-                sup = query_json(session, "xm/deploy/supervisor/@health")
-                return sup[0]["children"][0] if sup else None
-
             first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
             assert first, (tmp_path / "up.log").read_text()
             assert first["spare_pid"] != first["pid"]
             os.kill(first["pid"], signal.SIGKILL)
             after = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c["state"] == "ok" and c, 30)
             assert after and after["pid"] == first["spare_pid"], ((tmp_path / "up.log").read_text(), after)
-            health = wait_for(lambda: query_json(session, "xm/recorder/main/@health"), 10)
+            health = wait_for(lambda: query_json(sup.session, "xm/recorder/main/@health"), 10)
             assert health and health[0]["pid"] == first["spare_pid"] and health[0]["status"] == "ok"
             again = wait_for(lambda: (c := child()) and c["spare_pid"] not in (None, first["spare_pid"]) and c, 30)
             assert again, "no new spare after the takeover"
             assert wait_for(lambda: (c := child()) and c["spare_ready"], 30), "the new spare never said it was ready"
             assert "from its spare" in (tmp_path / "up.log").read_text()
         finally:
-            if session is not None:
-                session.close()
+            sup.close()
 
 
 def test_a_kill_before_the_spare_is_ready_or_after_it_died_still_recovers(tmp_path):
     """The service dies while its spare is not yet reading its "go" (stopped here, as if still
     importing): the spare takes over once it runs. Then the spare itself dies first: the next kill
     is recovered by a fresh process, and a new spare follows."""
-    from shared.runtime import open_client
-
     router = free_endpoint()
     dep = write_deployment(tmp_path / "d.toml", router, {"recorder": {"main": {"directory": str(tmp_path / "rec")}}})
     log = tmp_path / "up.log"
-    session = None
+    sup = Supervised(router)
+    child = sup.child
     with xm_up(dep, log, "--standby"):
         try:
-            def child() -> dict | None:
-                nonlocal session
-                if session is None:
-                    try:
-                        session = open_client(router)
-                    except Exception:  # the router is not up yet
-                        return None
-                sup = query_json(session, "xm/deploy/supervisor/@health")
-                return sup[0]["children"][0] if sup else None
-
             first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
             assert first, log.read_text()
             spare = first["spare_pid"]
@@ -81,7 +81,7 @@ def test_a_kill_before_the_spare_is_ready_or_after_it_died_still_recovers(tmp_pa
                 os.kill(spare, signal.SIGCONT)
             took = wait_for(lambda: (c := child()) and c["state"] == "ok" and c, 30)
             assert took and took["pid"] == spare, (log.read_text(), took)
-            health = wait_for(lambda: query_json(session, "xm/recorder/main/@health"), 10)
+            health = wait_for(lambda: query_json(sup.session, "xm/recorder/main/@health"), 10)
             assert health and health[0]["pid"] == spare
 
             nxt = wait_for(lambda: (c := child()) and c["spare_ready"] and c, 60)
@@ -93,5 +93,4 @@ def test_a_kill_before_the_spare_is_ready_or_after_it_died_still_recovers(tmp_pa
             assert cold and cold["pid"] not in (nxt["pid"], nxt["spare_pid"]), (log.read_text(), cold)
             assert wait_for(lambda: (c := child()) and c["spare_ready"] and c, 60), "no spare after a cold start"
         finally:
-            if session is not None:
-                session.close()
+            sup.close()

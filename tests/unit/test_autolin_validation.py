@@ -205,26 +205,9 @@ def test_suite3_five_frame_chains_match_torch_func(record_property):
     wq, wp = rng.normal(size=(N, 3)), rng.normal(size=(N, 3))
     gs = f.reverse(L, wq, wp)
 
-    axes = torch.tensor([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64]], dtype=torch.float64)
+    from shared.autolin.torch_reference import five_frame_chain
 
-    def tq(a, b):
-        return torch.stack(O.qmul(a.unbind(-1), b.unbind(-1)), -1)
-
-    def trot(q, v):
-        vq = torch.cat([torch.zeros_like(v[..., :1]), v], -1)
-        return tq(tq(q, vq), q * torch.tensor([1.0, -1, -1, -1], dtype=torch.float64))[..., 1:]
-
-    def ref(*a):
-        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-
-        def joint(k):
-            h = th[k][..., None] / 2
-            return tq(qs[k], torch.cat([torch.cos(h), torch.sin(h) * axes[k]], -1))
-        q, t = joint(0), ts[0]
-        for k in range(1, 5):
-            t = t + trot(q, ts[k])
-            q = tq(q, joint(k))
-        return q, t + trot(q, p)
+    ref = five_frame_chain([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64]])
 
     tx = tuple(torch.tensor(x) for x in xs)
     tangents = tuple(torch.tensor(rv_to_dq(x, d) if t == "quat" else d) for x, d, t in zip(xs, ds, types, strict=True))
