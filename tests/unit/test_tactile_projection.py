@@ -248,8 +248,8 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
         for spec in specs:  # camhub's order: a camera's image, then its frame set's CameraInfo
             node.handlers["image"](_jpeg(spec, t), f"xm/camhub/{spec.name}/image")
             node.handlers["info"](_info(spec, t), f"xm/camhub/{spec.name}/info")
-    meshes = [m for m in node.published if m.__msgtype__ == "xm_msgs/msg/TactileMesh"]
-    assert len(meshes) == 2, [m.__msgtype__ for m in node.published]  # one per frame set
+    meshes = node.outputs["tactile_mesh"]
+    assert len(meshes) == 2 and len(node.published) == 2  # one mesh per frame set, beside its scene
     assert list(meshes[1].hand_names) == [], "the glove frame is stale for the second set: no hand"
     (name, verts, _, values), = view.tactile_mesh_arrays(meshes[0].hand_names, meshes[0].vertex_count,
                                                          meshes[0].vertices, meshes[0].faces, meshes[0].pressure)
