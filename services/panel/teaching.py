@@ -332,10 +332,12 @@ class Teaching:
         return self.review is not None
 
     def health(self) -> dict:
-        """@health extras: the library's size and what is being reviewed."""
+        """@health extras: the library's size, the session and the label its next demonstration
+        gets, and what is being reviewed."""
         r = self.review
         return {"recordings": len(self.entries), "trainable": sum(e.trainable for e in self.entries),
                 "session": self.session.id if self.session else None,
+                "next_label": self.next_label.value if self.session else None,
                 "reviewing": None if r is None else {"name": r.entry.name, "at_s": round(r.head.position, 3),
                                                      "playing": r.head.playing}}
 

@@ -166,6 +166,9 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         demos = []
         for label, outcome in (("first grasp", "success"), ("second grasp", "failure")):
             type_into(browser, "next label", label)
+            # The page sends typed text on its own schedule: the click must not overtake it.
+            wait_until(lambda lb=label: query_json(session, "xm/panel/main/@health")[0]["next_label"] == lb, WAIT,
+                       f"the panel holding the label {label!r}")
             n = len(requests)
             click_button(browser, "Start recording")
             wait_until(lambda n=n: len(requests) > n, WAIT, "the start query")
