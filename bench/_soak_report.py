@@ -147,6 +147,10 @@ def summarize(report: dict) -> dict:
         "rss_growth_max": max(growth) if growth else None,
         "spurious_brakes": report["brakes"]["spurious_brakes"],
         "spurious_brakes_by_cause": report["brakes"]["spurious_by_cause"],
+        # a brake within 1 s of a late wake-up of the soak's own real-time probe: the host stalled
+        "spurious_brakes_not_at_host_stall": report["brakes"].get("spurious_not_at_host_stall"),
+        "host_stalls_over_8ms": (report.get("host_stalls") or {}).get("count"),
+        "host_stalls_with_hypervisor_steal": (report.get("host_stalls") or {}).get("with_steal"),
         "board_brakes_expected": report["brakes"]["board_brakes_expected"],
         "targets": {"recovered_p100_s": RECOVERY_TARGET_S, "stuck": 0, "recording_gap_s": GAP_TARGET_S,
                     "rss_growth": RSS_GROWTH_TARGET, "spurious_brakes": 0},

@@ -8,6 +8,12 @@ kill beyond the key's nominal period, each restarted service's start-up (its "re
 stuck services (not back within --stuck-after), spurious brakes (the board's watchdog braking
 while trajectories flow and no kill on the command path is being recovered, counted by the
 world's simulated board) and the RSS of every service over time. Writes .bench/soak.json.
+
+Each spurious brake carries the robot service's account of the command gap before it (how late its
+thread woke, how long the tick took, how long it waited for a CPU) and whether the host stalled at
+that moment: a real-time probe thread of the soak, above the cell's, records every wake-up over 8 ms
+late with the hypervisor's steal time per CPU. A gap that ends within 50 ms of a probe stall is the
+host's (on a virtual machine: its CPUs taken away), not the cell's.
 Targets: every kill recovered within 3 s (p100), 0 stuck, a recording gap per kill <= 1 s on
 every key, RSS growth <= 10 %, 0 spurious brakes.
 
@@ -42,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # runnable as a script from anywhere
 sys.path.insert(0, str(ROOT / "bench"))  # its report module
 
+from _host_probe import attribute_brakes, foreign_rt_threads, io_pressure, stall_probe  # noqa: E402
 from _soak_report import (  # noqa: E402
     ready_after_start,
     recording_gaps,
@@ -245,7 +252,9 @@ def recorder_cmd(monitor: Monitor, cmd: str, req: dict) -> dict:
 
 def sample_rss(monitor: Monitor, series: dict, t0: float) -> None:
     now = time.monotonic()
-    series["_loadavg"].append({"t": round(now - t0, 1), "loadavg_1m": round(os.getloadavg()[0], 2)})
+    cell = {p for c in monitor.children() for p in (c.get("pid"), c.get("spare_pid")) if p}
+    series["_loadavg"].append({"t": round(now - t0, 1), "loadavg_1m": round(os.getloadavg()[0], 2),
+                               "io_pressure_10s": io_pressure(), "foreign_rt_threads": foreign_rt_threads(cell)})
     for c in monitor.children():
         if c.get("pid"):
             mb = rss_mb(c["pid"])
@@ -284,6 +293,7 @@ def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: d
             if prev_board is not None and prev_board[0] == pid and count > prev_board[1]:
                 new = board.get("brakes_after", [])[-(count - prev_board[1]):]
                 host_gaps = set(h[0].get("command_stream", {}).get("gaps_after", []))
+                parts = {g.get("after"): g for g in h[0].get("command_stream", {}).get("gap_parts", [])}
                 for seq in new:
                     if quiet or not commanded:
                         result["board_brakes_expected"] += 1
@@ -292,7 +302,7 @@ def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: d
                         kind = "after_host_gap" if seq in host_gaps else "board_starved"
                         result["spurious_by_cause"][kind] += 1
                         result["events"].append({"t": round(now - result["t0"], 1), "after_sequence": seq,
-                                                 "cause": kind})
+                                                 "cause": kind, "host_gap": parts.get(seq)})
             prev_board = (pid, count)
         last_poll = now
         stop.wait(0.2)
@@ -360,6 +370,8 @@ def main(argv: list[str] | None = None) -> int:
         stop = threading.Event()
         sampler = threading.Thread(target=brake_sampler, args=(monitor, robot, stop, brakes), daemon=True)
         sampler.start()
+        stalls: list = []
+        threading.Thread(target=stall_probe, args=(stop, t0, stalls), daemon=True).start()
         rss: dict = defaultdict(list)
         rng = random.Random(args.seed)
         end = t0 + args.minutes * 60
@@ -399,6 +411,9 @@ def main(argv: list[str] | None = None) -> int:
         for k in ("t0", "recovering", "recovered_at"):
             brakes.pop(k)
         report["brakes"] = brakes
+        report["host_stalls"] = {"probe_late_over_8ms": stalls, "count": len(stalls),
+                                 "with_steal": sum(any(s.get("steal_ms_per_cpu", [])) for s in stalls)}
+        brakes["spurious_not_at_host_stall"] = attribute_brakes(brakes["events"], stalls)
         report["rss"] = dict(rss)
         report["rss_growth"] = rss_growth(rss)
         report["unplanned_exits"] = unplanned_exits(tmp / "up.log", report["kills"])

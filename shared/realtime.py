@@ -16,6 +16,8 @@ item runs there).
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import errno
 import gc
 import logging
@@ -30,6 +32,8 @@ DEFAULT_RT_PRIORITY = 10  # above every normal thread, below the kernel's own re
 FALLBACK_NICE = -10
 TTY_WORKER_RT_PRIORITY = 9  # the kernel threads that feed the readers: just below them
 KTHREADD_PID = 2  # parent of every kernel thread
+# mlockall flags (linux/mman.h): pages mapped now, pages mapped later, each locked when first touched
+MCL_CURRENT, MCL_FUTURE, MCL_ONFAULT = 1, 2, 4
 
 
 def raise_priority(what: str, log: logging.Logger, rt_priority: int = DEFAULT_RT_PRIORITY,
@@ -103,6 +107,37 @@ def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_
     else:
         log.info("%s: %d threads of the process at %s", what, raised, policy or "their priority")
     return raised
+
+
+def thread_run_delay() -> float:
+    """Seconds the calling thread has spent runnable but waiting for a CPU (the kernel's schedstat;
+    0.0 where it is not available)."""
+    try:
+        with open("/proc/thread-self/schedstat", "rb") as f:
+            return int(f.read().split()[1]) * 1e-9
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def lock_memory(what: str, log: logging.Logger) -> bool:
+    """Keep every page this process touches in RAM (mlockall with MCL_ONFAULT: locked as touched, so
+    untouched mappings cost nothing). Without it a real-time thread can stall for a disk read when
+    the kernel has dropped a page of its code or data under page-cache pressure (a recording filling
+    it), and any thread doing so while it holds the GIL stalls them all. Returns whether it held;
+    a refusal (no CAP_IPC_LOCK and a small RLIMIT_MEMLOCK, not Linux) is logged."""
+    name = ctypes.util.find_library("c") if sys.platform.startswith("linux") else None
+    if name is None:
+        log.info("%s: memory stays pageable (no mlockall on this OS)", what)
+        return False
+    libc = ctypes.CDLL(name, use_errno=True)
+    if libc.mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT) == 0:
+        log.info("%s: memory locked (mlockall, on fault)", what)
+        return True
+    err = ctypes.get_errno()
+    log.warning("%s: memory stays pageable (mlockall: %s): a disk read after page-cache pressure can stall "
+                "its real-time threads; give the service CAP_IPC_LOCK or raise RLIMIT_MEMLOCK to fix", what,
+                os.strerror(err))
+    return False
 
 
 def kthread_pids(proc: Path = Path("/proc")) -> list[int]:

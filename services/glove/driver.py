@@ -19,7 +19,13 @@ import numpy as np
 from services.glove.calibration import Calibration
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
-from shared.realtime import DEFAULT_RT_PRIORITY, TTY_WORKER_RT_PRIORITY, TtyWorkers, raise_process_priority
+from shared.realtime import (
+    DEFAULT_RT_PRIORITY,
+    TTY_WORKER_RT_PRIORITY,
+    TtyWorkers,
+    lock_memory,
+    raise_process_priority,
+)
 from shared.serial_link import SerialLink
 
 PROCESS_RT_PRIORITY = 5  # the event loop and Zenoh's threads: real time, below the reader
@@ -114,6 +120,7 @@ class GloveDriver:
         # publishes: none of them may wait behind other processes
         if self.link.rt_priority > 0:
             raise_process_priority("glove", self.log, rt_priority=self.process_rt_priority)
+            lock_memory("glove", self.log)
         if self.tty_workers is not None:
             await asyncio.gather(self.link.run(), self._keep_tty_workers_raised())
         else:

@@ -31,7 +31,7 @@ from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
-from shared.realtime import raise_priority, raise_process_priority
+from shared.realtime import lock_memory, raise_priority, raise_process_priority, thread_run_delay
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
@@ -74,8 +74,10 @@ class RobotService:
         # refused by the OS -> nice -10 or normal priority, logged (shared/realtime.py).
         rt_priority: int = 10
         # SCHED_FIFO priority of the service's other threads (event loop, Zenoh's), which share the
-        # command thread's GIL (0: nice -10); only while the command thread is real-time.
-        process_rt_priority: int = 5
+        # command thread's GIL (0: nice -10); only while the command thread is real-time. As high as
+        # the command thread's: one holding the GIL must not wait behind the gloves' threads (5) or the
+        # kernel's tty workers (9) while the command thread waits for it.
+        process_rt_priority: int = 10
         config_period_s: float = 1.0  # the limits config frame is repeated this often (a board may reset)
 
     def __init__(self, node: Node, params: Params) -> None:
@@ -100,15 +102,17 @@ class RobotService:
         self._thread: threading.Thread | None = None
         self._last_config = -np.inf
         self.gaps_after: list[int] = []  # the last command's sequence before each recent gap near the watchdog's
+        self.gap_parts: list[dict] = []  # where the time of each of those gaps went (_count_gap)
         self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0,
-                       "gaps_over_watchdog": 0, "configs": 0,
+                       "gaps_over_watchdog": 0, "configs": 0, "memory_locked": False,
                        "errors": 0}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
         node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state,
-                                     "command_stream": {**self.stream, "gaps_after": self.gaps_after},
+                                     "command_stream": {**self.stream, "gaps_after": self.gaps_after,
+                                                        "gap_parts": self.gap_parts},
                                      "command_clock_jumps": self.command_clock.jumps}
 
     def _reject(self, reason: str) -> None:
@@ -143,18 +147,21 @@ class RobotService:
         # behind other processes (at nice -10 it still did, and the board braked after a 10 ms gap).
         if self.p.rt_priority > 0:
             raise_process_priority("robot", self.node.log, rt_priority=self.p.process_rt_priority)
+            self.stream["memory_locked"] = lock_memory("robot", self.node.log)
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
         last_sent: float | None = None
+        run_delay = thread_run_delay()
         while not self._stop.is_set():
             next_t += period
             delay = next_t - time.monotonic()
             if delay > 0:
                 self._stop.wait(delay)
-            elif delay < -period:
-                self.stream["late_ticks"] += 1
-                next_t = time.monotonic()
             now = time.monotonic()
+            woke_late = now - next_t
+            if woke_late > period:
+                self.stream["late_ticks"] += 1
+                next_t = now
             elapsed, last = now - last, now
             self.stream["ticks"] += 1
             self.stream["max_gap_ms"] = max(self.stream["max_gap_ms"], elapsed * 1e3)
@@ -166,18 +173,26 @@ class RobotService:
                 self.node.log.exception("command tick failed: %r", exc)
             if self.driver.sequence != sequence:  # sent: the gap the board sees is between the writes
                 sent = time.monotonic()
+                delay_now = thread_run_delay()
                 if last_sent is not None:
-                    self._count_gap(sent - last_sent, sequence - 1)
+                    self._count_gap(sent - last_sent, sequence - 1, {
+                        "woke_late_ms": round(woke_late * 1e3, 2), "tick_ms": round((sent - now) * 1e3, 2),
+                        "waited_for_cpu_ms": round((delay_now - run_delay) * 1e3, 2)})
+                run_delay = delay_now
                 last_sent = sent
             else:
                 last_sent = None  # no feedback, no commands: the board brakes, as it should
 
-    def _count_gap(self, gap: float, before: int) -> None:
+    def _count_gap(self, gap: float, before: int, parts: dict | None = None) -> None:
         """A gap between two commands written: over the watchdog timeout it is counted, near it the
-        sequence of the command before it is kept (bench/robot.py tells the board's brakes apart)."""
+        sequence of the command before it is kept (bench/robot.py tells the board's brakes apart),
+        with where the time went (``parts``: the wake-up's lateness, the tick's own time, which holds
+        the GIL wait and the write, and the time the thread waited for a CPU since the last write)."""
         self.stream["gaps_over_watchdog"] += gap > WATCHDOG_TIMEOUT_S
         if gap > GAP_NEAR_WATCHDOG_S:
             self.gaps_after = (self.gaps_after + [before])[-GAPS_KEPT:]
+            self.gap_parts = (self.gap_parts + [{"after": before, "gap_ms": round(gap * 1e3, 2),
+                                                 "at_unix": round(time.time(), 3), **(parts or {})}])[-GAPS_KEPT:]
 
     def _command_tick(self, elapsed: float, now: float | None = None) -> None:
         """One command, ``elapsed`` wall seconds after the previous one."""

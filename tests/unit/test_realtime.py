@@ -114,3 +114,26 @@ def test_raise_process_priority_puts_every_thread_and_later_ones_at_real_time():
     if out.strip() == "refused":
         pytest.skip("real-time scheduling not permitted here")
     assert out.strip() == "raised 2 fifo [True, True, True]"  # main, waiting, and the thread started later
+
+
+LOCK_CHILD = textwrap.dedent("""
+    import logging
+    from shared.realtime import lock_memory
+    locked = lock_memory("test", logging.getLogger("t"))
+    status = open("/proc/self/status").read()
+    vmlck = [line.split()[1] for line in status.splitlines() if line.startswith("VmLck:")]
+    big = bytearray(8 << 20)  # touched after the call: locked because of MCL_FUTURE | MCL_ONFAULT
+    status = open("/proc/self/status").read()
+    after = [line.split()[1] for line in status.splitlines() if line.startswith("VmLck:")]
+    print(locked, vmlck[0] if vmlck else "-", after[0] if after else "-", len(big))
+""")
+
+
+def test_lock_memory_locks_pages_touched_later_or_says_why_not():
+    out = subprocess.run([sys.executable, "-c", LOCK_CHILD], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    locked, before, after, _ = out.stdout.split()
+    if locked == "False":
+        assert "memory stays pageable" in out.stderr
+        return
+    assert int(after) - int(before) >= 8 << 10  # kB: the 8 MiB buffer touched after the call

@@ -29,3 +29,14 @@ def test_exits_beyond_the_soaks_kills_are_unplanned(tmp_path):
 def test_the_boosted_tree_holds_the_soak_and_its_children_only():
     tree = descendants([os.getpid()])
     assert os.getpid() in tree and os.getppid() not in tree
+
+
+def test_a_brake_is_put_on_the_host_only_when_its_gap_ends_at_a_probe_stall():
+    from bench._host_probe import attribute_brakes, steal_jiffies
+
+    events = [{"host_gap": {"at_unix": 100.00}}, {"host_gap": {"at_unix": 200.0}}, {"host_gap": None}]
+    stalls = [{"at_unix": 100.03, "late_ms": 12.0, "steal_ms_per_cpu": [10, 0]}, {"at_unix": 200.2, "late_ms": 9.0}]
+    assert attribute_brakes(events, stalls) == 2
+    assert [e["host_stall_near"] for e in events] == [True, False, False]
+    assert events[0]["hypervisor_steal_near"] and not events[1]["hypervisor_steal_near"]
+    assert all(isinstance(j, int) for j in steal_jiffies())
