@@ -43,8 +43,10 @@ def make_problem(frames: int, seed: int = 0, noise_px: float = 0.1) -> tuple[Pro
     obs = observations(det, board, set(init.rig_T_board))
     prob = Problem(len(names), init.reference, obs, "full")
     x0 = prob.pack(init.K, init.dist, init.cam_T_rig, init.rig_T_board)
-    cp = C.from_rotation_vectors(prob.intrinsics(x0), prob._extrinsics(x0), x0[prob.o_board:].reshape(-1, 6),
-                                 prob.ref, obs.cam, obs.frame, obs.obj, obs.uv)
+    ext = np.zeros((prob.n, 6))  # the reference camera's pose is the rig frame
+    ext[prob.movable] = x0[prob.o_ext:prob.o_board].reshape(-1, 6)
+    cp = C.from_rotation_vectors(prob.intrinsics(x0), ext, x0[prob.o_board:].reshape(-1, 6), prob.ref, obs.cam,
+                                 obs.frame, obs.obj, obs.uv)
     return prob, x0, cp
 
 
