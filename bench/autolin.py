@@ -3,12 +3,20 @@ rotation programs, counted from the simplified scalar programs themselves, again
 scalar-AD baseline (the framework's own scalar tracing of the same functions, forward and
 reverse mode, simplified the same way), and the thesis's figures: forward 33 / reverse 30
 for quaternion chaining against 60 / 56 (quaternion) and 99 / 90 (matrix); 13 memory
-operations against 20 / 45. Also the five-frame chain (q, t, joint angle per frame): counts
-against scalar AD, and the median time of J v and J^T v through the generated programs
-(numpy register plan and plain C, batched; the node-by-node interpreter as the in-run
-baseline) against torch.func's jvp (which evaluates the function again) and the
-pullback of torch.func.vjp (recorded once, like the linearization), on the same function and
-batch, in the same run, one thread each. Writes .bench/autolin.json.
+operations against 20 / 45.
+
+Speed, medians interleaved in one run, one thread each, ratios against references timed in the
+same run:
+- the five-frame chain (q, t, joint angle per frame), batch 1024: J v and J^T v through the
+  generated programs (numpy register plan and plain C; the node-by-node interpreter as an in-run
+  baseline) against torch.func's jvp (which evaluates the function again), the pullback of
+  torch.func.vjp (recorded once, like the linearization), and CasADi's jtimes (forward and
+  reverse mode on SX, mapped over the batch) in its virtual machine and as its generated C;
+- the camera calibration's bundle adjustment (bench/_autolin_calibration.py): J v and J^T v of
+  its residual over all observations against the same references, and autolin's GN-CG against
+  scipy least_squares on calibration/bundle.py's own residuals;
+- a small synthetic bundle adjustment: GN-CG against scipy least_squares.
+Writes .bench/autolin.json, with the load average at the start and the end.
 """
 
 from __future__ import annotations
