@@ -3,18 +3,28 @@ rotation programs, counted from the simplified scalar programs themselves, again
 scalar-AD baseline (the framework's own scalar tracing of the same functions, forward and
 reverse mode, simplified the same way), and the thesis's figures: forward 33 / reverse 30
 for quaternion chaining against 60 / 56 (quaternion) and 99 / 90 (matrix); 13 memory
-operations against 20 / 45. Also the five-frame chain (q, t, joint angle per frame): counts
-against scalar AD, and the median time of J v and J^T v through the generated programs
-(numpy register plan and plain C, batched; the node-by-node interpreter as the in-run
-baseline) against torch.func's jvp (which evaluates the function again) and the
-pullback of torch.func.vjp (recorded once, like the linearization), on the same function and
-batch, in the same run, one thread each. Writes .bench/autolin.json.
+operations against 20 / 45.
+
+Speed, medians interleaved in one run, one thread each, ratios against references timed in the
+same run:
+- the five-frame chain (q, t, joint angle per frame), batch 1024: J v and J^T v through the
+  generated programs (numpy register plan and plain C; the node-by-node interpreter as an in-run
+  baseline) against torch.func's jvp (which evaluates the function again), the pullback of
+  torch.func.vjp (recorded once, like the linearization), and CasADi's jtimes (forward and
+  reverse mode on SX, mapped over the batch) in its virtual machine and as its generated C;
+- the camera calibration's bundle adjustment (bench/_autolin_calibration.py): J v and J^T v of
+  its residual over all observations against the same references, and autolin's GN-CG against
+  scipy least_squares on calibration/bundle.py's own residuals;
+- a small synthetic bundle adjustment: GN-CG against scipy least_squares.
+Writes .bench/autolin.json, with the load average at the start and the end.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -128,18 +138,50 @@ def autolin_fns(batch: int) -> dict:
             "interpreted_jtv_ms": lambda: interp.reverse(L, *w)}
 
 
-def timings(batch: int, reps: int, with_torch: bool) -> dict:
+def timings(batch: int, reps: int, with_torch: bool, with_casadi: bool) -> dict:
     fns = autolin_fns(batch)
     if with_torch:
         fns.update(torch_fns(batch))
+    if with_casadi:
+        fns.update(casadi_fns(batch))
     out = {"batch": batch, "reps": reps, **medians_ms(fns, reps)}
     out["plan_vs_interpreted_jtv"] = out["interpreted_jtv_ms"] / out["autolin_jtv_ms"]
     out["c_vs_plan_jtv"] = out["autolin_jtv_ms"] / out["autolin_c_jtv_ms"]
-    if with_torch:
-        for k in ("jv", "jtv"):
-            ref = out["torch_jvp_ms" if k == "jv" else "torch_vjp_ms"]
-            out[f"speedup_{k}"] = ref / out[f"autolin_{k}_ms"]
-            out[f"speedup_c_{k}"] = ref / out[f"autolin_c_{k}_ms"]
+    out.update(ratios(out))
+    return out
+
+
+REFERENCES = {"jv": ("torch_jvp_ms", "casadi_vm_jv_ms", "casadi_c_jv_ms"),
+              "jtv": ("torch_vjp_ms", "casadi_vm_jtv_ms", "casadi_c_jtv_ms")}
+
+
+def ratios(t: dict) -> dict:
+    """reference time / autolin time for each reference and each way of running autolin."""
+    out = {}
+    for k, refs in REFERENCES.items():
+        for ref in refs:
+            for mine in (f"autolin_{k}_ms", f"autolin_c_{k}_ms"):
+                if ref in t and mine in t:
+                    out[f"{ref[:-3]}_over_{mine[:-3]}"] = t[ref] / t[mine]
+    return out
+
+
+def casadi_fns(batch: int) -> dict:
+    """The chain in CasADi SX, J v and J^T w by jtimes, mapped over the batch: its virtual machine
+    and its generated C (compiled at -O2, as emit_c compiles autolin's programs)."""
+    from shared.autolin import casadi_reference as CR  # optional: only the timing comparison needs CasADi
+
+    xs, ds, w = chain_batch(batch)
+    jv, jtv = CR.products(*CR.chain_expr(AXES), "chain")
+    X = CR.columns(xs)
+    D = CR.columns([np.concatenate([d, np.zeros((batch, 1))], 1) if t == "quat" else d
+                    for d, t in zip(ds, TYPES, strict=True)])
+    W = CR.columns([np.concatenate([w[0], np.zeros((batch, 1))], 1), w[1]])
+    out = {}
+    for mode in ("vm", "c"):
+        fj, fr = CR.batched(jv, batch, mode), CR.batched(jtv, batch, mode)
+        out[f"casadi_{mode}_jv_ms"] = lambda fj=fj: fj(X, D)
+        out[f"casadi_{mode}_jtv_ms"] = lambda fr=fr: fr(X, W)
     return out
 
 
@@ -191,12 +233,51 @@ def bundle(reps: int) -> dict:
     return out
 
 
+def calibration(args: argparse.Namespace) -> dict:
+    """The camera calibration's bundle adjustment: products and solve (bench/_autolin_calibration.py)."""
+    import _autolin_calibration as cal  # beside this script; imports the calibration package
+
+    c_mode = emit_c_available()
+    fns, batch = cal.product_fns(cal.make_problem(args.calib_frames)[2], not args.no_timing,
+                                 not args.no_timing and not args.no_casadi, c_mode)
+    out: dict = {"products": {"observations": batch, "reps": args.reps, **medians_ms(fns, args.reps)}}
+    out["products"].update(ratios(out["products"]))
+    p = out["products"]
+    print(f"calibration residual, {batch} observations, median of {args.reps}: J v {p['autolin_jv_ms']:.2f} ms "
+          f"(C {p.get('autolin_c_jv_ms', float('nan')):.2f}), J^T v {p['autolin_jtv_ms']:.2f} ms "
+          f"(C {p.get('autolin_c_jtv_ms', float('nan')):.2f})")
+    for ref in ("torch_jvp_ms", "torch_vjp_ms", "casadi_vm_jv_ms", "casadi_vm_jtv_ms", "casadi_c_jv_ms",
+                "casadi_c_jtv_ms"):
+        if ref in p:
+            mine = "autolin_c" if "_c_" in ref else "autolin"
+            k = "jv" if ref.endswith(("jv_ms", "jvp_ms")) else "jtv"
+            print(f"  {ref[:-3]} {p[ref]:.2f} ms: {p[f'{ref[:-3]}_over_{mine}_{k}']:.2f}x")
+    s = cal.solve(args.calib_frames, 3, c_mode, args.dense)
+    out["solve"] = s
+    sec, cost = s["seconds"], s["final_cost"]
+    print(f"calibration bundle adjustment, {s['cameras']} cameras, {s['frames']} frame sets, {s['observations']} "
+          f"corners, {s['unknowns']} unknowns, median of {s['reps']} (start cost {cost['start']:.6f}):")
+    for k in sec:
+        extra = s.get(k, {})
+        print(f"  {k:20s} {sec[k]:7.2f} s  final cost {cost[k]:.9f}  " + "  ".join(
+            f"{a}={b:.3g}" if isinstance(b, float) else f"{a}={b}" for a, b in extra.items()))
+    return out
+
+
+def emit_c_available() -> bool:
+    return shutil.which(os.environ.get("CC", "cc")) is not None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--reps", type=int, default=10)
     ap.add_argument("--no-timing", action="store_true", help="no torch.func comparison (no torch import)")
     ap.add_argument("--no-bundle", action="store_true", help="skip the bundle-adjustment comparison")
+    ap.add_argument("--no-casadi", action="store_true", help="no CasADi comparison")
+    ap.add_argument("--no-calibration", action="store_true", help="skip the camera-calibration bundle adjustment")
+    ap.add_argument("--calib-frames", type=int, default=120, help="frame sets of the calibration problem")
+    ap.add_argument("--dense", action="store_true", help="also scipy least_squares without the sparsity (slow)")
     ap.add_argument("--out", default=".bench/autolin.json")
     args = ap.parse_args()
     res = {"counts": counts(), "thesis": THESIS}
@@ -218,21 +299,31 @@ def main() -> None:
     res["match_thesis"] = all(res["counts"][k][d]["instructions"] == v[d] for k, v in THESIS.items()
                               for d in ("forward", "reverse")) and all(
         res["counts"][k]["forward"]["memory_ops"] == v["memory_ops"] for k, v in THESIS.items())
-    t = timings(args.batch, args.reps, not args.no_timing)
+    res["load_average"] = os.getloadavg()
+    t = timings(args.batch, args.reps, not args.no_timing, not args.no_timing and not args.no_casadi)
     res["timing"] = t
     print(f"five-frame chain, batch {t['batch']}, median of {t['reps']} (one thread, noisy machine): J v "
           f"{t['autolin_jv_ms']:.2f} ms (C {t['autolin_c_jv_ms']:.2f}), J^T v {t['autolin_jtv_ms']:.2f} ms "
           f"(C {t['autolin_c_jtv_ms']:.2f}); node-by-node interpreter J^T v {t['interpreted_jtv_ms']:.2f} ms")
     if not args.no_timing:
-        print(f"  against torch.func: jvp {t['torch_jvp_ms']:.2f} ms ({t['speedup_jv']:.1f}x, C "
-              f"{t['speedup_c_jv']:.1f}x), vjp pullback {t['torch_vjp_ms']:.2f} ms ({t['speedup_jtv']:.1f}x, C "
-              f"{t['speedup_c_jtv']:.1f}x); target >= 2x")
+        print(f"  against torch.func: jvp {t['torch_jvp_ms']:.2f} ms ({t['torch_jvp_over_autolin_jv']:.1f}x, C "
+              f"{t['torch_jvp_over_autolin_c_jv']:.1f}x), vjp pullback {t['torch_vjp_ms']:.2f} ms "
+              f"({t['torch_vjp_over_autolin_jtv']:.1f}x, C {t['torch_vjp_over_autolin_c_jtv']:.1f}x); target >= 2x")
+    if "casadi_c_jv_ms" in t:
+        print(f"  against CasADi jtimes: virtual machine J v {t['casadi_vm_jv_ms']:.2f} ms "
+              f"({t['casadi_vm_jv_over_autolin_jv']:.1f}x), J^T v {t['casadi_vm_jtv_ms']:.2f} ms "
+              f"({t['casadi_vm_jtv_over_autolin_jtv']:.1f}x); generated C J v {t['casadi_c_jv_ms']:.2f} ms "
+              f"({t['casadi_c_jv_over_autolin_c_jv']:.2f}x of autolin's C), J^T v {t['casadi_c_jtv_ms']:.2f} ms "
+              f"({t['casadi_c_jtv_over_autolin_c_jtv']:.2f}x)")
     if not args.no_bundle:
         b = bundle(3)
         res["bundle"] = b
         print(f"bundle adjustment, {b['observations']} observations, median of 3: GN-CG {b['autolin_gn_cg_s']:.2f} s "
               f"(cost {b['autolin_cost']:.6f}) vs scipy least_squares {b['scipy_least_squares_s']:.2f} s "
               f"(cost {b['scipy_cost']:.6f}), {b['speedup']:.1f}x; tracing and generation {b['compile_s']:.2f} s")
+    if not args.no_calibration:
+        res["calibration"] = calibration(args)
+    res["load_average_end"] = os.getloadavg()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(res, indent=2))
 

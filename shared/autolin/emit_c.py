@@ -4,8 +4,9 @@ Plain C rather than CasADi: the scalar programs are already simplified straight-
 a register plan, so emitting them statement by statement keeps exactly the counted instructions
 (CasADi would rebuild and re-simplify its own graph), and the result needs only a C compiler.
 One function per program loops over the batch:
-`void NAME(long n, const double *const *in, double *const *out)`, in[k][b] the k-th input
-scalar of sample b, out likewise.
+`void NAME(long n, const double *const *in, const long *stride, double *const *out)`,
+in[k][b * stride[k]] the k-th input scalar of sample b (so column views of (B, 3) arrays and
+broadcast constants are read in place), out[k][b] the k-th output.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import shutil
 import subprocess
 import tempfile
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -33,13 +35,13 @@ def c_source(prog: ScalarProgram, name: str) -> str:
         raise ValueError(f"not a C identifier: {name!r}")
     reg, n_regs = allocate(prog)
     lines = ["#include <math.h>", "",
-             f"void {name}(long n, const double *const *in, double *const *out) {{",
+             f"void {name}(long n, const double *const *in, const long *stride, double *const *out) {{",
              "    for (long b = 0; b < n; ++b) {"]
     if n_regs:
         lines.append("        double " + ", ".join(f"r{k}" for k in range(n_regs)) + ";")
     for k, i in enumerate(prog.inputs):
         if i in reg:
-            lines.append(f"        r{reg[i]} = in[{k}][b];")
+            lines.append(f"        r{reg[i]} = in[{k}][b * stride[{k}]];")
     live = prog.live()
     for i in live:
         n = prog.nodes[i]
@@ -76,16 +78,29 @@ class CProgram:
             self._lib = ctypes.CDLL(lib)
         self._fn = getattr(self._lib, name)
         self._fn.restype = None
-        self._fn.argtypes = [ctypes.c_long, ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_void_p)]
+        self._pp = ctypes.POINTER(ctypes.c_void_p)
+        self._pl = ctypes.POINTER(ctypes.c_long)
+        self._fn.argtypes = [ctypes.c_long, self._pp, self._pl, self._pp]
 
     def __call__(self, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
         if len(inputs) != self.n_in:
             raise ValueError(f"expected {self.n_in} input arrays, got {len(inputs)}")
         batch = np.broadcast_shapes(*[np.shape(x) for x in inputs]) if inputs else ()
-        ins = [np.ascontiguousarray(x if np.shape(x) == batch else np.broadcast_to(x, batch), dtype=np.float64).ravel()
+        n = int(np.prod(batch))
+        # a 1-D batch is read in place through each input's stride (column views of (B, 3) arrays and
+        # broadcast constants need no copy); other inputs are copied to contiguous arrays
+        ins = [x if _strided(x, batch) else np.ascontiguousarray(np.broadcast_to(x, batch), dtype=np.float64).ravel()
                for x in inputs]
-        outs = [np.empty(int(np.prod(batch))) for _ in range(self.n_out)]
-        pin = (ctypes.c_void_p * max(self.n_in, 1))(*[x.ctypes.data for x in ins])
-        pout = (ctypes.c_void_p * max(self.n_out, 1))(*[x.ctypes.data for x in outs])
-        self._fn(int(np.prod(batch)), pin, pout)
-        return [o.reshape(batch) for o in outs]
+        # the outputs are the rows of one block, so their addresses are a stride apart: no per-array calls
+        outs = np.empty((self.n_out, n))
+        pin = np.array([x.__array_interface__["data"][0] for x in ins] or [0], dtype=np.uintp)
+        strides = np.array([x.strides[0] // 8 if x.ndim else 0 for x in ins] or [0], dtype=np.int64)
+        pout = outs.__array_interface__["data"][0] + 8 * n * np.arange(max(self.n_out, 1), dtype=np.uintp)
+        self._fn(n, pin.ctypes.data_as(self._pp), strides.ctypes.data_as(self._pl), pout.ctypes.data_as(self._pp))
+        return list(outs.reshape((self.n_out,) + batch))
+
+
+def _strided(x: Any, batch: tuple[int, ...]) -> bool:
+    """An array the C function reads as it is: float64 over a 1-D batch (any stride, 0 included)."""
+    return (isinstance(x, np.ndarray) and x.dtype == np.float64 and len(batch) == 1 and x.shape == batch
+            and x.strides[0] % 8 == 0)

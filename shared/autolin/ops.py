@@ -233,6 +233,7 @@ def angle_axis_op(axis: tuple[float, float, float]) -> Op:
 def plain_rules(op: Op) -> Op:
     """Forward and reverse rules of an operator without a linearizer: the framework's scalar
     AD of its eval, inlined on the stored arguments (the plain rule)."""
+    counters["plain_rule"] += 1
     if op.name not in _warned:
         _warned.add(op.name)
         log.warning("autolin: operator %r has no linearizer; using the plain rule (scalar AD on its arguments)",

@@ -45,6 +45,12 @@ def test_data_dependent_control_flow_names_the_line():
     with pytest.raises(al.TracingError, match="control flow"):
         al.trace(lambda x: x if bool(x) else x, ["vec3"])
 
+    def g(x):
+        return x * float(x)  # a traced value turned into a number
+
+    with pytest.raises(al.TracingError, match=r"test_autolin\.py:\d+: data-dependent control flow"):
+        al.trace(g, ["scalar"])
+
 
 def test_bad_trace_inputs_are_clear_errors():
     with pytest.raises(al.TracingError, match="constant of 2 numbers"):
@@ -154,6 +160,19 @@ def test_nonfinite_linearization_names_the_instruction():
         lin.linearize(np.array([np.nan]))
 
 
+def test_infinite_linearization_names_the_division():
+    def f(x, y):
+        s = x + y
+        return s / (x - y)  # infinite where x == y
+
+    lin = al.compile(f, ["scalar", "scalar"])
+    lin.linearize(np.array([2.0]), np.array([1.0]))  # finite: no error
+    before = al.counters["nonfinite_linearization"]
+    with pytest.raises(al.NonFiniteError, match=r"instruction div .*test_autolin\.py:\d+"):
+        lin.linearize(np.array([2.0, 1.0]), np.array([1.0, 1.0]))
+    assert al.counters["nonfinite_linearization"] == before + 1
+
+
 def test_operator_without_linearizer_uses_the_plain_rule_and_says_so(caplog):
     name = "test_cube_sum"
     if name not in al.OPS:
@@ -161,10 +180,12 @@ def test_operator_without_linearizer_uses_the_plain_rule_and_says_so(caplog):
     with pytest.raises(ValueError, match="needs a linearizer"):
         al.register(al.Op("test_bad", ("quat",), "scalar", lambda q: (q[0],)))
     O._warned.discard(name)
+    before = al.counters["plain_rule"]
     with caplog.at_level(logging.WARNING, logger="shared.autolin.ops"):
         f = al.compile(lambda v: al.call(name, v) * 2.0, ["vec3"])
         al.compile(lambda v: al.call(name, v), ["vec3"])
-    assert sum("no linearizer" in r.message for r in caplog.records) == 1
+    assert sum("no linearizer" in r.message for r in caplog.records) == 1  # said once
+    assert al.counters["plain_rule"] >= before + 2  # counted each time it is used
     v = np.array([[1.0, 2.0, 3.0]])
     _, L = f.linearize(v)
     (dy,) = f.forward(L, np.array([[1.0, 0.0, 0.0]]))

@@ -1,0 +1,89 @@
+"""The CasADi references of bench/autolin.py compute the same J v and J^T w as autolin's
+programs (rotation vectors converted to quaternion tangents), in CasADi's virtual machine and
+through its generated C."""
+
+from __future__ import annotations
+
+import shutil
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import shared.autolin as al
+from shared.autolin import camera as C
+from shared.autolin import casadi_reference as CR
+from shared.autolin import ops as O
+
+MODES = ["vm"] + (["c"] if shutil.which("cc") or shutil.which("gcc") else [])
+
+
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.stack(O.qmul(tuple(a.T), tuple(b.T)), axis=1)
+
+
+def tangent(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """d/dt exp(t v) q at t = 0: the quaternion tangent of rotation vector v."""
+    return 0.5 * qmul(np.concatenate([np.zeros((len(v), 1)), v], 1), q)
+
+
+def samples(n: int, rng: np.random.Generator) -> list[np.ndarray]:
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q2 = rng.normal(size=(n, 4))
+    q2 /= np.linalg.norm(q2, axis=1, keepdims=True)
+    intr = [np.c_[rng.uniform(400, 600, n), rng.uniform(400, 600, n), rng.uniform(300, 340, n)],
+            np.c_[rng.uniform(220, 260, n), rng.normal(0, 0.05, (n, 2))], rng.normal(0, 0.01, (n, 3))]
+    t = rng.normal(0, 0.1, (n, 3)) + [0, 0, 1.0]
+    return [q, rng.normal(0, 0.1, (n, 3)), *intr, q2, t, rng.uniform(-0.2, 0.2, (n, 3)), rng.normal(size=n),
+            rng.normal(size=n)]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_casadi_products_match_autolin(mode: str):
+    rng = np.random.default_rng(4)
+    n = 16
+    xs = samples(n, rng)
+    f = al.compile(C.reprojection, C.PARAM_TYPES + C.DATA_TYPES)
+    _, L = f.linearize(*xs)
+    jv, jtv = CR.products(*CR.camera_expr(), "camera")
+    fj, fr = CR.batched(jv, n, mode), CR.batched(jtv, n, mode)
+    X = CR.columns(xs)
+    d = [rng.normal(size=x.shape[:1] + (3,) if t == "quat" else x.shape) for x, t in zip(xs, f.in_types, strict=True)]
+    dq = [tangent(x, v) if t == "quat" else v for x, v, t in zip(xs, d, f.in_types, strict=True)]
+    np.testing.assert_allclose(np.array(fj(X, CR.columns(dq))).T, np.stack(f.forward(L, *d), 1), rtol=1e-9,
+                               atol=1e-9)
+    w = [rng.normal(size=n), rng.normal(size=n)]
+    g = np.array(fr(X, CR.columns(w))).T  # (n, 28): quaternion-space gradients
+    mine = f.reverse(L, *w)
+    k = 0
+    for x, t, gm in zip(xs, f.in_types, mine, strict=True):
+        size = 4 if t == "quat" else (x.shape[1] if x.ndim > 1 else 1)
+        gc = g[:, k:k + size]
+        if t == "quat":  # rotation-vector gradient: component i is <g_q, tangent(q, e_i)>
+            gc = np.stack([np.sum(gc * tangent(x, np.tile(e, (n, 1))), 1) for e in np.eye(3)], 1)
+        np.testing.assert_allclose(gc.reshape(gm.shape), gm, rtol=1e-9, atol=1e-9)
+        k += size
+
+
+def test_chain_casadi_matches_autolin_values():
+    axes = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
+    x, y = CR.chain_expr(axes)
+    rng = np.random.default_rng(5)
+    vals = rng.normal(size=x.numel())
+    for k in range(5):
+        vals[4 * k:4 * k + 4] /= np.linalg.norm(vals[4 * k:4 * k + 4])
+    out = np.array(ca.Function("chain", [x], [y])(vals)).ravel()
+
+    def chain(*a):
+        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
+        q, t = qs[0] * al.angle_axis(th[0], axes[0]), ts[0]
+        for k in range(1, 5):
+            t = t + q * ts[k]
+            q = q * (qs[k] * al.angle_axis(th[k], axes[k]))
+        return q, t + q * p
+
+    f = al.compile(chain, ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"])
+    parts = np.split(vals, np.cumsum(CR.CHAIN_SIZES)[:-1])
+    (q, t), _ = f.linearize(*[p[None] if len(p) > 1 else p for p in parts])
+    np.testing.assert_allclose(out, np.r_[q[0], t[0]], atol=1e-12)
