@@ -11,7 +11,9 @@ blocks Zenoh, and a payload that is malformed or unfit is counted per key and re
 A subscription made ``inline`` skips the hop, for handlers that only store the newest value or
 put it on a thread-safe queue, where the hop is most of the latency: its plain, thread-safe
 handler runs on the Zenoh thread as each sample arrives, decoded and validated as usual, without
-a queue of its own (the transport's buffers are its queue).
+a queue of its own (the transport's buffers are its queue). It holds Zenoh's receive thread while
+it decodes and handles: for large or frequent messages the loop is the faster path
+(bench/runtime.py measures both).
 """
 
 from __future__ import annotations
