@@ -1,8 +1,10 @@
 """P1: the typed runtime against raw zenoh-python in the same run.
 
-Ping-pong latency (64 B payload, p50/p99) and one-way 4 KB throughput, both through a router on
-loopback as in a deployment. Writes .bench/runtime.json; targets: latency <= 1.15x raw,
-throughput >= 0.8x raw.
+Ping-pong latency (64 B payload, p50/p99) and one-way throughput of 4 kB and 300 kB messages
+(a camera frame), through a router on loopback as in a deployment. The typed runtime is measured
+both ways a subscription can run: handlers on the event loop (the default) and ``inline`` on
+Zenoh's threads (shared/runtime/node.py). Writes .bench/runtime.json; targets: latency <= 1.15x
+raw, throughput >= 0.8x raw.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import socket
 import sys
 import threading
@@ -26,6 +29,8 @@ from shared.runtime import Node, fifo, latest, open_client, open_router  # noqa:
 N_PING = 2000
 N_WARM = 200
 N_THROUGHPUT = 20000
+N_THROUGHPUT_LARGE = 2000
+SIZES = (4096, 300_000)  # a 4 kB message, a camera frame
 PING_TYPE = "std_msgs/msg/String"
 BULK_TYPE = "std_msgs/msg/UInt8MultiArray"
 
@@ -58,122 +63,156 @@ def raw_pingpong(endpoint: str) -> np.ndarray:
     return np.array(rtts)
 
 
-def raw_throughput(endpoint: str) -> float:
+def raw_throughput(endpoint: str, size: int) -> float:
     a, b = open_client(endpoint), open_client(endpoint)
     count = [0]
     done = threading.Event()
+    n = n_for(size)
 
     def on(_s) -> None:
         count[0] += 1
-        if count[0] == N_THROUGHPUT:
+        if count[0] == n:
             done.set()
 
     b.declare_subscriber("bench/raw/bulk", on)
     pub = a.declare_publisher("bench/raw/bulk")
     time.sleep(0.5)
-    payload = b"y" * 4096
+    payload = b"y" * size
     t0 = time.perf_counter()
-    for _ in range(N_THROUGHPUT):
+    for _ in range(n):
         pub.put(payload)
-    last, t_last = -1, time.perf_counter()
-    while not done.is_set() and count[0] != last:  # stop when everything arrived or nothing more comes
-        last, t_last = count[0], time.perf_counter()
-        done.wait(0.2)
-    elapsed = (time.perf_counter() if done.is_set() else t_last) - t0
+    elapsed = wait_counted(count, done.is_set, t0)
     a.close()
     b.close()
-    print(f"raw throughput: {count[0]}/{N_THROUGHPUT} received")
+    print(f"raw throughput {size} B: {count[0]}/{n} received")
     return count[0] / elapsed
 
 
-async def typed_pingpong(endpoint: str) -> np.ndarray:
+def n_for(size: int) -> int:
+    return N_THROUGHPUT if size <= 4096 else N_THROUGHPUT_LARGE
+
+
+def wait_counted(count: list[int], done, t0: float) -> float:
+    """Seconds from ``t0`` until everything arrived or nothing more came for 0.2 s."""
+    last, t_last = -1, time.perf_counter()
+    while not done() and count[0] != last:
+        last, t_last = count[0], time.perf_counter()
+        time.sleep(0.2)
+    return (time.perf_counter() if done() else t_last) - t0
+
+
+async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
+    """Round trips through two typed nodes: handlers on the event loop, or ``inline`` on Zenoh's threads."""
     a = Node("bench", "ping", open_client(endpoint))
     b = Node("bench", "pong", open_client(endpoint))
     pong_pub = b.publisher("xm/bench/pong/out", PING_TYPE)
-    b.subscribe("xm/bench/ping/out", pong_pub.put, latest(1), msgtype=PING_TYPE)
+    b.subscribe("xm/bench/ping/out", pong_pub.put, latest(1), msgtype=PING_TYPE, inline=inline)
+    got = threading.Event()
     waiter: list[asyncio.Future] = []
-    a.subscribe("xm/bench/pong/out", lambda m: waiter[0].set_result(m), latest(1), msgtype=PING_TYPE)
+    loop = asyncio.get_running_loop()
+    a.subscribe("xm/bench/pong/out", (lambda _m: got.set()) if inline else lambda m: waiter[0].set_result(m), latest(1),
+                msgtype=PING_TYPE, inline=inline)
     ping = a.publisher("xm/bench/ping/out", PING_TYPE)
     await asyncio.sleep(0.5)
     msg = msgs.make(PING_TYPE, data="x" * 56)  # 64 B on the wire with CDR header and length
-    loop = asyncio.get_running_loop()
-    rtts = []
-    for i in range(N_PING + N_WARM):
-        waiter[:] = [loop.create_future()]
-        t0 = time.perf_counter()
-        ping.put(msg)
-        await asyncio.wait_for(waiter[0], 2.0)
-        if i >= N_WARM:
-            rtts.append(time.perf_counter() - t0)
+
+    def inline_rounds() -> list[float]:
+        out = []
+        for i in range(N_PING + N_WARM):
+            got.clear()
+            t0 = time.perf_counter()
+            ping.put(msg)
+            got.wait(2.0)
+            if i >= N_WARM:
+                out.append(time.perf_counter() - t0)
+        return out
+
+    if inline:
+        rtts = await asyncio.to_thread(inline_rounds)
+    else:
+        rtts = []
+        for i in range(N_PING + N_WARM):
+            waiter[:] = [loop.create_future()]
+            t0 = time.perf_counter()
+            ping.put(msg)
+            await asyncio.wait_for(waiter[0], 2.0)
+            if i >= N_WARM:
+                rtts.append(time.perf_counter() - t0)
     for node in (a, b):
         await node.close()
         node.session.close()
     return np.array(rtts)
 
 
-async def typed_throughput(endpoint: str) -> float:
+async def typed_throughput(endpoint: str, size: int, inline: bool) -> float:
     a = Node("bench", "src", open_client(endpoint))
     b = Node("bench", "dst", open_client(endpoint))
     count = [0]
-    done = asyncio.Event()
+    n = n_for(size)
+    lock = threading.Lock()
 
     def on(_m) -> None:
-        count[0] += 1
-        if count[0] == N_THROUGHPUT:
-            done.set()
+        with lock:
+            count[0] += 1
 
-    b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=BULK_TYPE)
+    b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=BULK_TYPE, inline=inline)
     pub = a.publisher("xm/bench/src/bulk", BULK_TYPE)
     await asyncio.sleep(0.5)
     layout = msgs.make("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
-    msg = msgs.make(BULK_TYPE, layout=layout, data=np.full(4080, 7, np.uint8))  # ~4 KB on the wire
+    msg = msgs.make(BULK_TYPE, layout=layout, data=np.full(size - 16, 7, np.uint8))  # size bytes on the wire
     t0 = time.perf_counter()
-    for i in range(N_THROUGHPUT):
+    for i in range(n):
         pub.put(msg)
         if i % 500 == 0:
             await asyncio.sleep(0)  # let the receiving side run, as a service loop would
     last, t_last = -1, time.perf_counter()
-    while not done.is_set() and count[0] != last:  # stop when everything arrived or nothing more comes
-        last = count[0]
-        t_last = time.perf_counter()
+    while count[0] < n and count[0] != last:  # stop when everything arrived or nothing more comes
+        last, t_last = count[0], time.perf_counter()
         await asyncio.sleep(0.2)
-    elapsed = (time.perf_counter() if done.is_set() else t_last) - t0
-    print(f"typed throughput: {count[0]}/{N_THROUGHPUT} received, errors {dict(b.stats.errors)}")
+    elapsed = (time.perf_counter() if count[0] >= n else t_last) - t0
+    print(f"typed{' inline' if inline else ''} throughput {size} B: {count[0]}/{n} received, "
+          f"errors {dict(b.stats.errors)}")
     for node in (a, b):
         await node.close()
         node.session.close()
     return count[0] / elapsed
 
 
+def percentiles(lat: np.ndarray) -> dict:
+    return {"p50_us": float(np.percentile(lat, 50) * 1e6), "p99_us": float(np.percentile(lat, 99) * 1e6)}
+
+
 def main() -> None:
     argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
-    results = {}
-    raw_lat = raw_pingpong(endpoint)
-    typed_lat = asyncio.run(typed_pingpong(endpoint))
-    raw_lat2 = raw_pingpong(endpoint)  # again, so drift of the machine shows up
-    raw_lat = np.concatenate([raw_lat, raw_lat2])
-    raw_tp = raw_throughput(endpoint)
-    typed_tp = asyncio.run(typed_throughput(endpoint))
+    raw = [raw_pingpong(endpoint)]
+    lat = {"loop": asyncio.run(typed_pingpong(endpoint, False)), "inline": asyncio.run(typed_pingpong(endpoint, True))}
+    raw.append(raw_pingpong(endpoint))  # again, so drift of the machine shows up
+    lat["raw"] = np.concatenate(raw)
+    tp: dict[str, dict[str, float]] = {}
+    for size in SIZES:
+        tp[str(size)] = {"raw": raw_throughput(endpoint, size),
+                         "loop": asyncio.run(typed_throughput(endpoint, size, False)),
+                         "inline": asyncio.run(typed_throughput(endpoint, size, True))}
     router.close()
-    for name, lat in (("raw", raw_lat), ("typed", typed_lat)):
-        results[f"{name}_latency_p50_us"] = float(np.percentile(lat, 50) * 1e6)
-        results[f"{name}_latency_p99_us"] = float(np.percentile(lat, 99) * 1e6)
-    results["raw_throughput_msg_s"] = raw_tp
-    results["typed_throughput_msg_s"] = typed_tp
-    results["latency_p50_ratio"] = results["typed_latency_p50_us"] / results["raw_latency_p50_us"]
-    results["latency_p99_ratio"] = results["typed_latency_p99_us"] / results["raw_latency_p99_us"]
-    results["throughput_ratio"] = typed_tp / raw_tp
-    results["targets"] = {"latency_p50_ratio_max": 1.15, "throughput_ratio_min": 0.8}
+    res: dict = {"latency_us": {k: percentiles(v) for k, v in lat.items()}, "throughput_msg_s": tp,
+                 "loadavg_1m": os.getloadavg()[0]}
+    res["ratios"] = {path: {
+        "latency_p50": res["latency_us"][path]["p50_us"] / res["latency_us"]["raw"]["p50_us"],
+        "latency_p99": res["latency_us"][path]["p99_us"] / res["latency_us"]["raw"]["p99_us"],
+        **{f"throughput_{size}": tp[str(size)][path] / tp[str(size)]["raw"] for size in SIZES}}
+        for path in ("loop", "inline")}
+    res["targets"] = {"latency_ratio_max": 1.15, "throughput_ratio_min": 0.8}
     Path(".bench").mkdir(exist_ok=True)
-    Path(".bench/runtime.json").write_text(json.dumps(results, indent=2))
-    print(f"{'':>8}{'p50 us':>10}{'p99 us':>10}{'4KB msg/s':>12}")
-    for name in ("raw", "typed"):
-        print(f"{name:>8}{results[f'{name}_latency_p50_us']:>10.0f}{results[f'{name}_latency_p99_us']:>10.0f}"
-              f"{results[f'{name}_throughput_msg_s']:>12.0f}")
-    print(f"ratios: latency p50 {results['latency_p50_ratio']:.2f}x (target <= 1.15), "
-          f"p99 {results['latency_p99_ratio']:.2f}x, throughput {results['throughput_ratio']:.2f}x (target >= 0.8)")
+    Path(".bench/runtime.json").write_text(json.dumps(res, indent=2))
+    print(f"{'':>8}{'p50 us':>10}{'p99 us':>10}" + "".join(f"{f'{s} B msg/s':>16}" for s in SIZES))
+    for path in ("raw", "loop", "inline"):
+        print(f"{path:>8}{res['latency_us'][path]['p50_us']:>10.0f}{res['latency_us'][path]['p99_us']:>10.0f}"
+              + "".join(f"{tp[str(s)][path]:>16.0f}" for s in SIZES))
+    for path, r in res["ratios"].items():
+        print(f"{path} / raw: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items())
+              + " (targets: latency <= 1.15x, throughput >= 0.8x)")
 
 
 if __name__ == "__main__":

@@ -1,13 +1,17 @@
 """Message types: standard ROS 2 definitions plus ``xm_msgs`` from ``shared/msg``, encoded as CDR.
 
 One rosbags typestore serves every service, the recorder and the tests, so the bytes on the
-wire are the bytes in the MCAP file.
+wire are the bytes in the MCAP file. ``serialize`` and ``deserialize`` call the typestore's
+code generated per type directly: no per-message lookups, no copy of the payload (arrays of a
+decoded message are read-only views into it).
 """
 
 from __future__ import annotations
 
+import sys
 from functools import cache
 from pathlib import Path
+from struct import pack_into
 from typing import Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -37,15 +41,47 @@ def msg_class(msgtype: str) -> type:
         raise MessageError(f"unknown message type {msgtype!r}") from None
 
 
-def serialize(msg: Any, msgtype: str | None = None) -> bytes:
-    return bytes(typestore().serialize_cdr(msg, msgtype or msg.__msgtype__))
+LITTLE_ENDIAN = sys.byteorder == "little"
+CDR_HEADER = 4  # encapsulation kind (2 bytes: 0, 1 for little endian) and options
+CDR_PADDING_MAX = 3  # a message may end in up to 3 bytes of alignment padding
 
 
-def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
+@cache
+def _msgdef(msgtype: str) -> Any:
     try:
-        return typestore().deserialize_cdr(bytes(data), msgtype)
-    except Exception as exc:  # rosbags raises several types on truncated or garbage input
-        raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
+        return typestore().get_msgdef(msgtype)
+    except Exception:  # rosbags raises its own error for an unknown type
+        raise MessageError(f"unknown message type {msgtype!r}") from None
+
+
+def serialize(msg: Any, msgtype: str | None = None) -> bytes:
+    """CDR bytes of ``msg`` in the host's byte order, as ``typestore().serialize_cdr`` writes them."""
+    d = _msgdef(msgtype or msg.__msgtype__)
+    size = CDR_HEADER + d.getsize_cdr(0, msg, typestore())
+    out = bytearray(size)
+    view = memoryview(out)
+    pack_into("BB", view, 0, 0, LITTLE_ENDIAN)
+    write = d.serialize_cdr_le if LITTLE_ENDIAN else d.serialize_cdr_be
+    end = write(view[CDR_HEADER:], 0, msg, typestore())
+    if end + CDR_HEADER != size:
+        raise MessageError(f"{msgtype or msg.__msgtype__}: wrote {end + CDR_HEADER} of {size} bytes")
+    return bytes(out)
+
+
+def deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
+    """The message in a CDR payload (either byte order); MessageError if it is not one of ``msgtype``."""
+    d = _msgdef(msgtype)
+    view = memoryview(data)
+    try:
+        if len(view) < CDR_HEADER or view[0] != 0 or view[1] > 1:
+            raise ValueError("invalid or unsupported CDR encapsulation")
+        read = d.deserialize_cdr_le if view[1] else d.deserialize_cdr_be
+        msg, end = read(view[CDR_HEADER:], 0, d.cls, typestore())
+        if end + CDR_HEADER + CDR_PADDING_MAX < len(view):
+            raise ValueError(f"{len(view) - end - CDR_HEADER} bytes beyond the message")
+    except Exception as exc:  # the generated code raises several types on truncated or garbage input
+        raise MessageError(f"payload of {len(view)} bytes is not a valid {msgtype}: {exc}") from exc
+    return msg
 
 
 def schema_text(msgtype: str) -> str:

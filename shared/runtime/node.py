@@ -7,6 +7,13 @@ recorder); whatever a policy discards is counted per key ("dropped" in @health).
 validation (shared/runtime/validate.py) and handlers run on the loop, so a slow handler never
 blocks Zenoh, and a payload that is malformed or unfit is counted per key and reason
 ("rejected") and never reaches the handler. Warnings about bad input are rate-limited per kind.
+
+A subscription made ``inline`` skips the hop, for handlers that only store the newest value or
+put it on a thread-safe queue, where the hop is most of the latency: its plain, thread-safe
+handler runs on the Zenoh thread as each sample arrives, decoded and validated as usual, without
+a queue of its own (the transport's buffers are its queue). It holds Zenoh's receive thread while
+it decodes and handles: for large or frequent messages the loop is the faster path
+(bench/runtime.py measures both).
 """
 
 from __future__ import annotations
@@ -85,8 +92,11 @@ class Publisher:
 
 class Subscription:
     def __init__(self, node: Node, key_expr: str, msgtype: str | None,
-                 handler: Callable[..., Any], policy: QueuePolicy) -> None:
+                 handler: Callable[..., Any], policy: QueuePolicy, inline: bool = False) -> None:
+        if inline and inspect.iscoroutinefunction(handler):
+            raise TypeError(f"subscription to {key_expr}: an inline handler must be a plain function, not a coroutine")
         self.key_expr = key_expr
+        self.inline = inline
         self.msgtype = msgtype
         self.policy = policy
         self._node = node
@@ -104,7 +114,19 @@ class Subscription:
         # Per key: samples that arrived, and those the queue policy discarded (Zenoh thread, under _lock).
         self.arrived: collections.Counter[str] = collections.Counter()
         self.dropped: collections.Counter[str] = collections.Counter()
-        self._sub = node.session.declare_subscriber(key_expr, self._on_sample)
+        self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
+
+    # Zenoh thread, inline: decode, validate and handle at once.
+    def _on_inline(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._lock:
+            self.arrived[key] += 1
+        msg = self._decode(key, sample.payload.to_bytes(), time.monotonic())
+        if msg is not None:
+            try:
+                self._handler(msg, key) if self._wants_key else self._handler(msg)
+            except Exception as exc:  # a handler bug must not kill the subscription
+                self._node.handler_failed(key, exc)
 
     # Zenoh thread: copy and hand over, nothing else.
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -144,9 +166,7 @@ class Subscription:
 
     def _decode(self, key: str, payload: bytes, t_recv: float) -> Any:
         stats = self._node.stats
-        meter = stats.received.get(key)
-        if meter is None:
-            meter = stats.received[key] = RateMeter()
+        meter = stats.received.get(key) or stats.received_meter(key)
         meter.tick(t_recv)
         msgtype = self.msgtype or keyreg.msgtype_of(key)
         if msgtype == "raw":
@@ -197,18 +217,34 @@ class Subscription:
 
 
 class Stats:
+    """Counters of one node, counted from the loop and from inline handlers' Zenoh threads."""
+
     def __init__(self) -> None:
         self.published: dict[str, RateMeter] = {}
         self.received: dict[str, RateMeter] = {}
         self.errors: collections.Counter[str] = collections.Counter()
         self.rejected: dict[str, collections.Counter[str]] = {}  # key -> reason -> count
+        self._lock = threading.Lock()
 
     def reject(self, key: str, reason: str) -> None:
-        self.rejected.setdefault(key, collections.Counter())[reason] += 1
+        with self._lock:
+            self.rejected.setdefault(key, collections.Counter())[reason] += 1
         self.count(reason, key)
 
     def count(self, name: str, key: str | None = None, n: int = 1) -> None:
-        self.errors[name if key is None else f"{name}:{key}"] += n
+        with self._lock:
+            self.errors[name if key is None else f"{name}:{key}"] += n
+
+    def received_meter(self, key: str) -> RateMeter:
+        with self._lock:
+            return self.received.setdefault(key, RateMeter())
+
+    def snapshot(self) -> tuple[dict, dict, dict, dict]:
+        """(published, received meters, errors, rejected) copied at one moment: inline handlers add
+        keys from Zenoh threads while the health report is built."""
+        with self._lock:
+            return (dict(self.published), dict(self.received), dict(self.errors),
+                    {k: dict(c) for k, c in self.rejected.items()})
 
 
 class Node:
@@ -291,9 +327,10 @@ class Node:
         return Publisher(self, key, msgtype)
 
     def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
-                  msgtype: str | None = None) -> Subscription:
-        """Handler gets ``(msg)`` or ``(msg, key)``; msgtype defaults to the registry's; "raw" gives bytes."""
-        sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1))
+                  msgtype: str | None = None, inline: bool = False) -> Subscription:
+        """Handler gets ``(msg)`` or ``(msg, key)``; msgtype defaults to the registry's; "raw" gives bytes.
+        ``inline``: the handler runs on Zenoh's thread as each sample arrives (module docstring)."""
+        sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1), inline)
         self._subs.append(sub)
         self._closers.append(sub.close)
         return sub
@@ -350,6 +387,7 @@ class Node:
 
     def health(self) -> dict:
         now = time.monotonic()
+        published, received, errors, rejected = self.stats.snapshot()
         report = {
             "service": self.service,
             "instance": self.instance,
@@ -358,11 +396,11 @@ class Node:
             "message": self.message,
             "uptime_s": round(now - self.started, 3),
             "clock": self.clock.now(),
-            "published_hz": {k: round(m.rate(now), 2) for k, m in self.stats.published.items()},
-            "published": {k: m.count for k, m in self.stats.published.items()},
-            "received_hz": {k: round(m.rate(now), 2) for k, m in self.stats.received.items()},
-            "errors": dict(self.stats.errors),
-            "rejected": {k: dict(c) for k, c in self.stats.rejected.items()},
+            "published_hz": {k: round(m.rate(now), 2) for k, m in published.items()},
+            "published": {k: m.count for k, m in published.items()},
+            "received_hz": {k: round(m.rate(now), 2) for k, m in received.items()},
+            "errors": errors,
+            "rejected": rejected,
             **self._queue_counts(),
             "clock_jumps": self.clock.jumps,
         }

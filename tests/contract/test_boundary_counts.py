@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import threading
 import time
 
 import numpy as np
@@ -15,7 +16,7 @@ import zenoh
 from shared import keys, msgs
 from shared.kinematics import load_robot
 from shared.runtime import Node, fifo, latest, open_client
-from tests.bad_messages import bad_payloads
+from tests.bad_messages import bad_payloads, good
 from tests.conftest import ServiceProcess, query_json, wait_for, write_deployment
 
 pytestmark = pytest.mark.slow
@@ -40,7 +41,7 @@ def publish(session, sends: list[tuple[str, bytes]]) -> None:
         pub.undeclare()
 
 
-def probe(endpoint: str, router_session, policy, sends_at) -> dict:
+def probe(endpoint: str, router_session, policy, sends_at, inline: bool = False) -> dict:
     """Runs a node subscribed to every key with ``policy``, publishes ``sends_at(now)`` from the
     router's session, waits until every message is accounted for; returns its health report and
     what was sent per key."""
@@ -48,7 +49,13 @@ def probe(endpoint: str, router_session, policy, sends_at) -> dict:
         client = open_client(endpoint)
         node = Node("probe", "test", client, "wall")
         delivered: collections.Counter[str] = collections.Counter()
-        node.subscribe("xm/**", lambda _msg, key: delivered.update([key]), policy)
+        loop_thread = threading.get_ident()
+
+        def handle(_msg, key: str) -> None:
+            delivered.update([key])
+            delivered["(on the loop's thread)"] += threading.get_ident() == loop_thread
+
+        node.subscribe("xm/**", handle, policy, inline=inline)
         try:
             await asyncio.sleep(0.5)  # the subscription reaches the router
             sends = sends_at(time.time())
@@ -67,7 +74,8 @@ def probe(endpoint: str, router_session, policy, sends_at) -> dict:
             client.close()
 
     health, sent, delivered = asyncio.run(go())
-    return {"health": health, "sent": sent, "delivered": delivered}
+    on_loop = delivered.pop("(on the loop's thread)", 0)
+    return {"health": health, "sent": sent, "delivered": +delivered, "on_loop": on_loop}
 
 
 def test_each_kind_of_bad_message_on_every_registered_key_is_counted_with_its_reason(router):
@@ -89,6 +97,48 @@ def test_each_kind_of_bad_message_on_every_registered_key_is_counted_with_its_re
     assert h["dropped"] == {}
     for key, reasons in expected.items():
         assert h["rejected"].get(key) == reasons, (key, h["rejected"].get(key))
+
+
+def test_inline_subscriptions_count_every_bad_message_and_deliver_good_ones_on_zenohs_thread(router):
+    endpoint, session = router
+    expected: dict[str, dict[str, int]] = {}
+    good_key = keys.REGISTRY[0]
+
+    def sends_at(now: float) -> list[tuple[str, bytes]]:
+        out = []
+        for spec in keys.REGISTRY:
+            for reason, payload in bad_payloads(spec.msgtype, now).items():
+                out += [(spec.key, payload)] * 2
+                expected.setdefault(spec.key, {})[reason] = 2
+        out += [(good_key.key, msgs.serialize(good(good_key.msgtype, now), good_key.msgtype))] * 5
+        return out
+
+    got = probe(endpoint, session, fifo(), sends_at, inline=True)
+    h = got["health"]
+    assert got["delivered"] == {good_key.key: 5}
+    assert got["on_loop"] == 0  # every one handled on a Zenoh thread
+    assert h["dropped"] == {}
+    for key, reasons in expected.items():
+        assert h["rejected"].get(key) == reasons, (key, h["rejected"].get(key))
+
+
+def test_an_inline_handler_must_be_a_plain_function(router):
+    endpoint, _session = router
+
+    async def handler(_msg) -> None:
+        pass
+
+    async def go() -> None:
+        client = open_client(endpoint)
+        node = Node("probe", "inline", client, "wall")
+        try:
+            with pytest.raises(TypeError, match="plain function"):
+                node.subscribe("xm/clock", handler, inline=True)
+        finally:
+            await node.close()
+            client.close()
+
+    asyncio.run(go())
 
 
 def test_a_flood_of_garbage_is_counted_to_the_last_message_on_keep_latest_queues(router, caplog):
