@@ -119,7 +119,7 @@ def glove(curl: np.ndarray = RELAXED) -> Design:
     sensors = []
     palm = TACTILE_REGIONS.index("palm")
     rows, cols = np.nonzero(CELL_REGION == palm)
-    cut = np.argwhere((CELL_REGION[:rows.max() + 1, :cols.max() + 1] != palm))
+    cut = np.argwhere(CELL_REGION[:rows.max() + 1, :cols.max() + 1] != palm)
     r0, c0 = cut.min(axis=0)
     nr, nc = cut.max(axis=0) - cut.min(axis=0) + 1
     sensors.append((SensorSpec("palm", "palm", 6, 6, 0, 0, ((int(r0), int(c0), int(nr), int(nc)),), gap=1.0,

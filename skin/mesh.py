@@ -25,7 +25,8 @@ def check_closed(mesh: trimesh.Trimesh, name: str) -> trimesh.Trimesh:
         raise SkinError("non_manifold", name, f"non-manifold mesh: {(count > 2).sum()} edges shared by more than "
                         "two faces")
     if (count < 2).any():
-        raise SkinError("open_mesh", name, f"open mesh: {(count < 2).sum()} boundary edges (a base mesh must be closed)")
+        raise SkinError("open_mesh", name, f"open mesh: {(count < 2).sum()} boundary edges (a base mesh must be "
+                        "closed)")
     if not mesh.is_winding_consistent:
         raise SkinError("non_manifold", name, "inconsistent face winding (non-orientable or flipped faces)")
     return mesh

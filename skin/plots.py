@@ -24,14 +24,15 @@ def distortion_png(path: str | Path, parts: list[tuple[str, np.ndarray, np.ndarr
     methods = list(parts[0][3])
     vals = [[face_edge_distortion(v, uv[m], f) for m in methods] for _, v, f, uv in parts]
     vmax = vmax or float(np.percentile(np.concatenate([x for row in vals for x in row]), 99))
-    fig, axes = plt.subplots(len(parts), len(methods), figsize=(3.2 * len(methods), 2.4 * len(parts)), squeeze=False)
+    size = (3.8 * len(methods) + 1, 2.6 * len(parts))
+    fig, axes = plt.subplots(len(parts), len(methods), figsize=size, squeeze=False)
     for row, ((name, _, f, uv), vs) in enumerate(zip(parts, vals, strict=True)):
         for col, (m, val) in enumerate(zip(methods, vs, strict=True)):
             ax = axes[row, col]
             tpc = ax.tripcolor(Triangulation(uv[m][:, 0], uv[m][:, 1], f), facecolors=val, cmap="inferno",
                                vmin=0, vmax=vmax)
             ax.set_aspect("equal")
-            ax.set_title(f"{name}: {m}, mean {val.mean():.4f}", fontsize=8)
+            ax.set_title(f"{name}, {m}\nmean {val.mean():.4f}", fontsize=8)
             ax.tick_params(labelsize=6)
     fig.colorbar(tpc, ax=axes, label="edge-length distortion", shrink=0.6)
     fig.savefig(path, dpi=110)
@@ -91,7 +92,8 @@ def layout_png(path: str | Path, panels: dict[str, list[BaseGeometry]]) -> None:
 
 
 def layout_3d_png(path: str | Path, base_vertices: np.ndarray, base_faces: np.ndarray,
-                  patches: list[tuple[str, np.ndarray, np.ndarray]], cells: np.ndarray, view: tuple[float, float]) -> None:
+                  patches: list[tuple[str, np.ndarray, np.ndarray]], cells: np.ndarray,
+                  view: tuple[float, float]) -> None:
     """The base mesh (grey), every sensor's patch (coloured) and its cell centres (black dots)."""
     fig = plt.figure(figsize=(6, 5))
     ax = fig.add_subplot(projection="3d")

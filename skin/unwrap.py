@@ -165,8 +165,8 @@ def _refine(uv: np.ndarray, f: np.ndarray, A: sp.csr_matrix, rest: np.ndarray, r
         return sp.vstack([sp.hstack([sp.diags(g[:, 0]) @ A, sp.diags(g[:, 1]) @ A]), Jalign]).tocsr()
 
     x0 = uv.T.ravel()
-    res = least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1" if robust else "linear", f_scale=robust or 1.0, max_nfev=steps,
-                        x_scale="jac", tr_solver="lsmr")
+    res = least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1" if robust else "linear",
+                        f_scale=robust or 1.0, max_nfev=steps, x_scale="jac", tr_solver="lsmr")
     out = res.x.reshape(2, -1).T
     return out if (signed_areas(out, f) > 0).all() else uv
 

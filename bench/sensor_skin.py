@@ -41,11 +41,11 @@ def unwrap_figures(design: examples.Design) -> tuple[list, dict]:
     parts = unwrap_parts(design)
     wall = (time.perf_counter() - t) / len(parts)
     out = {}
+    keys = ("edge_mean", "edge_max", "area_min", "area_max", "flipped")
     for r in parts:
         o, lo = r.report["ours"], r.report["lscm"]
         out[r.placement.spec.name] = {
-            "faces": o["faces"], "ours": {k: o[k] for k in ("edge_mean", "edge_max", "area_min", "area_max", "flipped")},
-            "lscm": {k: lo[k] for k in ("edge_mean", "edge_max", "area_min", "area_max", "flipped")},
+            "faces": o["faces"], "ours": {k: o[k] for k in keys}, "lscm": {k: lo[k] for k in keys},
             "mean_ratio_lscm_over_ours": lo["edge_mean"] / max(o["edge_mean"], 1e-12)}
     return parts, {"parts": out, "wall_s_per_part": wall}
 
@@ -63,7 +63,8 @@ def nesting_figures(pieces: list, margin: float, sheet: tuple[float, float], see
     a_blf, a_sa = np.array([n.area for n in blf]), np.array([n.area for n in sa])
     fig = {"pieces": len(pieces), "parts_area_mm2": float(sum(p.shape.area for p in pieces)),
            "blf_area_mm2": a_blf.round(1).tolist(), "sa_area_mm2": a_sa.round(1).tolist(),
-           "blf_best_mm2": float(a_blf.min()), "sa_best_mm2": float(a_sa.min()), "sa_median_mm2": float(np.median(a_sa)),
+           "blf_best_mm2": float(a_blf.min()), "sa_best_mm2": float(a_sa.min()),
+           "sa_median_mm2": float(np.median(a_sa)),
            "sa_worst_mm2": float(a_sa.max()),
            "ratio_sa_best_over_blf_best": float(a_sa.min() / a_blf.min()),
            "ratio_sa_median_over_blf_best": float(np.median(a_sa) / a_blf.min()),
