@@ -2,14 +2,16 @@
 
 Parts can be highly non-convex (a palm sensor with a cutout, electrode combs), so both methods
 work on the exact shapes: every distance is shapely's exact polygon distance, and two parts are
-never closer than ``margin`` (mm). The annealer moves one part at a time (shift, pull toward the
-middle, turn by a quarter or a few degrees, or swap two parts), keeps only layouts that respect the
-margin and the sheet, and accepts a larger combined bounding rectangle with the Metropolis
-probability at a temperature that decays geometrically. It starts from plain shelves (parts laid
-along their long side, in rows by height), and from the baseline only where shelves do not fit
-the sheet. The baseline is bottom-left fill: parts in order of
-decreasing area, each at the lowest then leftmost free position of a strip (candidate corners
-from the parts already placed, then slid down and left), trying four quarter turns.
+never closer than ``margin`` (mm). Each annealing move changes one part (or swaps two): slide a
+part on the bounding rectangle's edge toward its middle as far as it stays free, relocate such a
+part anywhere inside the rectangle in any quarter turn, swap two parts' places, turn a part by a
+quarter or a few degrees, or shift it. Only layouts that keep the margin and fit the sheet are
+kept; a larger combined bounding rectangle is accepted with the Metropolis probability at a
+temperature that decays geometrically. The annealer starts from plain shelves (parts laid along
+their long side, in rows by height), and from the baseline only where shelves do not fit the
+sheet. The baseline is bottom-left fill: parts in order of decreasing area, each at the lowest
+then leftmost free position of a strip (candidate corners from the parts already placed, then
+slid down and left), trying four quarter turns.
 """
 
 from __future__ import annotations
