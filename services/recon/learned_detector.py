@@ -4,7 +4,10 @@ camera's readout window; a sub-pixel peak per heatmap gives the keypoint's pixel
 The network sees only images. Each view's window image (CameraInfo.roi) is letterboxed into the
 network's fixed input (scaled to fit, padded bottom/right), the peaks are mapped back through the
 letterbox and the window offset to full-image pixels, so recon triangulates with the full-image
-projection matrices. Weights come from ``xm detector train`` (perception/); inference runs through
+projection matrices. A second stage, when trained (hands.json beside the graph), crops each hand
+around its centre triangulated from the first stage's peaks and re-detects its 21 keypoints there
+(services/recon/hand_crops.py). Weights come from ``xm detector train`` and ``xm detector
+train-hands`` (perception/); inference runs through
 ONNX Runtime when the trained graph was exported (the fastest CPU runtime measured by
 bench/detector.py), otherwise through torch. The default weights are the ones shipped in
 models/detector/ (the ONNX graph and its meta.json).
