@@ -9,11 +9,14 @@ DEPLOYMENT ?= deploy/sim.toml
 # (runs/policy/demos/): what the naive fallback replays.
 POLICY_PRESET ?= no_tactile
 POLICY := runs/policy/policy.pt
-# The keypoint network recon runs ships in models/detector/ (ONNX graph + meta.json); `make detector`
-# regenerates it: labels rendered from the simulated rig, then training (about 20 min on 2 idle cores;
-# the labelled sets, weights.pt and loss.png stay in runs/detector/).
+# The keypoint network recon runs ships in models/detector/ (ONNX graphs + their JSON): `make detector`
+# regenerates it: labels rendered from the simulated rig, then training of the first stage (whole
+# windows; about 20 min on 2 idle cores) and of the second (one hand per crop; minutes); the
+# labelled sets, the torch weights and the loss plots stay in runs/detector/.
 DETECTOR_ITERS ?= 6500
 DETECTOR_MINUTES ?= 90
+DETECTOR_HAND_ITERS ?= 1800
+DETECTOR_HAND_MINUTES ?= 10
 
 .PHONY: run test test-fast bench soak lint clean help policy detector
 
@@ -50,7 +53,10 @@ detector: $(STAMP)
 	$(BIN)/xm detector train --labels runs/detector/labels/train --out runs/detector \
 		--iters $(DETECTOR_ITERS) --minutes $(DETECTOR_MINUTES)
 	mkdir -p models/detector
-	cp runs/detector/model.onnx runs/detector/meta.json models/detector/
+	$(BIN)/xm detector train-hands --labels runs/detector/labels/train --out runs/detector \
+		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 1
+	cp runs/detector/model.onnx runs/detector/meta.json runs/detector/hands.onnx runs/detector/hands.json \
+		models/detector/
 	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
 
 test: $(STAMP)

@@ -180,6 +180,8 @@ def run_images(args: argparse.Namespace) -> dict:
 
     out = {"weights": args.weights or "models/detector (shipped)", "runtime": det.runtime,
            "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images", "input_size")},
+           "trained_hand_stage": {k: det.hand_meta.get(k) for k in ("iterations", "train_seconds", "input_size")}
+           if det.hand_meta else None,
            "sessions": [f"assembly:{s}" for s in seeds], "frames_per_session": args.frames, "size": "256x192",
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}
     total = np.sum([times[k] for k in ("decode", "detect", "triangulate", "fit_hands", "fit_objects")], axis=0)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -43,25 +44,32 @@ def heatmap_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((pred - target) ** 2 * (1.0 + FOREGROUND_WEIGHT * target)).mean()
 
 
-def batch(frames: list[Frame], images: list[np.ndarray], size: tuple[int, int], n: int, aug: AugmentParams,
-          rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    xs, ys = [], []
-    for i in rng.integers(0, len(frames), n):
-        x, y = sample(images[i], frames[i].uv, frames[i].visibility, size, SIGMA, aug, rng)
-        xs.append(x)
-        ys.append(y)
+Sampler = Callable[[np.random.Generator], tuple[np.ndarray, np.ndarray]]  # one (input, targets) pair
+
+
+def window_sampler(frames: list[Frame], images: list[np.ndarray], size: tuple[int, int],
+                   aug: AugmentParams) -> Sampler:
+    """Whole labelled window images, letterboxed and augmented (the first stage's input)."""
+    def one(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        i = rng.integers(0, len(frames))
+        return sample(images[i], frames[i].uv, frames[i].visibility, size, SIGMA, aug, rng)
+    return one
+
+
+def batch(sampler: Sampler, n: int, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    xs, ys = zip(*(sampler(rng) for _ in range(n)), strict=True)
     return torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys))
 
 
 def train(frames: list[Frame], images: list[np.ndarray], n_keypoints: int, size: tuple[int, int] = INPUT_SIZE,
           iters: int = 100_000, minutes: float = 10.0, batch_size: int = 8, lr: float = 2e-3, seed: int = 0,
-          aug: AugmentParams | None = None, progress: bool = True, device: str = "cpu") -> tuple[UNet, list[float],
-                                                                                                   float]:
+          aug: AugmentParams | None = None, progress: bool = True, device: str = "cpu",
+          sampler: Sampler | None = None) -> tuple[UNet, list[float], float]:
     """Trains until ``iters`` iterations or ``minutes`` of wall time; returns the net, the loss per
-    iteration and the seconds spent."""
+    iteration and the seconds spent. ``sampler`` draws the training pairs (default: whole windows)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    aug = aug or AugmentParams()
+    sampler = sampler or window_sampler(frames, images, size, aug or AugmentParams())
     net = UNet(n_keypoints).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     losses: list[float] = []
@@ -77,7 +85,7 @@ def train(frames: list[Frame], images: list[np.ndarray], n_keypoints: int, size:
         frac = max(it / iters, elapsed / budget)
         for g in opt.param_groups:
             g["lr"] = lr * 0.5 * (1 + np.cos(np.pi * min(frac, 1.0)))
-        x, y = batch(frames, images, size, batch_size, aug, rng)
+        x, y = batch(sampler, batch_size, rng)
         loss = heatmap_loss(net(x.to(device)), y.to(device))
         opt.zero_grad()
         loss.backward()

@@ -4,7 +4,10 @@ camera's readout window; a sub-pixel peak per heatmap gives the keypoint's pixel
 The network sees only images. Each view's window image (CameraInfo.roi) is letterboxed into the
 network's fixed input (scaled to fit, padded bottom/right), the peaks are mapped back through the
 letterbox and the window offset to full-image pixels, so recon triangulates with the full-image
-projection matrices. Weights come from ``xm detector train`` (perception/); inference runs through
+projection matrices. A second stage, when trained (hands.json beside the graph), crops each hand
+around its centre triangulated from the first stage's peaks and re-detects its 21 keypoints there
+(services/recon/hand_crops.py). Weights come from ``xm detector train`` and ``xm detector
+train-hands`` (perception/); inference runs through
 ONNX Runtime when the trained graph was exported (the fastest CPU runtime measured by
 bench/detector.py), otherwise through torch. The default weights are the ones shipped in
 models/detector/ (the ONNX graph and its meta.json).
@@ -21,6 +24,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from services.recon import hand_crops
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
@@ -28,6 +32,7 @@ from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
 DEFAULT_WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "models" / "detector"
 TRAINING_DIR = Path("runs/detector")
 INPUT_SIZE = (64, 48)  # network input (width, height): fits the P6 budget on 2 cores (bench/detector.py)
+HAND_INPUT = 32  # the second stage's square input per hand crop (services/recon/hand_crops.py)
 TRAIN_HINT = "regenerate them with `make detector` (xm detector label && xm detector train)"
 
 
@@ -153,33 +158,22 @@ class LearnedDetector:
         self.size = tuple(self.meta["input_size"])
         self.sigma = float(self.meta.get("sigma", 1.5))
         self.hand_present_confidence = float(self.meta.get("hand_present_confidence", HAND_PRESENT_CONFIDENCE))
-        onnx_path, weights = folder / "model.onnx", folder / "weights.pt"
         if runtime == "auto":
-            runtime = "onnx" if onnx_path.exists() and _has_onnxruntime() else "torch"
+            runtime = "onnx" if (folder / "model.onnx").exists() and _has_onnxruntime() else "torch"
         self.runtime = runtime
-        if runtime == "onnx":
-            import onnxruntime as ort  # optional fast runtime: only when the graph was exported
-
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
-            # Trained weights and activations hold denormal floats, which the CPU computes slowly.
-            opts.add_session_config_entry("session.set_denormal_as_zero", "1")
-            # Idle threads sleep rather than spin: recon shares two cores with the other services.
-            opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-            self._session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
-        else:
-            if not weights.exists():
-                raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
-            torch.set_flush_denormal(True)  # denormal weights and activations slow CPU convolutions many times
-            self.net = UNet(len(self.names))
-            self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
-            self.net.eval()
+        self._run = _network(folder / "model.onnx", folder / "weights.pt", len(self.names), runtime, threads)
+        # The second stage (one hand per crop), when trained: hands.json beside its graph or weights.
+        self.hand_meta = json.loads((folder / "hands.json").read_text()) if (folder / "hands.json").exists() else None
+        self._run_hand = None
+        if self.hand_meta is not None:
+            self._run_hand = _network(folder / "hands.onnx", folder / "hands.pt", hand_crops.KEYPOINTS, runtime,
+                                      threads)
+            self.hand_size = int(self.hand_meta["input_size"])
+        self.hand_slices = [slice(i, i + hand_crops.KEYPOINTS) for i in range(0, 2 * hand_crops.KEYPOINTS,
+                                                                                 hand_crops.KEYPOINTS)]
 
     def heatmaps(self, batch: np.ndarray) -> np.ndarray:
-        if self.runtime == "onnx":
-            return self._session.run(None, {"image": batch})[0]
-        with torch.inference_mode():
-            return self.net(torch.from_numpy(batch)).numpy()
+        return self._run(batch)
 
     def detect(self, views: list[View]) -> tuple[np.ndarray, np.ndarray]:
         images = []
@@ -198,7 +192,76 @@ class LearnedDetector:
         batch, scales = to_input(images, self.size)
         uv_net, conf = peaks(self.heatmaps(batch))
         uv = np.stack([net_to_full(uv_net[i], scales[i], v.model.roi) for i, v in enumerate(views)])
-        return uv, np.clip(conf, 0.0, 1.0)
+        conf = np.clip(conf, 0.0, 1.0)
+        if self._run_hand is not None and len(views) >= 2:
+            self._refine_hands(views, images, uv, conf)
+        return uv, conf
+
+    def _refine_hands(self, views: list[View], images: list[np.ndarray], uv: np.ndarray, conf: np.ndarray) -> None:
+        """The second stage, in place: every hand found in two views or more is cropped in every
+        view around its triangulated centre, and the crop network's 21 peaks replace the first
+        stage's for that hand and view (confidence 0 where the crop misses the view's window)."""
+        P = np.stack([np.asarray(v.model.P, float) for v in views])
+        calibrated = np.array([np.linalg.matrix_rank(p[:, :3]) == 3 for p in P])
+        if calibrated.sum() < 2:
+            return  # no geometry to find the hands with: the first stage's peaks stand
+        focal = np.array([hand_crops.focal_px(p) if ok else 1.0 for p, ok in zip(P, calibrated, strict=True)])
+        centres, found = hand_crops.hand_centres(P, uv, conf * calibrated[:, None], self.hand_slices)
+        centre, half, ok = hand_crops.hand_boxes(P, centres, found, focal)
+        ok &= calibrated[:, None]
+        size = self.hand_size
+        crops, where = [], []
+        for c, v in enumerate(views):
+            x0, y0, w, h = v.model.roi or (0, 0, v.model.width, v.model.height)
+            img = None
+            for hand, sl in enumerate(self.hand_slices):
+                local = centre[c, hand] - (x0, y0)
+                if not ok[c, hand]:
+                    continue
+                if np.any(local < -half[c, hand]) or np.any(local > np.array([w, h]) + half[c, hand]):
+                    conf[c, sl] = 0.0  # the hand's crop shows none of this window: the view does not see it
+                    continue
+                if img is None:
+                    img = images[c].astype(np.float32) / 255.0
+                M = hand_crops.crop_matrix(local, half[c, hand], size, mirror=hand == 0)
+                crops.append(cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR,
+                                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
+                where.append((c, sl, M, (x0, y0)))
+        if not crops:
+            return
+        uv_crop, conf_crop = peaks(self._run_hand(np.ascontiguousarray(np.stack(crops))))
+        for (c, sl, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
+            local = hand_crops.to_image(u, M)
+            h, w = images[c].shape[:2]
+            inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
+            uv[c, sl] = local + offset
+            conf[c, sl] = np.where(inside, np.clip(k, 0.0, 1.0), 0.0)  # a crop reaches past its window: no view
+
+
+def _network(onnx_path: Path, weights: Path, keypoints: int, runtime: str, threads: int):
+    """A function batch (B,3,h,w) float32 -> heatmaps (B,K,h,w) through ONNX Runtime or torch."""
+    if runtime == "onnx":
+        import onnxruntime as ort  # optional fast runtime: only when the graph was exported
+
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
+        # Trained weights and activations hold denormal floats, which the CPU computes slowly.
+        opts.add_session_config_entry("session.set_denormal_as_zero", "1")
+        # Idle threads sleep rather than spin: recon shares two cores with the other services.
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
+        return lambda batch: session.run(None, {"image": batch})[0]
+    if not weights.exists():
+        raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
+    torch.set_flush_denormal(True)  # denormal weights and activations slow CPU convolutions many times
+    net = UNet(keypoints)
+    net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+    net.eval()
+
+    def run(batch: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return net(torch.from_numpy(batch)).numpy()
+    return run
 
 
 def _has_onnxruntime() -> bool:

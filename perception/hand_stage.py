@@ -1,0 +1,117 @@
+"""``xm detector train-hands``: the detector's second stage, the same U-Net on one hand at a time.
+
+Training pairs are crops of the labelled window images around one hand (services/recon/hand_crops.py
+makes the same crops at run time from the first stage's peaks): the crop's centre is the hand's
+labelled median displaced as far as the run-time centres are off, its side spans the hand's extent
+times the range the run-time metric size gives, left hands are mirrored, and the targets are that
+hand's 21 keypoints only (the other hand, often in the crop too, is background). Colour, blur,
+noise, rotation and occluders as for the first stage. Writes hands.pt, hands.json, hands_loss.png
+and hands.onnx beside the first stage's files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from perception.augment import AugmentParams, colour, heatmaps, occluders
+from perception.labels import Frame
+from perception.train import SIGMA, Sampler, export_onnx, load_set, plot_losses, train
+from services.recon.hand_crops import crop_matrix
+from services.recon.learned_detector import HAND_INPUT, TRAINING_DIR
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
+
+MIN_LABELLED = 4  # labelled keypoints a hand needs in a window to be cropped for training
+# The run-time crop's half side over the hand's largest keypoint distance from its median, and the
+# run-time centre's error over the half side (per axis), as measured on the validation sessions.
+EXTENT_RATIO = (0.4, 0.95)
+CENTRE_JITTER = 0.12
+
+
+def hand_crops(frames: list[Frame]) -> list[tuple[int, int]]:
+    """(frame index, hand index) of every hand with enough labelled keypoints in its window."""
+    out = []
+    for i, fr in enumerate(frames):
+        for h in range(len(HAND_NAMES)):
+            if (fr.visibility[h * KEYPOINTS_PER_HAND:(h + 1) * KEYPOINTS_PER_HAND] > 0).sum() >= MIN_LABELLED:
+                out.append((i, h))
+    return out
+
+
+def crop_sample(image: np.ndarray, uv: np.ndarray, labelled: np.ndarray, mirror: bool, size: int,
+                aug: AugmentParams, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One pair: uv (21,2) window pixels, labelled (21,) bool. Input (3, size, size), targets (21, size, size)."""
+    pts = uv[labelled]
+    centre = np.median(pts, axis=0)
+    extent = max(float(np.abs(pts - centre).max()), 4.0)
+    half = extent / rng.uniform(*EXTENT_RATIO)
+    centre = centre + rng.normal(0.0, CENTRE_JITTER, 2) * half
+    M = np.vstack([crop_matrix(centre, half, size, mirror), [0, 0, 1]])
+    c = (size - 1) / 2.0
+    R = np.vstack([cv2.getRotationMatrix2D((c, c), rng.uniform(-aug.rotation_deg, aug.rotation_deg), 1.0), [0, 0, 1]])
+    A = (R @ M)[:2]
+    warped = cv2.warpAffine(image.astype(np.float32) / 255.0, A, (size, size), flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    warped = colour(warped, aug, rng)
+    if rng.random() < aug.occluder_p:
+        warped = occluders(warped, rng)
+    net_uv = uv @ A[:, :2].T + A[:, 2]
+    inside = np.all((net_uv >= -0.5) & (net_uv <= size - 0.5), axis=1)
+    target = heatmaps(net_uv, (labelled & inside).astype(np.float32), (size, size), SIGMA)
+    return warped.transpose(2, 0, 1), target
+
+
+def crop_sampler(frames: list[Frame], images: list[np.ndarray], size: int, aug: AugmentParams) -> Sampler:
+    pairs = hand_crops(frames)
+    if not pairs:
+        raise ValueError("no hand with enough labelled keypoints in the set")
+
+    def one(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        i, h = pairs[rng.integers(0, len(pairs))]
+        sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
+        fr = frames[i]
+        return crop_sample(images[i], fr.uv[sl], fr.visibility[sl] > 0, HAND_NAMES[h] == "left", size, aug, rng)
+    return one
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="xm detector train-hands", description=__doc__.splitlines()[0])
+    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
+    p.add_argument("--out", default=str(TRAINING_DIR), help="hands.pt, hands.json, hands_loss.png, hands.onnx")
+    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
+    p.add_argument("--iters", type=int, default=8000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    torch.set_flush_denormal(True)  # denormal weights late in training slow CPU convolutions many times
+    folder = Path(a.labels)
+    if not (folder / "labels.json").exists():
+        print(f"no labelled set at {folder}; make one with `xm detector label`")
+        return 2
+    task, frames, images = load_set(folder)
+    sampler = crop_sampler(frames, images, HAND_INPUT, AugmentParams())
+    print(f"{len(hand_crops(frames))} hand crops in {len(frames)} labelled images, input {HAND_INPUT}x{HAND_INPUT}")
+    net, losses, seconds = train(frames, images, KEYPOINTS_PER_HAND, (HAND_INPUT, HAND_INPUT), a.iters, a.minutes,
+                                 a.batch, a.lr, a.seed, sampler=sampler)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.save(net.state_dict(), out / "hands.pt")
+    meta = {"task": task, "keypoints": [str(k) for k in range(KEYPOINTS_PER_HAND)], "input_size": HAND_INPUT,
+            "sigma": SIGMA, "mirrored": "left", "iterations": len(losses), "train_seconds": round(seconds, 1),
+            "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(folder),
+            "batch": a.batch, "lr": a.lr, "threads": a.threads, "seed": a.seed}
+    (out / "hands.json").write_text(json.dumps(meta, indent=1))
+    plot_losses(losses, out / "hands_loss.png")
+    (out / "hands.onnx").unlink(missing_ok=True)  # never leave a graph of other weights beside these
+    export_onnx(net, (HAND_INPUT, HAND_INPUT), out / "hands.onnx")
+    print(f"{len(losses)} iterations in {seconds:.0f} s, loss {losses[0]:.4f} -> {np.mean(losses[-20:]):.4f}; "
+          f"wrote {out}/hands.pt, hands.json, hands_loss.png, hands.onnx")
+    return 0
