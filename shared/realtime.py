@@ -109,14 +109,16 @@ def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_
     return raised
 
 
-def thread_run_delay() -> float:
-    """Seconds the calling thread has spent runnable but waiting for a CPU (the kernel's schedstat;
-    0.0 where it is not available)."""
+def thread_schedstat() -> tuple[float, int]:
+    """The calling thread's seconds spent runnable but waiting for a CPU, and how many times it has
+    been put on a CPU (the kernel's schedstat; (0.0, 0) where it is not available). A thread that
+    wakes from a timed wait and then has to wait for the GIL is put on a CPU twice."""
     try:
         with open("/proc/thread-self/schedstat", "rb") as f:
-            return int(f.read().split()[1]) * 1e-9
+            fields = f.read().split()
+        return int(fields[1]) * 1e-9, int(fields[2])
     except (OSError, IndexError, ValueError):
-        return 0.0
+        return 0.0, 0
 
 
 def lock_memory(what: str, log: logging.Logger) -> bool:

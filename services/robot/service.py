@@ -31,7 +31,7 @@ from shared import msgs
 from shared.keys import robot_state_key
 from shared.kinematics import load_robot
 from shared.protocols.robot_board import Mode
-from shared.realtime import lock_memory, raise_priority, raise_process_priority, thread_run_delay
+from shared.realtime import lock_memory, raise_priority, raise_process_priority, thread_schedstat
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
@@ -151,7 +151,7 @@ class RobotService:
         period = 1.0 / self.p.command_rate_hz
         next_t = last = time.monotonic()
         last_sent: float | None = None
-        run_delay = thread_run_delay()
+        run_delay, slices = thread_schedstat()
         while not self._stop.is_set():
             next_t += period
             delay = next_t - time.monotonic()
@@ -173,12 +173,13 @@ class RobotService:
                 self.node.log.exception("command tick failed: %r", exc)
             if self.driver.sequence != sequence:  # sent: the gap the board sees is between the writes
                 sent = time.monotonic()
-                delay_now = thread_run_delay()
+                delay_now, slices_now = thread_schedstat()
                 if last_sent is not None:
                     self._count_gap(sent - last_sent, sequence - 1, {
                         "woke_late_ms": round(woke_late * 1e3, 2), "tick_ms": round((sent - now) * 1e3, 2),
-                        "waited_for_cpu_ms": round((delay_now - run_delay) * 1e3, 2)})
-                run_delay = delay_now
+                        "waited_for_cpu_ms": round((delay_now - run_delay) * 1e3, 2),
+                        "times_on_cpu": slices_now - slices})
+                run_delay, slices = delay_now, slices_now
                 last_sent = sent
             else:
                 last_sent = None  # no feedback, no commands: the board brakes, as it should
