@@ -12,16 +12,20 @@ POLICY := runs/policy/policy.pt
 # The keypoint network recon runs ships in models/detector/ (ONNX graph + meta.json); `make detector`
 # regenerates it: labels rendered from the simulated rig, then training (about 20 min on 2 idle cores;
 # the labelled sets, weights.pt and loss.png stay in runs/detector/).
+# The glove's cell map (which readout crossing is which sensor's cell, and where each cell lies on
+# the hand) ships in models/skin/glove_cellmap.json: the layout the glove service and the tactile
+# projection read; `make cellmap` writes it again from the skin tools' glove design (skin/examples.py).
 DETECTOR_ITERS ?= 6500
 DETECTOR_MINUTES ?= 90
 
-.PHONY: run test test-fast bench soak lint clean help policy detector
+.PHONY: run test test-fast bench soak lint clean help policy detector cellmap
 
 help:
 	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
 	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
 	@echo "make policy - train the network the policy service serves (runs/policy/policy.pt)"
 	@echo "make detector - regenerate recon's keypoint network (models/detector/)"
+	@echo "make cellmap - regenerate the glove's cell map (models/skin/glove_cellmap.json)"
 	@echo "make bench  - benchmarks, results in .bench/*.json"
 	@echo "make soak   - chaos soak: kill -9 a random service every minute for an hour (.bench/soak.json)"
 	@echo "make lint   - ruff"
@@ -52,6 +56,9 @@ detector: $(STAMP)
 	mkdir -p models/detector
 	cp runs/detector/model.onnx runs/detector/meta.json models/detector/
 	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
+
+cellmap: $(STAMP)
+	$(BIN)/xm skin glove --cellmap-only --out models/skin
 
 test: $(STAMP)
 	$(BIN)/ruff check .
