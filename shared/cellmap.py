@@ -97,6 +97,9 @@ def check(m: CellMap, source: str) -> CellMap:
         name = s["name"]
         if s["region"] not in m.regions:
             raise CellMapError(source, f"{name}: region {s['region']!r} is not one of {list(m.regions)}")
+        if not (0 <= s["row0"] and s["row0"] + s["rows"] <= rows and 0 <= s["col0"] and s["col0"] + s["cols"] <= cols):
+            raise CellMapError(source, f"{name}: its {s['rows']}x{s['cols']} block at row {s['row0']}, column "
+                               f"{s['col0']} runs outside the {rows}x{cols} readout matrix")
         cells = [(int(c["row"]), int(c["col"])) for c in s["cells"]]
         for rc in cells:
             if not (0 <= rc[0] < rows and 0 <= rc[1] < cols):

@@ -139,6 +139,8 @@ def _variants(tmp_path) -> dict[str, tuple[str, str]]:
             lambda d: d["region"][4].__setitem__(3, PALM))
     variant("cutout.json", "palm: its cells are not its 6x6 block", lambda d: d["sensors"][0].update(cutouts=[]))
     last = len(TACTILE_REGIONS) - 1
+    variant("block.json", "little: its 2x6 block at row 15, column 0 runs outside the 16x16 readout matrix",
+            lambda d: d["sensors"][5].update(row0=15))
     variant("order.json", "a glove's are", lambda d: d.update(  # consistent, but not the glove's region order
         regions=d["regions"][::-1], region=[[v if v < 0 else last - v for v in r] for r in d["region"]]))
     variant("format.json", "not a crossmodal-skin-cellmap version 1 file", lambda d: d.update(version=2))
