@@ -13,18 +13,22 @@ POLICY := runs/policy/policy.pt
 # regenerates it: labels rendered from the simulated rig, then training of the first stage (whole
 # windows; about 20 min on 2 idle cores) and of the second (one hand per crop; minutes); the
 # labelled sets, the torch weights and the loss plots stay in runs/detector/.
+# The glove's cell map (which readout crossing is which sensor's cell, and where each cell lies on
+# the hand) ships in models/skin/glove_cellmap.json: the layout the glove service and the tactile
+# projection read; `make cellmap` writes it again from the skin tools' glove design (skin/examples.py).
 DETECTOR_ITERS ?= 6500
 DETECTOR_MINUTES ?= 90
 DETECTOR_HAND_ITERS ?= 1800
 DETECTOR_HAND_MINUTES ?= 10
 
-.PHONY: run test test-fast bench soak lint clean help policy detector
+.PHONY: run test test-fast bench soak lint clean help policy detector cellmap
 
 help:
 	@echo "make run    - the whole workcell on the simulated default; dashboard at http://127.0.0.1:8080"
 	@echo "make test   - the test suite (unit, contract, integration, HDL, browser)"
 	@echo "make policy - train the network the policy service serves (runs/policy/policy.pt)"
 	@echo "make detector - regenerate recon's keypoint network (models/detector/)"
+	@echo "make cellmap - regenerate the glove's cell map (models/skin/glove_cellmap.json)"
 	@echo "make bench  - benchmarks, results in .bench/*.json"
 	@echo "make soak   - chaos soak: kill -9 a random service every minute for an hour (.bench/soak.json)"
 	@echo "make lint   - ruff"
@@ -58,6 +62,9 @@ detector: $(STAMP)
 	cp runs/detector/model.onnx runs/detector/meta.json runs/detector/hands.onnx runs/detector/hands.json \
 		models/detector/
 	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
+
+cellmap: $(STAMP)
+	$(BIN)/xm skin glove --cellmap-only --out models/skin
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,13 +1,16 @@
 """``xm skin``: sensor-skin design tools (thesis 4.5.4, 4.8.1).
 
   xm skin glove [--out DIR]        the glove on the hand model: layout, unwrap, nesting, SVGs, cell map
+                 [--palm-cutout R C NR NC]  the palm's cutout (default 4 3 2 3: between thumb and index)
   xm skin fingertip [--out DIR]    the 4x4 fingertip sensor at 45 degrees
   xm skin design MESH --rows R --cols C --pitch P --centre X,Y,Z --normal X,Y,Z [--angle DEG]
                                    one sensor laid on a closed base mesh (OBJ/STL/PLY, mm) by a plane
   xm skin unwrap PART              a part mesh (open, genus 0) unwrapped both ways; report and picture
 
 Every run writes a report.json (distortion per part against LSCM, nesting, toolpaths) and
-pictures beside its files. Bad input (an open or non-manifold mesh, a layout that does not fit,
+pictures beside its files; with --cellmap-only a design run places the sensors and writes only
+<design>_cellmap.json (`make cellmap`: the glove's into models/skin/, the layout the glove service
+and the tactile projection read). Bad input (an open or non-manifold mesh, a layout that does not fit,
 parts that cannot be nested) ends with a message naming the part and exit status 2.
 """
 
@@ -26,7 +29,7 @@ from skin import examples, plots
 from skin.errors import COUNTS, SkinError
 from skin.layout import Carrier, SensorSpec
 from skin.mesh import check_sheet, load_base_mesh
-from skin.pipeline import Fabrication, fabricate
+from skin.pipeline import Fabrication, fabricate, write_cell_map
 from skin.unwrap import distortion, lscm, stretch_minimizing
 
 DEFAULT_OUT = Path("runs/skin")
@@ -128,7 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     common.add_argument("--margin", type=float, default=2.0, help="smallest gap between parts on a sheet (mm)")
     common.add_argument("--sheet", type=float, nargs=2, default=(200.0, 300.0), metavar=("W", "H"),
                         help="sheet size (mm); default a cutting mat's 200 x 300")
-    sub.add_parser("glove", parents=[common], help="the glove on the hand model")
+    common.add_argument("--cellmap-only", action="store_true",
+                        help="place the sensors and write only <design>_cellmap.json (seconds)")
+    g = sub.add_parser("glove", parents=[common], help="the glove on the hand model")
+    g.add_argument("--palm-cutout", type=int, nargs=4, action="append", metavar=("ROW", "COL", "NR", "NC"),
+                   help="a block of cells left out of the palm's 6 x 6 (repeatable; default 4 3 2 3)")
     sub.add_parser("fingertip", parents=[common], help="the 4x4 fingertip sensor at 45 degrees")
     d = sub.add_parser("design", parents=[common], help="one sensor laid on a closed base mesh by a plane")
     d.add_argument("mesh", type=Path)
@@ -149,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             unwrap_file(args.part, args.out or DEFAULT_OUT / "unwrap")
             return 0
         if args.cmd == "glove":
-            design = examples.glove()
+            design = examples.glove(palm_cutouts=tuple(tuple(c) for c in args.palm_cutout or [examples.PALM_CUTOUT]))
         elif args.cmd == "fingertip":
             design = examples.fingertip()
         else:
@@ -160,8 +167,11 @@ def main(argv: list[str] | None = None) -> int:
                                     args.angle)
             design = examples.Design(args.mesh.stem, base, [(spec, carrier, base)], (args.rows, args.cols),
                                      ("sensor",))
-        run(design, args.out or DEFAULT_OUT / design.name, args.iterations, args.seed, args.margin,
-            tuple(args.sheet))
+        out = args.out or DEFAULT_OUT / design.name
+        if args.cellmap_only:
+            print(f"cell map in {write_cell_map(design, out)}")
+        else:
+            run(design, out, args.iterations, args.seed, args.margin, tuple(args.sheet))
         return 0
     except SkinError as exc:
         print(f"xm skin: {exc}", file=sys.stderr)

@@ -2,13 +2,15 @@
 
 Glove: the base mesh is the project's hand model (services/recon/hand_mesh.py) posed on a relaxed
 right hand of average size (services/recon/hand_model.py), each closed part (palm, five fingers)
-smoothed by Loop subdivision. The sensors follow the glove's readout layout
-(services/glove/layout.py) and lie where the tactile projection (services/recon/tactile_projection.py)
-expects them: a 2 x 6 sensor on the palmar half of each finger (row 0 on the thumb's side, column 0
-at the finger's base, column 5 at the tip keypoint; the thumb's from its MCP joint), and the 6 x 6
-palm sensor (row 0 at the wrist, column 0 on the little finger's edge) with its 2 x 3 cutout between
-thumb and index. Each carrier evaluates the hand model's own skinning at the sensor's points, so the
-layout follows the hand however it is posed.
+smoothed by Loop subdivision. The sensors lie where the tactile projection
+(services/recon/tactile_projection.py) reads them: a 2 x 6 sensor on the palmar half of each finger
+(row 0 on the thumb's side, column 0 at the finger's base, column 5 at the tip keypoint; the thumb's
+from its MCP joint), and the 6 x 6 palm sensor (row 0 at the wrist, column 0 on the little finger's
+edge) with its 2 x 3 cutout between thumb and index. On the readout matrix (``GLOVE_ROWS``) the
+palm has excitation lines 0-5 and each finger two of its own; all share reception lines 0-5. The
+glove's cell map, written from this design, is the glove service's layout (services/glove/layout.py;
+shipped in models/skin/glove_cellmap.json). Each carrier evaluates the hand model's own skinning at
+the sensor's points, so the layout follows the hand however it is posed.
 
 Fingertip: a 4 x 4 matrix whose rows and columns wrap around the tip at 45 degrees, one corner at
 the tip, one at the base, two at the sides, on a capsule-shaped fingertip (trimesh).
@@ -21,7 +23,6 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from services.glove.layout import CELL_REGION, FINGER_ROWS
 from services.recon.hand_mesh import PALM, PALM_HALF_THICKNESS, RADIUS, Template, pose, template
 from services.recon.hand_model import DEFAULT_BONES, DEFAULT_PALM, HandShape, local_points
 from services.recon.tactile_projection import FINGERS, SENSOR_SPAN
@@ -30,6 +31,9 @@ from skin.layout import Carrier, SensorSpec
 
 MM = 1000.0  # the hand model is in metres, the skin tools in mm
 RELAXED = np.array([0.0, 0.25, 0.3, 0.2])  # abduction, then flexion of the three joints (rad): a glove mold's pose
+GLOVE_MATRIX = (16, 16)  # the readout module's excitation x reception lines
+GLOVE_ROWS = {"palm": 0, "thumb": 6, "index": 8, "middle": 10, "ring": 12, "little": 14}  # first excitation line
+PALM_CUTOUT = (4, 3, 2, 3)  # rows 4-5 x columns 3-5 of the palm's 6 x 6: the corner between thumb and index
 
 
 @dataclass
@@ -112,22 +116,17 @@ def hand_base_mesh(kp: np.ndarray, subdivisions: int = 2) -> tuple[trimesh.Trime
     return trimesh.util.concatenate(list(parts.values())), parts
 
 
-def glove(curl: np.ndarray = RELAXED) -> Design:
-    """The glove: five finger sensors and the palm sensor on the posed hand model."""
+def glove(curl: np.ndarray = RELAXED, palm_cutouts: tuple[tuple[int, int, int, int], ...] = (PALM_CUTOUT,)) -> Design:
+    """The glove: five finger sensors and the palm sensor on the posed hand model (``palm_cutouts``:
+    (row, col, rows, cols) blocks left out of the palm's 6 x 6)."""
     kp = hand_keypoints(curl)
     base, parts = hand_base_mesh(kp)
-    sensors = []
-    palm = TACTILE_REGIONS.index("palm")
-    rows, cols = np.nonzero(CELL_REGION == palm)
-    cut = np.argwhere(CELL_REGION[:rows.max() + 1, :cols.max() + 1] != palm)
-    r0, c0 = cut.min(axis=0)
-    nr, nc = cut.max(axis=0) - cut.min(axis=0) + 1
-    sensors.append((SensorSpec("palm", "palm", 6, 6, 0, 0, ((int(r0), int(c0), int(nr), int(nc)),), gap=1.0,
-                               cable_length=40.0), palm_carrier(kp), parts["palm"]))
+    sensors = [(SensorSpec("palm", "palm", 6, 6, GLOVE_ROWS["palm"], 0, tuple(tuple(c) for c in palm_cutouts),
+                           gap=1.0, cable_length=40.0), palm_carrier(kp), parts["palm"])]
     for finger in FINGERS:
-        spec = SensorSpec(finger, finger, 2, 6, FINGER_ROWS[finger], 0, gap=1.0, cable_length=60.0)
+        spec = SensorSpec(finger, finger, 2, 6, GLOVE_ROWS[finger], 0, gap=1.0, cable_length=60.0)
         sensors.append((spec, finger_carrier(kp, finger), parts[finger]))
-    return Design("glove", base, sensors, CELL_REGION.shape, TACTILE_REGIONS)
+    return Design("glove", base, sensors, GLOVE_MATRIX, TACTILE_REGIONS)
 
 
 FINGERTIP_RADIUS = 8.0  # mm

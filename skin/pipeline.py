@@ -77,6 +77,16 @@ def marker(shape: BaseGeometry) -> BaseGeometry:
     return outer.difference(shape.buffer(MARKER_OFFSET, join_style="mitre"))
 
 
+def write_cell_map(design: Design, out_dir: str | Path) -> Path:
+    """Place the design's sensors and write only its cell map, ``<out_dir>/<design>_cellmap.json``
+    (no unwrap, nesting or toolpaths)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{design.name}_cellmap.json"
+    cell_map(design, [place(spec, carrier, surface) for spec, carrier, surface in design.sensors]).save(path)
+    return path
+
+
 def fabricate(design: Design, out_dir: str | Path, margin: float = 2.0, sheet: tuple[float, float] = (200.0, 300.0),
               iterations: int = 4000, seed: int = 0) -> Fabrication:
     """The whole chain for a design, files under ``out_dir``: the base mesh and part meshes (OBJ),

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.glove.layout import CELL_MASK
+from services.glove import layout
 
 
 @dataclass
@@ -22,30 +22,34 @@ class Calibration:
     c0: np.ndarray  # (16,16) baseline capacitance
     a: np.ndarray  # (16,16) 1/kPa
     b: np.ndarray  # (16,16) 1/kPa
+    mask: np.ndarray | None = None  # (16,16) 1 where the glove has a cell; None: the shipped layout's
 
     def __post_init__(self) -> None:
+        if self.mask is None:
+            self.mask = layout.default().mask
         # Per-frame constants, computed once (pressure runs at 1 kHz per glove).
-        self._c0 = np.where(CELL_MASK == 1, self.c0, 1.0)  # unpopulated crossings: no division by ~0
+        self._c0 = np.where(self.mask == 1, self.c0, 1.0)  # unpopulated crossings: no division by ~0
         self._r_max = 0.95 * self.a / np.maximum(self.b, 1e-9)  # beyond saturation: clamp, not blow up
 
     def pressure(self, impedance: np.ndarray) -> np.ndarray:
         r = np.minimum(np.asarray(impedance).imag / self._c0 - 1.0, self._r_max)
         p = r / (self.a - self.b * r)
-        return (np.clip(p, 0.0, None) * CELL_MASK).astype(np.float32)
+        return (np.clip(p, 0.0, None) * self.mask).astype(np.float32)
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps({"model": "rational", "c0": self.c0.tolist(), "a": self.a.tolist(),
                                           "b": self.b.tolist()}))
 
     @classmethod
-    def load(cls, path: str | Path) -> Calibration:
+    def load(cls, path: str | Path, mask: np.ndarray | None = None) -> Calibration:
+        """A calibration file for the glove whose cells are ``mask`` (None: the shipped layout's)."""
         try:
             d = json.loads(Path(path).read_text())
             arrays = [np.asarray(d[k], float).reshape(16, 16) for k in ("c0", "a", "b")]
         except (OSError, ValueError, KeyError) as exc:
             raise ValueError(f"{path}: not a glove calibration file ({exc}); make one with `xm glove calibrate`") \
                 from exc
-        return cls(*arrays)
+        return cls(*arrays, mask=mask)
 
 
 def rational(p: np.ndarray, a: float, b: float) -> np.ndarray:

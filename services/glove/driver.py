@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 
 from services.glove.calibration import Calibration
+from services.glove.layout import Layout
 from services.glove.sensor_model import nominal_calibration
 from shared.protocols import tactile
 from shared.realtime import (
@@ -65,13 +66,13 @@ class DeviceClock:
 class GloveDriver:
     def __init__(self, port: str, baudrate: int, calibration_path: str,
                  on_frame: Callable[[tactile.TactileFrame, np.ndarray, float], None],
-                 log: logging.Logger, clock: DeviceClock, calibration_seed: int = 0,
+                 log: logging.Logger, clock: DeviceClock, layout: Layout, calibration_seed: int = 0,
                  rt_priority: int = DEFAULT_RT_PRIORITY, process_rt_priority: int = PROCESS_RT_PRIORITY,
                  tty_worker_rt_priority: int = TTY_WORKER_RT_PRIORITY) -> None:
         if not port:
             raise ValueError("glove: no serial port configured (set port = \"/dev/ttyACM0\" in the deployment)")
-        self.calibration = (Calibration.load(calibration_path) if calibration_path
-                            else nominal_calibration(calibration_seed))
+        self.calibration = (Calibration.load(calibration_path, layout.mask) if calibration_path
+                            else nominal_calibration(calibration_seed, layout))
         self.decoder = tactile.StreamDecoder()
         self.clock = clock
         self.on_frame = on_frame

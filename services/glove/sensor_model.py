@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.glove import layout as glove_layout
 from services.glove.calibration import Calibration
-from services.glove.layout import CELL_MASK, CELL_REGION, COLS, ROWS, RX_MASK, TX_MASK, pressure_from_forces
+from services.glove.layout import COLS, ROWS, Layout
 from shared.protocols.tactile import TactileFrame
 
 NOMINAL_A = 0.02  # 1/kPa: 2 % capacitance change per kPa at low pressure
@@ -23,7 +24,8 @@ CROSSTALK = 0.03
 
 
 class GloveSensorModel:
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, seed: int = 0, layout: Layout | None = None) -> None:
+        self.layout = layout or glove_layout.default()  # the glove's cells (None: the shipped cell map)
         rng = np.random.default_rng(seed)
         self.rng = rng
         self.c0 = rng.uniform(0.9, 1.1, (ROWS, COLS))  # per-cell baseline
@@ -40,17 +42,18 @@ class GloveSensorModel:
         drift = DRIFT * np.sin(0.05 * t + self.drift_phase)
         cap = self.c0 * (1.0 + rel + drift) + self.rng.normal(0.0, NOISE, (ROWS, COLS))
         g = self.leak + self.rng.normal(0.0, NOISE, (ROWS, COLS))
-        z = (g + 1j * cap) * CELL_MASK + (1 - CELL_MASK) * self.rng.normal(0.0, NOISE, (ROWS, COLS))
+        mask = self.layout.mask
+        z = (g + 1j * cap) * mask + (1 - mask) * self.rng.normal(0.0, NOISE, (ROWS, COLS))
         return z.astype(np.complex64)
 
-    @staticmethod
-    def _neighbour_mean(x: np.ndarray) -> np.ndarray:
+    def _neighbour_mean(self, x: np.ndarray) -> np.ndarray:
         """Mean of the 4-neighbours that belong to the same sensor (no coupling across sensors)."""
+        region = self.layout.region
         total = np.zeros_like(x)
         count = np.zeros_like(x)
         for axis in (0, 1):
             for shift in (1, -1):
-                same = (np.roll(CELL_REGION, shift, axis) == CELL_REGION) & (CELL_REGION >= 0)
+                same = (np.roll(region, shift, axis) == region) & (region >= 0)
                 if axis == 0:
                     same[0 if shift == 1 else -1, :] = False  # no wrap-around
                 else:
@@ -60,18 +63,18 @@ class GloveSensorModel:
         return total / np.maximum(count, 1)
 
     def impedance(self, region_forces: np.ndarray, t: float) -> np.ndarray:
-        return self.measure(pressure_from_forces(region_forces), t)
+        return self.measure(self.layout.pressure_from_forces(region_forces), t)
 
     def frame(self, region_forces: np.ndarray, t: float, sequence: int) -> TactileFrame:
         """One protocol frame of the glove's lines (what the world's simulated module sends)."""
         return TactileFrame(sequence & 0xFFFFFFFF, int(round(t * 1e6)), self.impedance(region_forces, t), None,
-                            TX_MASK, RX_MASK)
+                            self.layout.tx_mask, self.layout.rx_mask)
 
     def calibration(self) -> Calibration:
         """The calibration a perfect `xm glove calibrate` would find (no drift, no crosstalk)."""
-        return Calibration(self.c0.copy(), self.a.copy(), self.b.copy())
+        return Calibration(self.c0.copy(), self.a.copy(), self.b.copy(), self.layout.mask)
 
 
-def nominal_calibration(seed: int = 0) -> Calibration:
+def nominal_calibration(seed: int = 0, layout: Layout | None = None) -> Calibration:
     """Factory calibration of the simulated gloves (the world seeds glove i with seed+i)."""
-    return GloveSensorModel(seed).calibration()
+    return GloveSensorModel(seed, layout).calibration()

@@ -1,4 +1,9 @@
-"""glove node: read the readout module over serial, decode, calibrate, publish pressure."""
+"""glove node: read the readout module over serial, decode, calibrate, publish pressure.
+
+The glove's layout (which crossing is which sensor's cell) is its cell map file, the ``cellmap``
+parameter (services/glove/layout.py). A cell map that is missing, malformed or inconsistent is
+refused at start: the service opens no port and publishes nothing, its status is ``error`` with the
+file and the problem, @health's ``layout`` carries the same, and ``bad_cellmap`` is counted."""
 
 from __future__ import annotations
 
@@ -8,19 +13,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.glove import layout as glove_layout
 from services.glove.driver import DeviceClock, GloveDriver, RegisterError
-from services.glove.layout import CELL_MASK
+from services.glove.layout import CellMapError, Layout
 from shared import msgs
 from shared.protocols import tactile
 from shared.runtime import Node
 
 
 @functools.lru_cache(maxsize=64)
-def cell_mask(tx_mask: int, rx_mask: int) -> np.ndarray:
+def cell_mask(layout: Layout, tx_mask: int, rx_mask: int) -> np.ndarray:
     """Flat 0/1 mask of the glove's cells carried by a frame (cells of lines not read: masked)."""
-    carried = np.zeros(CELL_MASK.size, np.uint8)
+    carried = np.zeros(layout.mask.size, np.uint8)
     carried[tactile.cell_index(tx_mask, rx_mask)] = 1
-    mask = CELL_MASK.ravel().astype(np.uint8) & carried
+    mask = layout.mask.ravel().astype(np.uint8) & carried
     mask.flags.writeable = False  # shared between frames
     return mask
 
@@ -32,6 +38,7 @@ class GloveService:
         baudrate: int = 3_000_000
         calibration: str = ""  # JSON from `xm glove calibrate`; empty: the simulated glove's factory one
         calibration_seed: int = -1  # which simulated glove's factory calibration (-1: by hand, 0 left, 1 right)
+        cellmap: str = ""  # the glove's cell map (`xm skin glove`); empty: models/skin/glove_cellmap.json
         publish_raw: bool = False
         publish_imu: bool = False
         # SCHED_FIFO priority of the serial reader thread, which also decodes and publishes (0: normal
@@ -47,22 +54,39 @@ class GloveService:
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
         self.hand = node.instance
-        seed = params.calibration_seed if params.calibration_seed >= 0 else (1 if self.hand == "right" else 0)
-        clock = DeviceClock(node.clock.now, sim=node.clock.mode == "sim")
-        self.driver = GloveDriver(params.port, params.baudrate, params.calibration, self._on_frame, node.log,
-                                  clock, calibration_seed=seed, rt_priority=params.reader_rt_priority,
-                                  process_rt_priority=params.process_rt_priority,
-                                  tty_worker_rt_priority=params.tty_worker_rt_priority)
         self.tactile_pub = node.output("tactile")
         self.raw_pub = node.output("raw") if params.publish_raw else None
         self.imu_pub = node.output("imu") if params.publish_imu else None
         node.queryable("register", self.cmd_register)
-        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
-                                     "tty_workers_raised": self.driver.tty_workers_raised}
+        node.health_extra = self._health
+        self.driver: GloveDriver | None = None
+        self.layout: Layout | None = None
+        self.layout_error = ""
+        try:
+            self.layout = glove_layout.load(params.cellmap)
+        except CellMapError as exc:
+            self.layout_error = str(exc)
+            node.stats.count("bad_cellmap")
+            node.log.error("%s; the glove publishes nothing (write one with `xm skin glove`, docs/skin.md)", exc)
+            node.set_status("error", str(exc))
+            return
+        seed = params.calibration_seed if params.calibration_seed >= 0 else (1 if self.hand == "right" else 0)
+        clock = DeviceClock(node.clock.now, sim=node.clock.mode == "sim")
+        self.driver = GloveDriver(params.port, params.baudrate, params.calibration, self._on_frame, node.log,
+                                  clock, self.layout, calibration_seed=seed, rt_priority=params.reader_rt_priority,
+                                  process_rt_priority=params.process_rt_priority,
+                                  tty_worker_rt_priority=params.tty_worker_rt_priority)
+
+    def _health(self) -> dict:
+        layout = self.layout.summary() if self.layout is not None else {"error": self.layout_error}
+        if self.driver is None:
+            return {"layout": layout}
+        return {"layout": layout, "link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
+                "tty_workers_raised": self.driver.tty_workers_raised}
 
     def _on_frame(self, frame, pressure: np.ndarray, stamp: float) -> None:  # the serial reader thread
         header = msgs.header(stamp, f"glove_{self.hand}")
-        mask = cell_mask(frame.tx_mask, frame.rx_mask)
+        mask = cell_mask(self.layout, frame.tx_mask, frame.rx_mask)
         self.tactile_pub.put(msgs.make(
             "xm_msgs/msg/Tactile", header=header, hand=self.hand, rows=16, cols=16,
             pressure=np.where(mask, pressure.ravel(), 0.0).astype(np.float32), mask=mask, sequence=frame.sequence))
@@ -82,6 +106,8 @@ class GloveService:
         name, value = request.get("name"), request.get("value")
         if not isinstance(name, str) or (value is not None and (not isinstance(value, int) or value < 0)):
             return {"ok": False, "error": "request {\"name\": str, \"value\": non-negative int (omit to read)}"}
+        if self.driver is None:
+            return {"ok": False, "error": f"no readout module open: {self.layout_error}"}
         try:
             reply = await self.driver.register(name, value)
         except RegisterError as exc:
@@ -93,8 +119,12 @@ class GloveService:
                 "value": reply.value, "status": status}
 
     async def run(self) -> None:
-        await self.driver.run()
+        if self.driver is None:  # a refused cell map: stay up and say so in @health
+            await asyncio.Event().wait()
+        else:
+            await self.driver.run()
 
     async def close(self) -> None:
-        self.driver.close()
+        if self.driver is not None:
+            self.driver.close()
         await asyncio.sleep(0)

@@ -6,7 +6,12 @@ surface mesh with the glove's pressure projected onto it (services/recon/tactile
 Two detectors: ``learned`` (the default) decodes every camera's JPEG window and runs the trained
 network (services/recon/learned_detector.py, imported only when chosen; the weights ship in
 models/detector/); ``simulated`` projects the simulator's truth on the first camera's image of
-each set, an option for experiments and the only one that subscribes to the truth."""
+each set, an option for experiments and the only one that subscribes to the truth.
+
+The glove's layout (region means, the tactile projection) is its cell map, the ``cellmap``
+parameter (services/glove/layout.py; empty: the shipped one). A cell map that cannot be used is
+refused at start: recon publishes scenes without tactile data and no tactile meshes, its status
+is ``degraded`` with the file and the problem, and ``bad_cellmap`` is counted."""
 
 from __future__ import annotations
 
@@ -19,7 +24,8 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from services.glove.layout import region_means
+from services.glove import layout as glove_layout
+from services.glove.layout import CellMapError
 from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
 from services.recon.frameset import FrameSetBuffer
 from services.recon.pipeline import Reconstruction, Reconstructor
@@ -68,6 +74,7 @@ class ReconService:
         seed: int = 0
         gate_px: float = 6.0  # reprojection gate of the robust triangulation
         fit_hands: bool = True  # articulated hand model (else the triangulated keypoints)
+        cellmap: str = ""  # the glove's cell map, as the glove service's; empty: models/skin/glove_cellmap.json
 
     _prepared: ClassVar[dict[str, object]] = {}  # a standby spare's loaded network, by its params
 
@@ -94,7 +101,14 @@ class ReconService:
         self.truth: collections.deque = collections.deque(maxlen=64)  # (stamp, msg)
         self.tactile: dict[str, tuple[float, np.ndarray]] = {}
         self.pressure: dict[str, tuple[float, np.ndarray]] = {}  # the newest 16x16 frame per glove
-        self.projector = TactileProjector()
+        self.layout, self.projector, self.layout_error = None, None, ""
+        try:
+            self.layout = glove_layout.load(params.cellmap)
+            self.projector = TactileProjector(layout=self.layout)
+        except CellMapError as exc:
+            self.layout_error = str(exc)
+            node.stats.count("bad_cellmap")
+            node.log.error("%s; recon publishes no tactile data", exc)
         self.times: collections.deque = collections.deque(maxlen=200)  # per-stage seconds per frame set
         self.frame_sets = 0
         self.recon: Reconstructor | None = None
@@ -103,7 +117,8 @@ class ReconService:
         self.mesh_pub = node.output("tactile_mesh")
         node.health_extra = self._health
         node.input("info", self.on_info)
-        node.input("tactile", self.on_tactile)
+        if self.layout is not None:
+            node.input("tactile", self.on_tactile)
         if params.detector == "simulated":
             self.simulated = SimulatedDetector(params.pixel_noise, params.dropout, params.seed, params.outliers)
             node.input("truth", self.on_truth)
@@ -118,6 +133,8 @@ class ReconService:
             if self.learned is not None:
                 node.input("image", self.on_image)
                 node.set_status("ok")
+        if self.layout_error and node.status != "error":
+            node.set_status("degraded", f"{self.layout_error}: no tactile data")
 
     def _load_learned(self) -> object | None:
         """The learned detector, or None (status says how to get it) when its module or weights are
@@ -142,7 +159,8 @@ class ReconService:
     def _health(self) -> dict:
         t = list(self.times)
         stages = {k: round(1000 * float(np.median([x[k] for x in t])), 2) for k in (t[0] if t else {})}
-        out = {"detector": self.params.detector, "frame_sets": self.frame_sets, "stage_ms_median": stages}
+        out = {"detector": self.params.detector, "frame_sets": self.frame_sets, "stage_ms_median": stages,
+               "layout": self.layout.summary() if self.layout is not None else {"error": self.layout_error}}
         if self.recon is not None:
             out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
             out["hands_seen_twice"] = self.recon.hands_seen_twice
@@ -172,7 +190,7 @@ class ReconService:
 
     def on_tactile(self, msg) -> None:
         pressure = np.asarray(msg.pressure, np.float32).reshape(msg.rows, msg.cols)
-        self.tactile[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), region_means(pressure))
+        self.tactile[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), self.layout.region_means(pressure))
         self.pressure[msg.hand] = (msgs.stamp_seconds(msg.header.stamp), pressure)
 
     # --- simulated detector: projected truth ------------------------------------------------
@@ -250,6 +268,8 @@ class ReconService:
                              r.object_mask, tactile, tactile_mask)
 
     def _tactile_mesh(self, stamp: float, r: Reconstruction) -> None:
+        if self.projector is None:  # the cell map was refused
+            return
         t0 = time.perf_counter()
         fresh = {h: p for h, (t, p) in self.pressure.items() if abs(stamp - t) < TACTILE_MAX_AGE_S}
         msg, skipped = self.projector.message(stamp, self.recon.hand_names, r.hands, r.hand_mask, fresh)

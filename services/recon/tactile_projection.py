@@ -1,16 +1,19 @@
 """Tactile projection (thesis 5.7): the glove's readout matrix sampled onto the hand mesh (pure).
 
 Every vertex of the hand template (services/recon/hand_mesh.py) that a sensor covers carries a
-(row, col) coordinate into the 16x16 readout matrix, following the glove's cell layout
-(services/glove/layout.py):
+(row, col) coordinate into the 16x16 readout matrix, following the glove's layout: its cell map
+file (services/glove/layout.py; recon's ``cellmap`` parameter, by default the shipped
+models/skin/glove_cellmap.json) says which block of the matrix each sensor occupies and which of
+its crossings hold no cell. Where each sensor lies on the hand:
 
 - a finger sensor (2 rows across x 6 columns along) lies on the palmar half of its finger's tube:
   its first column at the finger's base, its last at the tip (two columns per phalanx; the thumb's
   sensor runs from its MCP joint to the tip, three columns per phalanx), its first row on the thumb's
   side;
-- the palm sensor (6 x 6) lies on the palm's palmar face: row 0 at the wrist, row 5 at the finger
-  bases, column 0 on the little finger's edge, column 5 on the index's; so the 2x3 cutout (rows 4-5,
-  columns 3-5) is the corner between thumb and index, and vertices over it sense nothing.
+- the palm sensor lies on the palm's palmar face: its first row at the wrist, its last at the finger
+  bases, its first column on the little finger's edge, its last on the index's; so the shipped 2x3
+  cutout (rows 4-5, columns 3-5) is the corner between thumb and index. Vertices over a cutout
+  sense nothing.
 
 Sampling is bicubic (cubic B-spline interpolation, ``scipy.ndimage.map_coordinates`` of order 3).
 Padding keeps sensors apart: each sensor is sampled from its own copy of the matrix in which every
@@ -25,7 +28,8 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import distance_transform_edt, map_coordinates
 
-from services.glove.layout import CELL_MASK, CELL_REGION, COLS, FINGER_ROWS, ROWS
+from services.glove import layout as glove_layout
+from services.glove.layout import COLS, ROWS, Layout
 from services.recon.hand_mesh import PALM, Template, pose, template
 from shared import msgs
 from shared.demo import TACTILE_REGIONS
@@ -37,13 +41,7 @@ SENSOR_SPAN = {"thumb": (1.0, 3.0), "index": (0.0, 3.0), "middle": (0.0, 3.0), "
                "little": (0.0, 3.0)}
 
 
-def _extent(region: int) -> tuple[int, int, int, int]:
-    """First row, row count, first column, column count of a sensor's cells in the matrix."""
-    rows, cols = np.nonzero(CELL_REGION == region)
-    return rows.min(), rows.max() - rows.min() + 1, cols.min(), cols.max() - cols.min() + 1
-
-
-def vertex_coordinates(tmpl: Template) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def vertex_coordinates(tmpl: Template, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per vertex: (row, col) in the readout matrix (N,2), the sensor's region index (N,) (-1: none)
     and whether a sensor cell covers it (N,) bool."""
     n = tmpl.n_vertices
@@ -52,20 +50,19 @@ def vertex_coordinates(tmpl: Template) -> tuple[np.ndarray, np.ndarray, np.ndarr
     sensed = np.zeros(n, bool)
 
     def place(sel: np.ndarray, k: int, rows: np.ndarray, cols: np.ndarray) -> None:
-        """Vertices ``sel`` on sensor k at fractional rows and cols (the sensor's cells span 0..n)."""
-        r0, nr, c0, nc = _extent(k)
+        """Vertices ``sel`` on sensor k at fractional rows and cols (the sensor's block spans 0..1)."""
+        s = layout.sensors[TACTILE_REGIONS[k]]
+        r0, nr, c0, nc = s.row0, s.rows, s.col0, s.cols
         rc[sel] = np.stack([r0 - 0.5 + nr * rows, c0 - 0.5 + nc * cols], axis=1)
         cell = np.clip(np.rint(rc[sel]).astype(int), [r0, c0], [r0 + nr - 1, c0 + nc - 1])
-        # The nearest cell must be a populated one of this sensor (the palm's cutout is not).
-        ok = (CELL_REGION[cell[:, 0], cell[:, 1]] == k) & (CELL_MASK[cell[:, 0], cell[:, 1]] == 1)
+        # The nearest crossing must hold a cell of this sensor (a cutout's do not).
+        ok = layout.region[cell[:, 0], cell[:, 1]] == k
         idx = np.flatnonzero(sel)[ok]
         region[idx], sensed[idx] = k, True
 
     along = tmpl.along()
     for chain, name in enumerate(FINGERS):
         k = TACTILE_REGIONS.index(name)
-        if _extent(k)[0] != FINGER_ROWS[name]:
-            raise ValueError(f"glove layout: the {name} sensor does not start at row {FINGER_ROWS[name]}")
         a0, a1 = SENSOR_SPAN[name]
         sel = (tmpl.chain == chain) & (np.abs(tmpl.angle) <= np.pi / 2) & (along >= a0) \
             & (np.linalg.norm(tmpl.offset, axis=1) > 0)  # not the centre closing the tube's base
@@ -75,20 +72,23 @@ def vertex_coordinates(tmpl: Template) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return rc, region, sensed
 
 
-def padding_indices(region: int) -> np.ndarray:
+def padding_indices(layout: Layout, region: int) -> np.ndarray:
     """(2,ROWS,COLS) for every crossing the row and column of the sensor's nearest cell."""
-    _, idx = distance_transform_edt(CELL_REGION != region, return_indices=True)
+    _, idx = distance_transform_edt(layout.region != region, return_indices=True)
     return idx
 
 
 class TactileProjector:
-    """The template's tactile coordinates and padding, computed once; per frame, pose and sample."""
+    """The template's tactile coordinates and padding for a glove layout (None: the shipped cell
+    map), computed once; per frame, pose and sample."""
 
-    def __init__(self, tmpl: Template | None = None) -> None:
+    def __init__(self, tmpl: Template | None = None, layout: Layout | None = None) -> None:
         self.template = tmpl or template()
-        self.rc, self.region, self.sensed = vertex_coordinates(self.template)
+        self.layout = layout or glove_layout.default()
+        self.rc, self.region, self.sensed = vertex_coordinates(self.template, self.layout)
         # Per sensor: its vertices, their (row, col) and the padding of its copy of the matrix.
-        self.sensors = [(np.flatnonzero(self.region == k), self.rc[self.region == k].T, padding_indices(k))
+        self.sensors = [(np.flatnonzero(self.region == k), self.rc[self.region == k].T,
+                         padding_indices(self.layout, k))
                         for k in np.unique(self.region[self.sensed])]
 
     def sample(self, pressure: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ Zenoh; the test plays the device on a pty, speaking the real byte protocol."""
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import signal
 import time
@@ -12,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.glove.layout import DEFAULT_CELLMAP
 from services.robot.safety import WATCHDOG_TIMEOUT_S, soft_limits
 from services.robot.service import VELOCITY_SLACK
 from services.world.model import PHYSICS_DT
@@ -66,6 +68,8 @@ def test_glove_publishes_calibrated_pressure_counts_garbage_and_reconnects(route
         np.testing.assert_allclose(means[:2], region_pressure_kpa(forces)[:2], rtol=0.1)
         health = query_json(session, "xm/glove/left/@health")[0]
         assert health["decoder"]["bytes_discarded"] > 0 and health["decoder"]["resyncs"] >= 1
+        assert health["layout"]["cellmap"].endswith("models/skin/glove_cellmap.json"), "the shipped layout"
+        assert health["layout"]["cells"]["palm"] == 30
         # what scheduling the reader and the kernel's tty workers got depends on the host's permissions
         assert health["link"]["reader_priority"] in ("fifo", "nice", "normal")
         assert isinstance(health["tty_workers_raised"], int) and health["tty_workers_raised"] >= 0
@@ -84,6 +88,27 @@ def test_glove_publishes_calibrated_pressure_counts_garbage_and_reconnects(route
     finally:
         assert svc.stop() in (0, -15), svc.output()
         dev.close()
+
+
+def test_glove_refuses_a_broken_cell_map_and_reports_it_in_health(router, tmp_path):
+    """A cell map in which two sensors claim one crossing: the glove stays up, opens no port,
+    publishes nothing, and @health names the file and the problem."""
+    endpoint, session = router
+    d = json.loads(DEFAULT_CELLMAP.read_text())
+    d["sensors"][1]["cells"][0].update(row=0, col=0)  # the thumb claims a palm crossing
+    bad = tmp_path / "clash.json"
+    bad.write_text(json.dumps(d))
+    dep = write_deployment(tmp_path / "d.toml", endpoint,
+                           {"glove": {"left": {"port": str(tmp_path / "glove-left"), "cellmap": str(bad)}}})
+    svc = ServiceProcess("glove", dep, "left", tmp_path / "glove.log")
+    try:
+        assert wait_for(lambda: query_json(session, "xm/glove/left/@health"), 20), svc.output()
+        health = query_json(session, "xm/glove/left/@health")[0]
+        assert health["status"] == "error" and "clash.json" in health["message"], health
+        assert "thumb: cell (0, 0) is also palm's" in health["layout"]["error"]
+        assert health["errors"]["bad_cellmap"] == 1 and "link" not in health
+    finally:
+        assert svc.stop() in (0, -15), svc.output()
 
 
 def test_robot_follows_trajectories_rejects_nan_and_stops_commanding_without_feedback(router, tmp_path):

@@ -1,6 +1,7 @@
 """Sensor-skin layout (skin/layout.py, examples.py, cellmap.py, mesh.py): the glove's and the
-fingertip's matrices on their base meshes, the cell map's round trip into the glove service's
-layout and the tactile projection, even electrode spacing, and bad input naming the part."""
+fingertip's matrices on their base meshes, the glove's cell map (the shipped one is what the
+skin tools write; it round-trips into the glove service's layout and the tactile projection),
+even electrode spacing, and bad input naming the part."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 import trimesh
 from shapely import distance
 
-from services.glove.layout import CELL_REGION, CELLS_PER_REGION, RX_MASK, TX_MASK
+from services.glove import layout as glove_layout
+from services.glove.layout import DEFAULT_CELLMAP
 from services.recon.hand_mesh import pose
 from services.recon.tactile_projection import TactileProjector
 from skin import cellmap, examples
@@ -28,17 +30,35 @@ def glove():
     return d, [place(s, c, m) for s, c, m in d.sensors]
 
 
+def _without_geometry(d: dict) -> dict:
+    return {**d, "sensors": [{**s, "cells": [[c["row"], c["col"]] for c in s["cells"]]} for s in d["sensors"]]}
+
+
+def test_the_shipped_glove_cell_map_is_what_the_skin_tools_write(glove, tmp_path):
+    """models/skin/glove_cellmap.json, the glove service's default layout, is the skin tools' glove
+    (`make cellmap`): the same cells, and the same positions and normals on the hand."""
+    design, placements = glove
+    path = tmp_path / "glove_cellmap.json"
+    cellmap.cell_map(design, placements).save(path)
+    made, shipped = json.loads(path.read_text()), json.loads(DEFAULT_CELLMAP.read_text())
+    assert _without_geometry(made) == _without_geometry(shipped)
+    rc, pos, normal = cellmap.load(path).positions()
+    rc0, pos0, normal0 = cellmap.load(DEFAULT_CELLMAP).positions()
+    np.testing.assert_array_equal(rc, rc0)
+    np.testing.assert_allclose(pos, pos0, atol=1e-3)
+    np.testing.assert_allclose(normal, normal0, atol=1e-4)
+    assert np.allclose(np.linalg.norm(normal, axis=1), 1, atol=1e-3)
+
+
 def test_glove_cell_map_round_trips_into_the_glove_services_layout(glove, tmp_path):
     design, placements = glove
     path = tmp_path / "glove_cellmap.json"
     cellmap.cell_map(design, placements).save(path)
-    m = cellmap.load(path)
-    np.testing.assert_array_equal(m.region_matrix(), CELL_REGION)
-    assert (m.tx_mask(), m.rx_mask()) == (TX_MASK, RX_MASK)
-    counts = np.bincount(m.region_matrix()[m.region_matrix() >= 0], minlength=len(CELLS_PER_REGION))
-    np.testing.assert_array_equal(counts, CELLS_PER_REGION)
-    rc, pos, normal = m.positions()
-    assert len(rc) == (CELL_REGION >= 0).sum() and np.allclose(np.linalg.norm(normal, axis=1), 1, atol=1e-3)
+    m, lay = cellmap.load(path), glove_layout.load(path)
+    np.testing.assert_array_equal(lay.region, m.region_matrix())
+    assert (lay.tx_mask, lay.rx_mask) == (m.tx_mask(), m.rx_mask()) == (0xFFFF, 0x3F)
+    np.testing.assert_array_equal(lay.cells_per_region, [12, 12, 12, 12, 12, 30])
+    assert lay.cutouts() == {"palm": [[4, 3], [4, 4], [4, 5], [5, 3], [5, 4], [5, 5]]}
 
 
 def test_every_glove_cell_lies_where_the_tactile_projection_reads_that_cell(glove):
@@ -46,7 +66,7 @@ def test_every_glove_cell_lies_where_the_tactile_projection_reads_that_cell(glov
     carries that cell's (row, col) readout coordinate (within a tenth of a cell)."""
     design, placements = glove
     m = cellmap.cell_map(design, placements)
-    proj = TactileProjector()
+    proj = TactileProjector()  # the shipped cell map's layout
     verts = pose(examples.hand_keypoints(), "right", proj.template)
     faces = proj.template.faces("right")
     region = m.region_matrix()
