@@ -109,8 +109,8 @@ class PolicyService:
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
             warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
             return PolicyRunner.from_checkpoint(path), ""
-        except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            return None, f"policy checkpoint {path} unusable ({exc}): serving the naive baseline"
+        except Exception as exc:  # torch raises unrelated types (UnpicklingError, ...) for files that are no checkpoint
+            return None, f"policy checkpoint {path} unusable ({type(exc).__name__}: {str(exc)[:200]})"
 
     def _load_naive(self, folder: Path) -> NaiveReplay | None:
         """The naive replay over the demonstrations in ``folder``; None (hold) where there are none."""
@@ -174,7 +174,7 @@ class PolicyService:
         if runner is None:
             self.load_problem = problem
             if self.runner is None:
-                self.fallback.append(problem)
+                self.fallback.append(f"{problem}: serving the naive baseline")
                 self.node.set_status("degraded", "; ".join(self.fallback))
             return
         self.runner, self.served = runner, self.checkpoint
