@@ -46,6 +46,7 @@ class Execute:
             self.model = gui.add_dropdown("model", (NO_MODEL,), initial_value=NO_MODEL)
             gui.add_button("Serve").on_click(lambda _e: self._serve())
             self.serve_md = gui.add_markdown("policy: asking...")
+            self.rejections_md = gui.add_markdown("")
 
     # --- buttons (viser worker threads) ----------------------------------------------------------
     def _ask(self, key: str, request: dict) -> dict | None:
@@ -122,6 +123,10 @@ class Execute:
                 text += f"; **not served**: {policy['load_problem']}"
         if self.serve_md.content != text:
             self.serve_md.content = text
+        trajopt = next((r for r in reports if r.get("service") == "trajopt"), None)
+        text = rejections_text(trajopt, robot)
+        if self.rejections_md.content != text:
+            self.rejections_md.content = text
 
     def set_models(self, models: list[Model]) -> None:
         """Monitor thread: the trained models to choose from (newest first)."""
@@ -135,3 +140,23 @@ class Execute:
     def health(self) -> dict:
         return {"armed": self.armed, "serving": self.serving}
 
+
+
+def rejections_text(trajopt: dict | None, robot: dict | None) -> str:
+    """What was refused on the way to the robot, with the reasons: trajopt's rejected solves and
+    plans, the robot's rejected and (disarmed) ignored trajectories."""
+    parts = []
+    if trajopt is not None:
+        n = trajopt.get("errors", {}).get("solve_rejected", 0)
+        last = trajopt.get("last_rejection") or {}
+        if n:
+            parts.append(f"trajopt rejected {n} solves (last: {last.get('reason') or last.get('status') or '?'})")
+        if trajopt.get("last_plan_rejection"):
+            parts.append(f"trajopt rejected a plan: {trajopt['last_plan_rejection']}")
+    if robot is not None:
+        for reason, n in sorted((robot.get("rejections") or {}).items()):
+            parts.append(f"robot rejected {n} trajectories: {reason}")
+        ignored = robot.get("errors", {}).get("ignored_disarmed", 0)
+        if ignored:
+            parts.append(f"robot ignored {ignored} trajectories while disarmed")
+    return "rejections: " + ("; ".join(parts) if parts else "none")

@@ -90,10 +90,12 @@ class Trainer:
         self.remove_partials()
 
     def remove_partials(self) -> None:
-        """Partial directories of jobs that did not finish (a killed panel), unless one is running."""
+        """Partial directories of jobs that did not finish (a killed panel), unless one is running;
+        a job a killed panel left running is stopped first (its pid file names it)."""
         if self.models.is_dir():
             for p in self.models.glob(f".*{PARTIAL}"):
                 if self.job is None or p != self.job.partial:
+                    stop_orphan(p)
                     shutil.rmtree(p, ignore_errors=True)
 
     @property
@@ -129,6 +131,7 @@ class Trainer:
             with (partial / "train.log").open("wb") as log:
                 proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                         start_new_session=True)  # its own group: cancel stops all of it
+            (partial / "job.pid").write_text(str(proc.pid))
             self.job = Job(final.name, preset, time.time(), proc, partial, final)
             return self.job
         finally:
@@ -198,6 +201,21 @@ class Trainer:
         errors = [ln for ln in lines if ln.startswith("error:")]
         last = errors[-1] if errors else (lines[-1] if lines else "")
         return f"failed (exit code {code}): {last[:300]}"
+
+
+def stop_orphan(partial: Path) -> None:
+    """Kill the process group of the job writing into ``partial``, if it still runs (its command
+    line names the directory, so a reused pid is left alone)."""
+    try:
+        pid = int((partial / "job.pid").read_text())
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except (OSError, ValueError):
+        return
+    if str(partial).encode() in cmdline:
+        try:
+            os.killpg(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
 
 
 @dataclass

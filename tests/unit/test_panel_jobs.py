@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 
+from services.panel.execute import rejections_text
 from services.panel.jobs import JobBusyError, JobError, Trainer, check_library, models, models_table
 from services.panel.library import DemoMeta, Library, write_meta
 from tests.conftest import wait_until
@@ -69,3 +70,21 @@ def test_a_failing_job_says_why_and_a_killed_panel_leaves_nothing_listed(library
     wait_until(lambda: trainer.poll().state != "running", 120, "the job to fail")
     assert job.state == "failed" and "exit code 2" in job.message and "steps" in job.message
     assert list((tmp_path / "models").iterdir()) == []
+
+
+def test_a_restarted_panel_stops_the_job_its_predecessor_left_running(library, tmp_path):
+    first = Trainer(tmp_path / "models", TINY, threads=1)
+    job = first.start(library, "single_state", steps=1_000_000)
+    Trainer(tmp_path / "models", TINY, threads=1)  # the panel killed and started again
+    wait_until(lambda: job.process.poll() is not None, 30, "the orphaned job stopped")
+    assert list((tmp_path / "models").iterdir()) == []
+
+
+def test_rejections_on_the_way_to_the_robot_are_named():
+    assert rejections_text(None, None) == "rejections: none"
+    text = rejections_text({"errors": {"solve_rejected": 3}, "last_rejection": {"reason": "collision", "status": 2},
+                            "last_plan_rejection": "NaN in the plan"},
+                           {"errors": {"ignored_disarmed": 5}, "rejections": {"non-finite sample": 1}})
+    assert text == ("rejections: trajopt rejected 3 solves (last: collision); trajopt rejected a plan: NaN in the "
+                    "plan; robot rejected 1 trajectories: non-finite sample; robot ignored 5 trajectories while "
+                    "disarmed")
