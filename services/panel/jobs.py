@@ -5,11 +5,14 @@ learning/from_library.py) in its own process group, writing into a hidden ``.NAM
 directory of the models directory; its progress arrives as JSON lines in that directory
 (``--progress``). Only a job that exits successfully is renamed to ``NAME``: a cancelled, failed
 or interrupted job leaves no model behind, and its partial directory is removed (also any left by
-a panel that was killed mid-job). One job runs at a time: ``start`` refuses a second.
+a panel that was killed mid-job). One job runs at a time: ``start`` refuses a second. The job
+dies with the thread that started it (``PR_SET_PDEATHSIG``), so call ``start`` from a thread that
+lives as long as the panel.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import shlex
@@ -27,7 +30,11 @@ from services.panel.library import Entry
 
 PARTIAL = ".partial"
 ROOT = Path(__file__).resolve().parents[2]  # the job runs this tree's `xm train`
-CANCEL_GRACE_S = 5.0  # a job asked to stop gets this long before it is killed
+PR_SET_PDEATHSIG = 1  # prctl option (linux/prctl.h)
+try:  # looked up here: between fork and exec the child only calls it
+    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):  # not Linux: a restarted panel still stops an orphaned job (stop_orphan)
+    _PRCTL = None
 
 
 class JobError(ValueError):
@@ -130,7 +137,8 @@ class Trainer:
                                                                              os.environ.get("PYTHONPATH"))))}
             with (partial / "train.log").open("wb") as log:
                 proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                        start_new_session=True)  # its own group: cancel stops all of it
+                                        start_new_session=True,  # its own group: cancel stops all of it
+                                        preexec_fn=_die_with_parent)
             (partial / "job.pid").write_text(str(proc.pid))
             self.job = Job(final.name, preset, time.time(), proc, partial, final)
             return self.job
@@ -157,19 +165,17 @@ class Trainer:
             return job
 
     def cancel(self) -> bool:
-        """Stop the running job (its group: TERM, then KILL) and remove its partial model."""
+        """Kill the running job's process group and remove its partial model (nothing of a cancelled
+        job is kept, so it needs no chance to finish anything)."""
         with self._lock:
             job = self.job
             if job is None or job.state != "running":
                 return False
             try:
-                os.killpg(job.process.pid, signal.SIGTERM)
-                job.process.wait(CANCEL_GRACE_S)
-            except subprocess.TimeoutExpired:
                 os.killpg(job.process.pid, signal.SIGKILL)
-                job.process.wait()
             except ProcessLookupError:
                 pass
+            job.process.wait()
             shutil.rmtree(job.partial, ignore_errors=True)
             job.state, job.message = "cancelled", "cancelled; no model written"
             return True
@@ -201,6 +207,13 @@ class Trainer:
         errors = [ln for ln in lines if ln.startswith("error:")]
         last = errors[-1] if errors else (lines[-1] if lines else "")
         return f"failed (exit code {code}): {last[:300]}"
+
+
+def _die_with_parent() -> None:
+    """In the job's process before exec: killed when the thread that started it ends (the panel
+    starts jobs from one thread that lives as long as the panel), so a killed panel leaves no job."""
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 def stop_orphan(partial: Path) -> None:

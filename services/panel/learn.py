@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,8 @@ class Learn:
         self._plots: dict[str, Any] = {}
         self._drawn = (-1, -1)  # (loss points, eval points) on the plots
         self._stop = threading.Event()
+        # jobs start from this one thread: a job dies with the thread that started it (jobs.py)
+        self._starter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="panel-train-start")
         self._build()
         self._thread = threading.Thread(target=self._monitor, name="panel-training", daemon=True)
         self._thread.start()
@@ -66,7 +69,8 @@ class Learn:
     def _train(self, event: Any) -> None:
         try:
             n_train, n_val = check_library(self.entries())
-            job = self.trainer.start(self.recordings, self.preset.value, int(self.steps.value or 0))
+            job = self._starter.submit(self.trainer.start, self.recordings, self.preset.value,
+                                       int(self.steps.value or 0)).result()
         except JobError as exc:
             busy = isinstance(exc, JobBusyError)
             self.count("train_busy" if busy else "train_refused")
@@ -159,3 +163,4 @@ class Learn:
     def close(self) -> None:
         self._stop.set()
         self.trainer.cancel()
+        self._starter.shutdown(wait=False)

@@ -297,8 +297,8 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     type_into(browser, "steps", "100000")  # a long job, to be cancelled
     wait_until(lambda: value_of(browser, "steps") == "100000", WAIT, "the typed budget")
     click_button(browser, "Train")
-    wait_until(lambda: "/ 100000" in page_text(browser), WAIT,
-               lambda: f"the job's progress; page: {page_text(browser)[-1500:]}", period=0.5)
+    wait_until(lambda: (query_json(session, "xm/panel/main/@health")[0]["training"] or {}).get("state") == "running",
+               WAIT, "the job running")
     click_button(browser, "Train")  # a second press while the job runs is told so
     wait_until(lambda: "Train refused" in page_text(browser), WAIT, "the second Train refused")
     assert "a training job is running" in page_text(browser)
@@ -309,7 +309,7 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     type_into(browser, "steps", "3")
     wait_until(lambda: value_of(browser, "steps") == "3", WAIT, "the tiny budget")
     click_button(browser, "Train")
-    wait_until(lambda: " done: wrote " in page_text(browser), WAIT,
+    wait_until(lambda: " done: wrote " in page_text(browser), WAIT,  # its progress line, once the job is done
                lambda: f"the job done; page: {page_text(browser)[-1500:]}", period=0.5)
     [model] = [p for p in models_dir.iterdir()]
     assert (model / "policy.pt").is_file() and model.name.endswith("single_state")

@@ -4,6 +4,8 @@ nothing, refusals."""
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from services.panel.execute import rejections_text
@@ -42,7 +44,7 @@ def test_a_job_reports_progress_and_leaves_a_whole_model(library, tmp_path):
     with pytest.raises(JobBusyError, match="a training job is running"):  # a second press is told
         trainer.start(library, "single_state", steps=3)
     assert job.partial.is_dir() and not job.final.exists() and models(trainer.models) == []
-    wait_until(lambda: trainer.poll().state != "running", 120, lambda: (job.partial / "train.log").read_text())
+    wait_until(lambda: trainer.poll().state != "running", 300, lambda: (job.partial / "train.log").read_text())
     assert job.state == "done", job.message
     assert not job.partial.exists() and (job.final / "policy.pt").is_file()
     assert job.progress.step == 3 and job.progress.loss and job.progress.evals
@@ -55,7 +57,7 @@ def test_a_job_reports_progress_and_leaves_a_whole_model(library, tmp_path):
 def test_cancel_stops_the_job_and_leaves_no_model(library, tmp_path):
     trainer = Trainer(tmp_path / "models", TINY, threads=1)
     job = trainer.start(library, "single_state", steps=1_000_000)
-    wait_until(lambda: trainer.poll().progress.steps, 120, lambda: (job.partial / "train.log").read_text())
+    wait_until(lambda: trainer.poll().progress.steps, 300, lambda: (job.partial / "train.log").read_text())
     assert trainer.cancel() and job.state == "cancelled"
     assert job.process.poll() is not None and not job.partial.exists() and not job.final.exists()
     assert list((tmp_path / "models").iterdir()) == []
@@ -67,7 +69,7 @@ def test_a_failing_job_says_why_and_a_killed_panel_leaves_nothing_listed(library
     trainer = Trainer(tmp_path / "models", TINY + " --set steps=many", threads=1)
     assert not (tmp_path / "models" / ".old.partial").exists()
     job = trainer.start(library, "single_state")
-    wait_until(lambda: trainer.poll().state != "running", 120, "the job to fail")
+    wait_until(lambda: trainer.poll().state != "running", 300, "the job to fail")
     assert job.state == "failed" and "exit code 2" in job.message and "steps" in job.message
     assert list((tmp_path / "models").iterdir()) == []
 
@@ -88,3 +90,13 @@ def test_rejections_on_the_way_to_the_robot_are_named():
     assert text == ("rejections: trajopt rejected 3 solves (last: collision); trajopt rejected a plan: NaN in the "
                     "plan; robot rejected 1 trajectories: non-finite sample; robot ignored 5 trajectories while "
                     "disarmed")
+
+
+def test_a_job_dies_with_the_thread_that_started_it(library, tmp_path):
+    """As with a killed panel: the job's process does not outlive its starter."""
+    trainer = Trainer(tmp_path / "models", TINY, threads=1)
+    started: list = []
+    starter = threading.Thread(target=lambda: started.append(trainer.start(library, "single_state", steps=1_000_000)))
+    starter.start()
+    starter.join()
+    wait_until(lambda: started[0].process.poll() is not None, 30, "the job to die with its starter")
