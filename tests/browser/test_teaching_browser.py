@@ -112,7 +112,7 @@ def sidecar(path: Path) -> dict:
     return json.loads(path.with_name(path.name[:-len(".mcap")] + ".demo.json").read_text())
 
 
-@pytest.mark.timeout(600)  # 20 s on an idle host; software WebGL beside a busy cell takes minutes
+@pytest.mark.timeout(900)  # 2 min on an idle host; software WebGL and a training job beside a busy cell take minutes
 def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_path):
     endpoint, session = router
     rec_dir = tmp_path / "recordings"
