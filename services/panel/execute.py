@@ -10,6 +10,7 @@ the @health reports the panel's status loop collects.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from services.panel.jobs import Model
 
 POLICY = "xm/policy/main"
 NO_MODEL = "-"
+SILENT_S = 6.0  # the robot's state stays shown this long after its last @health answer (one may come late)
 
 
 class Execute:
@@ -33,6 +35,7 @@ class Execute:
         self.query = query
         self.count = count
         self.armed: bool | None = None  # None: the robot service did not answer
+        self._robot_seen = -float("inf")  # when its @health last answered (monotonic)
         self.serving: str | None = None  # the checkpoint the policy serves
         self.method = ""
         self.models: dict[str, Path] = {}
@@ -108,7 +111,11 @@ class Execute:
         """Event loop (status loop): the arm state and the served checkpoint from @health reports."""
         robot = next((r for r in reports if f"xm/robot/{r.get('instance')}" == self.robot_key
                       and r.get("service") == "robot"), None)
-        self.armed = None if robot is None else bool(robot.get("armed"))
+        now = time.monotonic()
+        if robot is not None:
+            self.armed, self._robot_seen = bool(robot.get("armed")), now
+        elif now - self._robot_seen > SILENT_S:
+            self.armed = None
         self._state_line()
         policy = next((r for r in reports if r.get("service") == "policy" and r.get("instance") == "main"), None)
         if policy is None:

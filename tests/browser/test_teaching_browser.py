@@ -327,7 +327,10 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     wait_until(lambda: f"from {(model / 'policy.pt').resolve()}" in page_text(browser), WAIT,
                lambda: f"the served checkpoint shown; page: {page_text(browser)[:800]}")
     click_button(browser, "arm")
-    wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT, "the armed state shown")
+    wait_until(lambda: ("arm", {"armed": True}) in requests, WAIT, "the arm query")
+    wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT,
+               lambda: f"the armed state shown; page: {page_text(browser)[:600]}")
     click_button(browser, "STOP")
     wait_until(lambda: ("hold", {"disarm": True}) in requests, WAIT, "the stop query")
-    wait_until(lambda: "robot: disarmed" in page_text(browser), WAIT, "the disarmed state shown")
+    wait_until(lambda: "robot: disarmed" in page_text(browser), WAIT,
+               lambda: f"the disarmed state shown; page: {page_text(browser)[:600]}")
