@@ -268,8 +268,7 @@ def stand_in_robot_and_policy(session, requests: list) -> list:
     ``requests`` as (verb, request)."""
     state = {"armed": False, "checkpoint": None}
 
-    def answer(query) -> None:
-        key = str(query.key_expr)
+    def answer(key: str, query) -> None:  # key: the queryable's own (the query's may hold wildcards)
         verb = key.rsplit("/", 1)[-1]
         req = json.loads((query.payload.to_bytes() if query.payload is not None else b"") or b"{}")
         if verb == "@health":
@@ -286,7 +285,7 @@ def stand_in_robot_and_policy(session, requests: list) -> list:
             reply = {"ok": True, "armed": state["armed"], "loading": req.get("checkpoint")}
         query.reply(key, json.dumps(reply))
 
-    return [session.declare_queryable(k, answer) for k in (
+    return [session.declare_queryable(k, lambda q, k=k: answer(k, q)) for k in (
         "xm/robot/workcell/@cmd/arm", "xm/robot/workcell/@cmd/hold", "xm/robot/workcell/@health",
         "xm/policy/main/@cmd/serve", "xm/policy/main/@health")]
 
