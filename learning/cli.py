@@ -4,6 +4,7 @@ and `xm simulate` (neural simulation of a trained policy from a teacher layout).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import numpy as np
 import torch
 
 from learning.dataset import DatasetError, demos_from_mcap, split_demos
+from learning.from_library import library_data
 from learning.metrics import trajectory_scores
 from learning.ours import train
 from learning.presets import PRESETS, config_changes
@@ -24,7 +26,9 @@ def train_main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="xm train", description="Train the denoising keypoint policy of thesis "
                                      "chapter 7; writes policy.pt (torch.load(weights_only=True)), config.json, "
                                      "train.json, loss.png and the training demonstrations (demos/).")
-    parser.add_argument("recordings", nargs="*", help="MCAP recordings (scene + session keys)")
+    parser.add_argument("recordings", nargs="*", help="MCAP recordings (scene + session keys), or one recordings "
+                        "directory: the demonstration library, whose NAME.demo.json sidecars say which recordings "
+                        "train, which validate and which are excluded, and trim them")
     parser.add_argument("--teacher", type=int, default=None, metavar="SEED",
                         help="instead: the 15-demonstration assembly protocol of this seed (3 train, 12 validation)")
     parser.add_argument("--preset", default="multimodal", choices=sorted(PRESETS))
@@ -42,6 +46,8 @@ def train_main(argv: list[str] | None = None) -> int:
                         "final (averaged) ones (default: validation where any is held out, except with --teacher: "
                         "final, as `xm eval` does, so the validation layouts stay unseen)")
     parser.add_argument("--out", default="runs/policy", help="output directory")
+    parser.add_argument("--progress", default=None, metavar="FILE",
+                        help="append the progress as JSON lines: {step, steps, loss} and {step, steps, eval}")
     args = parser.parse_args(argv)
     try:
         changes = config_changes(args.set)
@@ -49,7 +55,21 @@ def train_main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
-    if args.recordings:
+    used: list[dict] = []
+    if len(args.recordings) == 1 and Path(args.recordings[0]).is_dir():
+        if args.val:
+            print("error: --val with a recordings directory: the library's splits say which recordings validate",
+                  file=sys.stderr)
+            return 2
+        data = library_data(args.recordings[0])
+        for line in data.report:
+            print(f"warning: {line}", file=sys.stderr)
+        train_d, val_d, used = data.train, data.validation, data.used
+        if not train_d:
+            print(f"error: no training demonstrations in the library {args.recordings[0]} ({len(val_d)} for "
+                  f"validation): mark recordings as train", file=sys.stderr)
+            return 2
+    elif args.recordings:
         demos = []
         for rec in args.recordings:
             report: list[str] = []
@@ -75,12 +95,28 @@ def train_main(argv: list[str] | None = None) -> int:
         cfg = cfg.replace(steps=args.steps)
     select = args.select or ("final" if args.teacher is not None and not args.recordings else "validation")
     held_out = val_d if select == "validation" and val_d else None  # None: the final weights are kept
-    res = train(cfg, train_d, held_out, args.out)
+    progress = _progress_writer(args.progress) if args.progress else None
+    res = train(cfg, train_d, held_out, args.out, on_progress=progress)
+    if used:  # the library's recordings behind this checkpoint, for the model list
+        info_path = Path(args.out) / "train.json"
+        info = json.loads(info_path.read_text())
+        info.update(recordings=str(Path(args.recordings[0]).resolve()), data=used)
+        info_path.write_text(json.dumps(info, indent=2))
     kept = f"best at step {res.best_step}" if held_out else "final weights"
     print(f"wrote {res.checkpoint} ({len(train_d)} train demonstrations, {kept} after {res.seconds_to_best:.0f} s "
           f"of {res.seconds:.0f} s; rollout distance {res.best_score * 1e3:.1f} mm from the "
           f"{'validation' if held_out else 'training'} start states)")
     return 0
+
+
+def _progress_writer(path: str):
+    """A callback appending each progress record as a JSON line, flushed (another process tails it)."""
+    f = open(path, "a", buffering=1)  # noqa: SIM115 (open for the whole training; closed at exit)
+
+    def write(record: dict) -> None:
+        f.write(json.dumps(record) + "\n")
+
+    return write
 
 
 def simulate_main(argv: list[str] | None = None) -> int:

@@ -228,9 +228,12 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
 
 # --- recordings --------------------------------------------------------------------------------
 def demos_from_mcap(path: str | Path | list[str | Path], dt: float = 0.02, max_gap_s: float = 0.5, min_steps: int = 20,
-                    report: list[str] | None = None) -> list[Demo]:
+                    report: list[str] | None = None, window_s: tuple[float, float | None] | None = None
+                    ) -> list[Demo]:
     """Demonstrations of one MCAP recording (scene + session keys), resampled onto ``dt``. A segmented
     recording reads as one: ``path`` may be its first segment, a directory or a list of segments.
+    ``window_s`` (start, end or None), seconds from the recording's first message: only the scenes
+    logged within it are used (a trim; the session labels before it still name the demonstration).
 
     NaN keypoints are masked, a gap longer than ``max_gap_s`` ends a demonstration, demonstrations
     shorter than ``min_steps`` are dropped; each such event is appended to ``report`` with the
@@ -249,7 +252,10 @@ def demos_from_mcap(path: str | Path | list[str | Path], dt: float = 0.02, max_g
                 raise DatasetError(f"{path}: no messages on {', '.join(missing)}; record while the world and "
                                    f"recon services run")
             conns = [c for c in reader.connections if c.topic in (SCENE_KEY, SESSION_KEY)]
-            for conn, _, raw in reader.messages(connections=conns):
+            lo, hi = _log_window(reader.start_time, window_s)
+            for conn, log_time, raw in reader.messages(connections=conns):
+                if conn.topic == SCENE_KEY and not lo <= log_time <= hi:
+                    continue
                 msg = reader.deserialize(raw, conn.msgtype)
                 (scenes if conn.topic == SCENE_KEY else sessions).append((msgs.stamp_seconds(msg.header.stamp), msg))
     except DatasetError:
@@ -257,6 +263,14 @@ def demos_from_mcap(path: str | Path | list[str | Path], dt: float = 0.02, max_g
     except Exception as exc:  # rosbags raises several unrelated types for damaged files
         raise DatasetError(f"{path}: unreadable recording ({type(exc).__name__}: {exc})") from exc
     return demos_from_messages(scenes, sessions, dt, max_gap_s, min_steps, report, str(path))
+
+
+def _log_window(start_ns: int, window_s: tuple[float, float | None] | None) -> tuple[int, float]:
+    """Log-time bounds (ns) of a trim window given in seconds from the first message."""
+    if window_s is None:
+        return 0, np.inf
+    lo, hi = window_s
+    return start_ns + int(round(lo * 1e9)), np.inf if hi is None else start_ns + int(round(hi * 1e9))
 
 
 def demos_from_messages(scenes: list, sessions: list, dt: float = 0.02, max_gap_s: float = 0.5,

@@ -11,6 +11,7 @@ subtracted from the target velocities (7.7); reservoir activations corrupted ali
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -219,10 +220,11 @@ class Ours:
 
 
 def train(recipe: Recipe | str, train_demos: list[Demo], val_demos: list[Demo] | None, out_dir: str | Path | None,
-          progress: bool = True) -> TrainResult:
+          progress: bool = True, on_progress: Callable[[dict], None] | None = None) -> TrainResult:
     """Trains a fresh policy: best on ``val_demos``, else the final weights. Writes the checkpoint and
-    the training demonstrations (the node's naive fallback replays them) into ``out_dir``."""
+    the training demonstrations (the node's naive fallback replays them) into ``out_dir``;
+    ``on_progress``: see learning.train.fit_model."""
     method = Ours(recipe)
-    result = fit_model(method, train_demos, val_demos, progress, Path(out_dir) if out_dir else None)
+    result = fit_model(method, train_demos, val_demos, progress, Path(out_dir) if out_dir else None, on_progress)
     result.method = method
     return result

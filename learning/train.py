@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,10 +120,12 @@ class _Training:
 
 
 def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, progress: bool = True,
-              out_dir: Path | None = None) -> TrainResult:
+              out_dir: Path | None = None, on_progress: Callable[[dict], None] | None = None) -> TrainResult:
     """Trains ``method`` (a learning.ours.Ours) in place; leaves it holding the best weights and,
     with ``out_dir``, writes policy.pt, config.json, train.json, loss.png and the training
-    demonstrations (demos/, what the node's naive fallback replays)."""
+    demonstrations (demos/, what the node's naive fallback replays). ``on_progress`` gets
+    ``{"step", "steps", "loss"}`` (mean since the last report) about 200 times per run, and
+    ``{"step", "steps", "eval"}`` after each selection rollout."""
     t0 = time.perf_counter()
     keep_best = bool(val_demos)  # else the final weights are kept, and the training starts scored once, at the end
     scored = val_demos or train_demos
@@ -130,16 +133,24 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
     evals: list[dict] = []
     run = _Training(method, train_demos)
     cfg = method.recipe.train
+    report_every = max(1, cfg.steps // 200)
+    if on_progress is not None:
+        on_progress({"step": 0, "steps": cfg.steps})
     bar = tqdm(range(run.step + 1, cfg.steps + 1), desc=f"train {method.name}", disable=not progress, leave=False)
     for step in bar:
         run.advance()
         if step % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(method.losses[-50:]):.4f}")
+        if on_progress is not None and (step % report_every == 0 or step == cfg.steps):
+            on_progress({"step": step, "steps": cfg.steps, "loss": float(np.mean(method.losses[-report_every:]))})
         # selection rollouts (~10 s each) only once the cosine schedule has decayed: the best comes late
         if step == cfg.steps or (keep_best and step % cfg.eval_every == 0 and step >= cfg.eval_from * cfg.steps):
             sc, state = run.score(scored)
             sc["step"], sc["seconds"] = step, time.perf_counter() - t0
             evals.append(sc)
+            if on_progress is not None:
+                on_progress({"step": step, "steps": cfg.steps, "eval": {k: float(sc[k]) for k in ("hand", "object",
+                                                                                                 "score")}})
             if sc["score"] < best["score"] or not keep_best:
                 best = {"score": sc["score"], "step": step, "t": sc["seconds"], "state": state}
             if progress:

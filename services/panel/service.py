@@ -22,6 +22,9 @@ import trimesh
 import viser
 
 from services.panel import view
+from services.panel.execute import Execute
+from services.panel.jobs import Trainer
+from services.panel.learn import Learn
 from services.panel.teaching import Teaching
 from shared import msgs
 from shared.config import ConfigError, load_deployment
@@ -51,6 +54,9 @@ class PanelService:
         health_period_s: float = 2.0
         robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
         recordings: str = ""  # the demonstration library; empty: [services.recorder.main] directory
+        models: str = "runs/models"  # where training jobs started from the page write their models
+        train_threads: int = 2  # torch threads of a training job (the cell runs beside it)
+        train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -80,8 +86,13 @@ class PanelService:
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
         self._build_scene()
         self._build_gui()
-        self.teaching = Teaching(self.server, recordings_directory(params.recordings, self.deployment),
-                                 self._query_recorder, lambda: self.world_session, node.stats.count)
+        recordings = recordings_directory(params.recordings, self.deployment)
+        self.teaching = Teaching(self.server, recordings, self._query_recorder, lambda: self.world_session,
+                                 node.stats.count)
+        self.execute = Execute(self.server, params.robot, self._query, node.stats.count)
+        self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
+                           lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
+        self.learn.on_models.append(self.execute.set_models)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
@@ -96,7 +107,7 @@ class PanelService:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
                 "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
-                **self.teaching.health()}
+                **self.teaching.health(), **self.learn.health(), **self.execute.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
@@ -166,10 +177,12 @@ class PanelService:
             event.client.camera.position, event.client.camera.look_at = pose
 
     def _query_recorder(self, verb: str, request: dict) -> list[dict]:
+        return self._query(f"{RECORDER}/{verb}", request)
+
+    def _query(self, key: str, request: dict) -> list[dict]:
         """viser worker thread: a blocking query is fine here."""
         return [json.loads(r.ok.payload.to_bytes())
-                for r in self.node.session.get(f"{RECORDER}/{verb}", payload=json.dumps(request), timeout=5.0)
-                if r.ok is not None]
+                for r in self.node.session.get(key, payload=json.dumps(request), timeout=5.0) if r.ok is not None]
 
     # --- loops --------------------------------------------------------------------------
     async def run(self) -> None:
@@ -323,6 +336,7 @@ class PanelService:
             if self.server.get_clients():
                 reports = await asyncio.to_thread(self._query_health)
                 self.status_md.content = view.health_table(reports)
+                self.execute.update(reports)
             await asyncio.sleep(self.p.health_period_s)
 
     def _query_health(self) -> list[dict]:
@@ -336,6 +350,7 @@ class PanelService:
         return out
 
     async def close(self) -> None:
+        self.learn.close()
         self.teaching.close()
         self.server.stop()
 

@@ -11,6 +11,11 @@ the fallback holds: it publishes the observed hands standing still over the hori
 A NaN output is counted and never published. Loading the network is off the start path, so a
 restarted policy plans again at once: the checkpoint and the compiled horizon load in a worker
 thread while the node serves the naive replay (or holds) with status "warming".
+
+``@cmd/serve {"checkpoint": PATH}`` (the dashboard's model list) loads another checkpoint the same
+way, in the worker thread, while the current method keeps planning; the node switches to it once
+it has loaded (its demonstrations become the naive fallback's). A checkpoint that does not load
+leaves the current method serving and the reply of a later ``@cmd/serve {}`` says why.
 """
 
 from __future__ import annotations
@@ -62,6 +67,7 @@ class PolicyService:
         self.runner: PolicyRunner | None = None
         self.fallback: list[str] = []  # why the node serves less than it was asked to (@health)
         self.checkpoint: Path | None = None  # set while a checkpoint is to be loaded
+        self.served: Path | None = None  # the checkpoint of ``runner``
         if params.method == "learned":
             path = Path(params.checkpoint)
             if path.exists():
@@ -77,7 +83,13 @@ class PolicyService:
         self.scene = None
         self.fresh_scene = False
         self.episode: tuple[int | None, float] | None = None  # (demo index, start time)
+        self.loading: asyncio.Future | None = None  # a checkpoint being loaded in the worker thread
+        self.load_problem = ""  # why the last requested checkpoint is not served
         self.pub = node.output("plan")
+        node.queryable("serve", self.cmd_serve)
+        node.health_extra = lambda: {"method": self.method_name, "checkpoint": self.serving,
+                                     "loading": None if self.loading is None else str(self.checkpoint),
+                                     "load_problem": self.load_problem}
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
         node.clock.on_jump(self.on_clock_jump)
@@ -97,8 +109,8 @@ class PolicyService:
             torch.set_num_threads(1)  # one step is small; threads would fight the simulation for cores
             warm()  # the compiled horizon: from numba's cache, or compiled now rather than inside the plan loop
             return PolicyRunner.from_checkpoint(path), ""
-        except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            return None, f"policy checkpoint {path} unusable ({exc}): serving the naive baseline"
+        except Exception as exc:  # torch raises unrelated types (UnpicklingError, ...) for files that are no checkpoint
+            return None, f"policy checkpoint {path} unusable ({type(exc).__name__}: {str(exc)[:200]})"
 
     def _load_naive(self, folder: Path) -> NaiveReplay | None:
         """The naive replay over the demonstrations in ``folder``; None (hold) where there are none."""
@@ -132,24 +144,61 @@ class PolicyService:
             if self.runner is not None:
                 self.runner.reset()
 
+    @property
+    def serving(self) -> str | None:
+        """The checkpoint whose network plans, or None."""
+        return None if self.runner is None else str(self.served)
+
+    def cmd_serve(self, req: dict) -> dict:
+        """Load ``checkpoint`` and serve it once loaded; without one, report what is served."""
+        path = req.get("checkpoint")
+        if path is None:
+            return {"ok": True, "method": self.method_name, "checkpoint": self.serving,
+                    "loading": None if self.loading is None else str(self.checkpoint), "problem": self.load_problem}
+        if not isinstance(path, str) or not Path(path).is_file():
+            raise ValueError(f"checkpoint {path!r} is not a file")
+        if self.loading is not None:
+            raise ValueError(f"still loading {self.checkpoint}; ask again once it serves")
+        self.checkpoint = Path(path)
+        self._start_loading()
+        return {"ok": True, "loading": path, "method": self.method_name}
+
+    def _start_loading(self) -> None:
+        self.load_problem = ""
+        self.loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
+
+    def _take_loaded(self) -> None:
+        """The finished load: serve it, or keep serving what was served and say why."""
+        runner, problem = self.loading.result()
+        self.loading = None
+        if runner is None:
+            self.load_problem = problem
+            if self.runner is None:
+                self.fallback.append(f"{problem}: serving the naive baseline")
+                self.node.set_status("degraded", "; ".join(self.fallback))
+            return
+        self.runner, self.served = runner, self.checkpoint
+        naive = self._load_naive(self.checkpoint.parent / "demos")
+        self.naive = naive if naive is not None else self.naive
+        self.fallback = []
+        self.node.set_status("ok")
+        self.node.log.info("serving %s from %s", self.method_name, self.served)
+
     async def run(self) -> None:
         if self.checkpoint is not None:
-            loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
-            await self._run_naive(until=loading)
-            self.runner, problem = loading.result()
+            self._start_loading()
+        while True:  # one method until a requested checkpoint has loaded, then the other
             if self.runner is None:
-                self.fallback.append(problem)
-                self.node.set_status("degraded", "; ".join(self.fallback))
+                await self._run_naive()
             else:
-                self.node.set_status("ok")
-                self.node.log.info("serving %s", self.method_name)
                 await self._run_learned()
-        await self._run_naive()
+            if self.loading is not None and self.loading.done():
+                self._take_loaded()
 
-    async def _run_naive(self, until: asyncio.Future | None = None) -> None:
+    async def _run_naive(self) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
-            if until is not None and until.done():
+            if self.loading is not None and self.loading.done():
                 return
             if self.scene is None:
                 continue
@@ -188,6 +237,8 @@ class PolicyService:
         names = HAND_POINT_NAMES + [f"object/{n}" for n in runner.model.object_names]
         last_plan, last_step = -np.inf, None
         async for t in self.node.clock.ticks(1.0 / dt):
+            if self.loading is not None and self.loading.done():
+                return
             if self.scene is None:
                 continue
             try:

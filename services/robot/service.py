@@ -5,7 +5,13 @@ Commands go out from a thread of their own (real-time priority where the OS allo
 shared/realtime.py) on wall time, so that the board's 10 ms watchdog stays fed while the event
 loop or the host is busy. The host clamps into soft limits (the URDF limits less a margin) and
 installs the board's limits (half that margin) by config frame, where the board brakes a joint
-that would otherwise coast past them (services/robot/board_sim.py)."""
+that would otherwise coast past them (services/robot/board_sim.py).
+
+The arm gate: a trajectory moves the robot only while it is armed (``@cmd/arm {"armed": true}``;
+``start_armed`` sets the state at start). Disarming, or ``@cmd/hold {"disarm": true}`` (the
+dashboard's stop), drops the trajectory, holds where the last command stood and ignores every
+trajectory until armed again. Both are answered by this node alone, so they work whatever runs
+upstream (policy, trajopt)."""
 
 from __future__ import annotations
 
@@ -79,6 +85,7 @@ class RobotService:
         # kernel's tty workers (9) while the command thread waits for it.
         process_rt_priority: int = 10
         config_period_s: float = 1.0  # the limits config frame is repeated this often (a board may reset)
+        start_armed: bool = True  # false: the robot holds until armed (@cmd/arm)
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -98,6 +105,7 @@ class RobotService:
         self.state_pub = node.output("state")
         self.rejections: dict[str, int] = {}
         self.target: np.ndarray | None = None
+        self.armed = params.start_armed
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_config = -np.inf
@@ -108,8 +116,10 @@ class RobotService:
                        "errors": 0}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
+        node.queryable("arm", self.cmd_arm)
         node.clock.on_jump(lambda _old, _new: self.cmd_hold({}))  # a trajectory of the old timeline: hold
-        node.health_extra = lambda: {"link": self.driver.link.stats(), "decoder": dict(self.driver.decoder.stats),
+        node.health_extra = lambda: {"armed": self.armed, "link": self.driver.link.stats(),
+                                     "decoder": dict(self.driver.decoder.stats),
                                      "rejections": self.rejections, "watchdog": self.driver.watchdog_state,
                                      "command_stream": {**self.stream, "gaps_after": self.gaps_after,
                                                         "gap_parts": self.gap_parts},
@@ -121,13 +131,30 @@ class RobotService:
         self.node.logs.warning(f"rejected:{reason}", "trajectory rejected", reason=reason)
 
     def on_trajectory(self, msg) -> None:
+        if not self.armed:
+            self.node.stats.count("ignored_disarmed")
+            return
         reason = self.follower.load(msg, self.node.clock.now())
         if reason:
             self._reject(reason)
 
-    def cmd_hold(self, _req: dict) -> dict:
+    def cmd_hold(self, req: dict) -> dict:
+        """Drop the trajectory and hold; ``{"disarm": true}`` also disarms (the dashboard's stop)."""
+        if req.get("disarm"):
+            self.armed = False
         self.follower = TrajectoryFollower(self.joint_names)
-        return {"ok": True}
+        return {"ok": True, "armed": self.armed}
+
+    def cmd_arm(self, req: dict) -> dict:
+        """``{"armed": bool}`` arms or disarms (disarm holds); ``{}`` only reports the state."""
+        armed = req.get("armed")
+        if armed is not None:
+            if not isinstance(armed, bool):
+                raise ValueError(f"armed must be true or false, got {armed!r}")
+            if not armed:
+                return self.cmd_hold({"disarm": True})
+            self.armed = True
+        return {"ok": True, "armed": self.armed}
 
     async def run(self) -> None:
         self.node.spawn(self.driver.run(), name="serial")
@@ -209,7 +236,7 @@ class RobotService:
         if self.target is None:  # start by holding where the robot is (inside the soft limits)
             self.target = np.clip(fb.position, self.limits.lower, self.limits.upper)
         t, advanced = self.command_clock.advance(self.node.clock.now(), elapsed)
-        sample = self.follower.sample(t)
+        sample = self.follower.sample(t) if self.armed else None  # disarmed: hold, whatever the follower holds
         goal, velocity = sample if sample is not None else (self.target, np.zeros(len(self.target)))
         try:
             check_finite(goal, "trajectory sample")

@@ -1,8 +1,10 @@
 """The teaching folders in a real browser: headless Chromium (DevTools protocol, mouse and input
 events dispatched in the page) starts a teaching session, records two demonstrations through a stand-in recorder
 that writes real MCAP files, labels one for validation in the library, reviews a third with the
-scrubber (the rendered scene changes with its position), plays, pauses, steps it and trims its start.
-Screenshots: .cache/teaching_*.png."""
+scrubber (the rendered scene changes with its position), plays, pauses, steps it and trims its start;
+then trains on the library (a second Train is told a job runs, Cancel leaves no model, a tiny
+budget leaves one in the model list), serves it, arms the robot and stops it, against stand-ins
+for the policy and robot services. Screenshots: .cache/teaching_*.png."""
 
 from __future__ import annotations
 
@@ -110,15 +112,17 @@ def sidecar(path: Path) -> dict:
     return json.loads(path.with_name(path.name[:-len(".mcap")] + ".demo.json").read_text())
 
 
-@pytest.mark.timeout(600)  # 20 s on an idle host; software WebGL beside a busy cell takes minutes
+@pytest.mark.timeout(900)  # 2 min on an idle host; software WebGL and a training job beside a busy cell take minutes
 def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_path):
     endpoint, session = router
     rec_dir = tmp_path / "recordings"
     rec_dir.mkdir()
     write_demo(rec_dir / "earlier.mcap", seconds=4.0, masked=(1.0, 2.0), lost=(2.5, 7))
     port = free_port()
+    models_dir = tmp_path / "models"
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"panel": {"main": {
-        "port": port, "fps": 10.0, "health_period_s": 2.0, "recordings": str(rec_dir)}}})
+        "port": port, "fps": 10.0, "health_period_s": 2.0, "recordings": str(rec_dir), "models": str(models_dir),
+        "train_threads": 1, "train_args": "--set hidden=32,32 --set batch=8"}}})
     requests: list[tuple[str, dict]] = []
 
     def fake_recorder(query) -> None:  # stands in for the recorder service: stop writes a real MCAP
@@ -133,6 +137,7 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
                                                      "bytes": 1000}))
 
     queryables = [session.declare_queryable(f"xm/recorder/main/@cmd/{v}", fake_recorder) for v in ("start", "stop")]
+    queryables += stand_in_robot_and_policy(session, requests)
     pub = session.declare_publisher("xm/world/sim/session")
     stop = threading.Event()
 
@@ -241,8 +246,11 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
                                                                           .exists()) else None, WAIT, "a stored trim")
         assert 1.0 < trimmed < 4.0
         wait_until(lambda: "the file is unchanged" in page_text(browser), WAIT, "the trim confirmed")
+        learn_and_execute(browser, session, models_dir, requests)
+        browser.screenshot(cache / "teaching_execute.png", PATIENCE_S)
         health = query_json(session, "xm/panel/main/@health")[0]
-        assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error"))}, \
+        assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error",
+                                                                 "train_monitor_error", "execute_error"))}, \
             health["errors"]
     finally:
         stop.set()
@@ -252,3 +260,76 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         for q in queryables:
             q.undeclare()
         assert panel.stop() in (0, -15), panel.output()
+
+
+def stand_in_robot_and_policy(session, requests: list) -> list:
+    """Queryables standing in for the robot service's arm gate and the policy's @cmd/serve (the real
+    ones: tests/contract/test_robot_arm.py, test_policy_serve.py); each request is appended to
+    ``requests`` as (verb, request)."""
+    state = {"armed": False, "checkpoint": None}
+
+    def answer(key: str, query) -> None:  # key: the queryable's own (the query's may hold wildcards)
+        verb = key.rsplit("/", 1)[-1]
+        req = json.loads((query.payload.to_bytes() if query.payload is not None else b"") or b"{}")
+        if verb == "@health":
+            reply = ({"service": "robot", "instance": "workcell", "armed": state["armed"]} if "/robot/" in key else
+                     {"service": "policy", "instance": "main", "method": "learned", "checkpoint": state["checkpoint"]})
+        else:
+            requests.append((verb, req))
+            if verb == "arm":
+                state["armed"] = bool(req["armed"])
+            elif verb == "hold":
+                state["armed"] = state["armed"] and not req.get("disarm")
+            elif verb == "serve":
+                state["checkpoint"] = req["checkpoint"]
+            reply = {"ok": True, "armed": state["armed"], "loading": req.get("checkpoint")}
+        query.reply(key, json.dumps(reply))
+
+    return [session.declare_queryable(k, lambda q, k=k: answer(k, q)) for k in (
+        "xm/robot/workcell/@cmd/arm", "xm/robot/workcell/@cmd/hold", "xm/robot/workcell/@health",
+        "xm/policy/main/@cmd/serve", "xm/policy/main/@health")]
+
+
+def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: list) -> None:
+    """6. train on the library from the page; 7. serve the model, arm, stop."""
+    choose(browser, "preset", "single_state")
+    type_into(browser, "steps", "100000")  # a long job, to be cancelled
+    wait_until(lambda: value_of(browser, "steps") == "100000", WAIT, "the typed budget")
+    click_button(browser, "Train")
+    wait_until(lambda: (query_json(session, "xm/panel/main/@health")[0]["training"] or {}).get("state") == "running",
+               WAIT, "the job running")
+    click_button(browser, "Train")  # a second press while the job runs is told so
+    wait_until(lambda: "Train refused" in page_text(browser), WAIT, "the second Train refused")
+    assert "a training job is running" in page_text(browser)
+    click_button(browser, "Cancel training")
+    wait_until(lambda: "cancelled; no model written" in page_text(browser), WAIT, "the job cancelled")
+    assert not [p for p in models_dir.iterdir()]  # no model, no partial directory
+
+    type_into(browser, "steps", "3")
+    wait_until(lambda: value_of(browser, "steps") == "3", WAIT, "the tiny budget")
+    click_button(browser, "Train")
+    wait_until(lambda: " done: wrote " in page_text(browser), WAIT,  # its progress line, once the job is done
+               lambda: f"the job done; page: {page_text(browser)[-1500:]}", period=0.5)
+    [model] = [p for p in models_dir.iterdir()]
+    assert (model / "policy.pt").is_file() and model.name.endswith("single_state")
+    wait_until(lambda: browser.evaluate("document.querySelectorAll('.uplot canvas').length", PATIENCE_S) >= 2, WAIT,
+               "the loss and validation plots")
+    wait_until(lambda: f"{model.name}\tsingle_state\t" in page_text(browser), WAIT,
+               lambda: f"the model in the model list; page: {page_text(browser)[-1500:]}")
+    health = query_json(session, "xm/panel/main/@health")[0]
+    assert health["training"]["state"] == "done" and health["models"] == 1
+
+    choose(browser, "model", model.name)
+    click_button(browser, "Serve")
+    wait_until(lambda: ("serve", {"checkpoint": str((model / "policy.pt").resolve())}) in requests, WAIT,
+               "the serve query")
+    wait_until(lambda: f"from {(model / 'policy.pt').resolve()}" in page_text(browser), WAIT,
+               lambda: f"the served checkpoint shown; page: {page_text(browser)[:800]}")
+    click_button(browser, "arm")
+    wait_until(lambda: ("arm", {"armed": True}) in requests, WAIT, "the arm query")
+    wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT,
+               lambda: f"the armed state shown; page: {page_text(browser)[:600]}")
+    click_button(browser, "STOP")
+    wait_until(lambda: ("hold", {"disarm": True}) in requests, WAIT, "the stop query")
+    wait_until(lambda: "robot: disarmed" in page_text(browser), WAIT,
+               lambda: f"the disarmed state shown; page: {page_text(browser)[:600]}")
