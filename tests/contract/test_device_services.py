@@ -3,7 +3,6 @@ Zenoh; the test plays the device on a pty, speaking the real byte protocol."""
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import signal
@@ -23,6 +22,7 @@ from shared.kinematics import load_robot
 from shared.protocols import robot_board as rb
 from shared.protocols import tactile
 from tests.conftest import BoardHost, ServiceProcess, query_json, wait_for, wait_until, write_deployment
+from tests.robot_board import board_feedback
 
 
 def subscribe(session, key, msgtype, out: list):
@@ -120,22 +120,11 @@ def test_robot_follows_trajectories_rejects_nan_and_stops_commanding_without_fee
     model = load_robot("workcell")
     names = model.joint_names
     n = len(names)
-    decoder = rb.StreamDecoder()
     commands: list = []
     states: list = []
     _sub = subscribe(session, "xm/robot/workcell/state", "sensor_msgs/msg/JointState", states)
     q = np.zeros(n)
-    feedback_sequence = itertools.count()
-
-    def board(until, timeout: float, what: str):
-        """The test is the control board: feedback every 4 ms, commands collected, until ``until()``."""
-        def tick():
-            commands.extend(m for m in decoder.feed(dev.read()) if isinstance(m, rb.CommandFrame))
-            seq = next(feedback_sequence)
-            dev.write(rb.encode_feedback(rb.FeedbackFrame(seq, seq * 4000, 0, q, np.zeros(n), np.zeros(n))))
-            return until()
-
-        return wait_until(tick, timeout, lambda: f"{what}:\n{svc.output()[-3000:]}", period=0.004)
+    board = board_feedback(dev, svc, commands, q)
 
     def health() -> dict:
         return query_json(session, "xm/robot/workcell/@health")[0]

@@ -5,7 +5,6 @@ running (no policy, no trajopt)."""
 
 from __future__ import annotations
 
-import itertools
 import time
 
 import numpy as np
@@ -13,8 +12,8 @@ import numpy as np
 from services.world.pty_device import PtyDevice
 from shared import msgs
 from shared.kinematics import load_robot
-from shared.protocols import robot_board as rb
-from tests.conftest import ServiceProcess, query_json, wait_for, wait_until, write_deployment
+from tests.conftest import ServiceProcess, query_json, wait_for, write_deployment
+from tests.robot_board import board_feedback
 
 ROBOT = "xm/robot/workcell"
 
@@ -28,20 +27,9 @@ def test_the_robot_moves_only_while_armed_and_stop_holds_it(router, tmp_path):
     svc = ServiceProcess("robot", dep, "workcell", tmp_path / "robot.log")
     names = load_robot("workcell").joint_names
     n = len(names)
-    decoder = rb.StreamDecoder()
     commands: list = []
     q = np.zeros(n)
-    sequence = itertools.count()
-
-    def board(until, timeout: float, what: str):
-        """Feedback every 4 ms (the robot stands at ``q``), commands collected, until ``until()``."""
-        def tick():
-            commands.extend(m for m in decoder.feed(dev.read()) if isinstance(m, rb.CommandFrame))
-            seq = next(sequence)
-            dev.write(rb.encode_feedback(rb.FeedbackFrame(seq, seq * 4000, 0, q, np.zeros(n), np.zeros(n))))
-            return until()
-
-        return wait_until(tick, timeout, lambda: f"{what}:\n{svc.output()[-3000:]}", period=0.004)
+    board = board_feedback(dev, svc, commands, q)
 
     def health() -> dict:
         return query_json(session, f"{ROBOT}/@health")[0]
