@@ -16,7 +16,7 @@ import numpy as np
 
 from . import ops as O
 from . import scalar as S
-from .emit_c import CProgram
+from .emit_c import CProgram, from_lanes, to_lanes
 from .memory import Executable
 from .trace import Instr, Program, trace
 
@@ -198,11 +198,9 @@ class Linearized:
     def __post_init__(self) -> None:
         self.exe = {k: Executable(p) for k, p in self.scalar.items()}
 
-    def with_c(self) -> Linearized:
-        """The same programs compiled to plain C (`emit_c`) and run through ctypes."""
-        out = Linearized(self.source, self.block, self.scalar, self.data_sizes)
-        out.exe = {k: CProgram(p, f"autolin_{k}") for k, p in self.scalar.items()}
-        return out
+    def with_c(self) -> CLinearized:
+        """The same programs compiled to plain C (`emit_c`), one call per batch."""
+        return CLinearized(self.source, self.block, self.scalar, self.data_sizes)
 
     @property
     def in_types(self) -> list[str]:
@@ -284,6 +282,119 @@ class Linearized:
             return "non-finite value in the linearization"
         ins = self.block["linearize"].instrs[node.origin]
         return f"non-finite value from instruction {ins.op} ({node.op} of its scalars) at {ins.line or '?'}"
+
+
+@dataclass
+class CData:
+    """Linearization data of a batch in emit_c's "lanes" layout, as the C programs read it."""
+
+    lanes: np.ndarray      # (groups, scalars, LANES)
+    batch: tuple[int, ...]
+
+    def arrays(self) -> list[np.ndarray]:
+        """The numpy plan's form: one array per data scalar."""
+        return list(from_lanes(self.lanes, int(np.prod(self.batch))).reshape((-1,) + self.batch))
+
+
+def _size(types: list[str]) -> int:
+    return sum(O.SIZE[t] for t in types)
+
+
+class CLinearized(Linearized):
+    """`Linearized` with the four programs compiled to C, each run in one call per batch on
+    packed arrays: inputs and gradients as rows (one (n, width) block, a sample's values
+    contiguous), the linearization data as a `CData`. The `*_rows` methods take and return the
+    packed blocks directly; the others pack and unpack typed arrays around them."""
+
+    def __post_init__(self) -> None:
+        gi, go = [O.GRAD[t] for t in self.in_types], [O.GRAD[t] for t in self.out_types]
+        nd = sum(self.data_sizes)
+        self.widths = {"in": _size(self.in_types), "out": _size(self.out_types), "grad_in": _size(gi),
+                       "grad_out": _size(go), "data": nd}
+        w = self.widths
+        self.exe = {
+            "linearize": CProgram(self.scalar["linearize"], "autolin_linearize", ins=[("rows", w["in"])],
+                                  outs=[("rows", w["out"]), ("lanes", nd)]),
+            "forward": CProgram(self.scalar["forward"], "autolin_forward", ins=[("lanes", nd), ("rows", w["grad_in"])],
+                                outs=[("rows", w["grad_out"])]),
+            "reverse": CProgram(self.scalar["reverse"], "autolin_reverse", ins=[("lanes", nd), ("rows", w["grad_out"])],
+                                outs=[("rows", w["grad_in"])]),
+            "accumulate": CProgram(self.scalar["accumulate"], "autolin_accumulate",
+                                   ins=[("rows", w["in"]), ("rows", w["grad_in"])], outs=[("rows", w["in"])])}
+
+    def linearize_rows(self, x: np.ndarray) -> tuple[np.ndarray, CData]:
+        """Output values (n, out width) and the data from the inputs packed as (n, in width)."""
+        y, z = self.exe["linearize"].run(len(x), x)  # type: ignore[attr-defined]
+        if not (np.isfinite(y).all() and np.isfinite(z).all()):
+            counters["nonfinite_linearization"] += 1
+            raise NonFiniteError(self._explain_nonfinite(list(x.T), (len(x),)))
+        return y, CData(z, (len(x),))
+
+    def forward_rows(self, data: CData, dx: np.ndarray) -> np.ndarray:
+        """J v on packed rows: (n, grad-in width) -> (n, grad-out width)."""
+        return self.exe["forward"].run(len(dx), data.lanes, dx)[0]  # type: ignore[attr-defined]
+
+    def reverse_rows(self, data: CData, w: np.ndarray) -> np.ndarray:
+        """J^T w on packed rows: (n, grad-out width) -> (n, grad-in width)."""
+        return self.exe["reverse"].run(len(w), data.lanes, w)[0]  # type: ignore[attr-defined]
+
+    def linearize(self, *xs: Any) -> tuple[list[np.ndarray], CData]:  # type: ignore[override]
+        x, batch = _rows(xs, self.in_types)
+        y, d = self.linearize_rows(x)
+        d.batch = batch
+        return _unrows(y, self.out_types, batch), d
+
+    def forward(self, data: CData | list[np.ndarray], *dxs: Any) -> list[np.ndarray]:  # type: ignore[override]
+        d = self._data(data)
+        dx, batch = _rows(dxs, [O.GRAD[t] for t in self.in_types], d.batch)
+        return _unrows(self.forward_rows(d, dx), [O.GRAD[t] for t in self.out_types], batch)
+
+    def reverse(self, data: CData | list[np.ndarray], *gys: Any) -> list[np.ndarray]:  # type: ignore[override]
+        d = self._data(data)
+        w, batch = _rows(gys, [O.GRAD[t] for t in self.out_types], d.batch)
+        return _unrows(self.reverse_rows(d, w), [O.GRAD[t] for t in self.in_types], batch)
+
+    def accumulate(self, xs: Sequence[Any], dxs: Sequence[Any]) -> list[np.ndarray]:
+        x, batch = _rows(xs, self.in_types)
+        dx, batch = _rows(dxs, [O.GRAD[t] for t in self.in_types], batch)
+        y, _ = self.exe["accumulate"].run(len(x), x, dx)  # type: ignore[attr-defined]
+        return _unrows(y, self.in_types, batch)
+
+    def _data(self, data: CData | list[np.ndarray]) -> CData:
+        if isinstance(data, CData):
+            return data
+        batch = np.broadcast_shapes(*[np.shape(a) for a in data])  # the numpy plan's data: repacked
+        cols = np.array([np.broadcast_to(a, batch).ravel() for a in data]).reshape(len(data), -1)
+        return CData(to_lanes(cols), batch)
+
+
+def _rows(xs: Sequence[Any], types: list[str], batch: tuple[int, ...] = ()) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Typed arrays (broadcast over the batch) packed into one (n, width) C-order block."""
+    if len(xs) != len(types):
+        raise ValueError(f"expected {len(types)} arguments ({', '.join(types)}), got {len(xs)}")
+    arrs = [np.asarray(x, dtype=float) for x in xs]
+    trail = [O.SHAPE[t] for t in types]
+    for a, t, s in zip(arrs, types, trail, strict=True):
+        if a.shape[a.ndim - len(s):] != s or a.ndim < len(s):
+            raise ValueError(f"a {t} needs trailing shape {s}, got {a.shape}")
+    batch = np.broadcast_shapes(batch, *[a.shape[:a.ndim - len(s)] for a, s in zip(arrs, trail, strict=True)])
+    n = int(np.prod(batch))
+    out = np.empty((n, _size(types)))
+    k = 0
+    for a, t, s in zip(arrs, types, trail, strict=True):
+        m = O.SIZE[t]
+        out[:, k:k + m] = np.broadcast_to(a, batch + s).reshape(n, m)
+        k += m
+    return out, batch
+
+
+def _unrows(y: np.ndarray, types: list[str], batch: tuple[int, ...]) -> list[np.ndarray]:
+    out, k = [], 0
+    for t in types:
+        m = O.SIZE[t]
+        out.append(y[:, k:k + m].reshape(batch + O.SHAPE[t]))
+        k += m
+    return out
 
 
 def generate(src: Program) -> Linearized:

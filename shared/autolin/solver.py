@@ -98,7 +98,7 @@ class LeastSquares:
         return [_scatter(gj, i, s) for gj, i, s in zip(g, self.index, shapes, strict=False)]
 
     def _blocks(self, L: list, shapes: list[tuple[int, ...]]) -> _Blocks:
-        batch = np.shape(L[0]) if L else self.index[0].shape
+        batch = self.index[0].shape  # one residual per observation
         gtypes = [O.GRAD[t] for t in self.f.out_types]
         zero = [np.zeros(batch + _grad_shape(t)) for t in gtypes]
         dims = [sum(int(np.prod(shapes[j][1:])) for j in g) for g in self.groups]
