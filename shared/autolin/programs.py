@@ -226,7 +226,10 @@ class Linearized:
         if bad:
             counters["nonfinite_linearization"] += 1
             raise NonFiniteError(self._explain_nonfinite(flat, batch))
-        return self._unflatten(res[:n_out], self.out_types, batch), [np.broadcast_to(r, batch) for r in res[n_out:]]
+        # data read many times (every CG product) is made contiguous once; broadcast constants stay views
+        data = [np.broadcast_to(r, batch) for r in res[n_out:]]
+        data = [d if d.flags.c_contiguous or 0 in d.strides else np.ascontiguousarray(d) for d in data]
+        return self._unflatten(res[:n_out], self.out_types, batch), data
 
     def forward(self, data: list[np.ndarray], *dxs: Any) -> list[np.ndarray]:
         """J v: output gradients from input gradients (rotation vectors for quaternions)."""

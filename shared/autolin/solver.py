@@ -39,6 +39,7 @@ class SolveResult:
     cg_iterations: int
     costs: list[float] = field(default_factory=list)   # after each accepted step, the start first
     times: list[float] = field(default_factory=list)   # seconds from the start of solve() to each cost
+    cpu_times: list[float] = field(default_factory=list)  # the same in process CPU seconds
 
 
 @dataclass
@@ -236,7 +237,7 @@ class LeastSquares:
             raise ValueError(f"preconditioner must be 'schur-jacobi' or 'schur', got {preconditioner!r}")
         if preconditioner == "schur" and len(self.groups) != 2:
             raise ValueError(f"the complete Schur preconditioner needs two groups of parameters, got {self.groups}")
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         params = [np.array(p, dtype=float) for p in params]
         shapes = [p.shape[:1] + _grad_shape(t) for p, t in zip(params, self.param_types, strict=True)]
         masks = [np.ones(s, bool) if fixed is None or fixed[j] is None
@@ -245,7 +246,7 @@ class LeastSquares:
         free = self._flat(masks)
         r, L = self.residuals(params, data)
         cost = 0.5 * sum(float(np.sum(x * x)) for x in r)
-        res = SolveResult(params, cost, 0, 0, [cost], [time.perf_counter() - start])
+        res = SolveResult(params, cost, 0, 0, [cost], [time.perf_counter() - start], [time.process_time() - start_cpu])
         lam, g0 = damping, 0.0
         blocks, blocks_of = _Blocks([], []), None
         dmp_flat: list[np.ndarray] = []
@@ -285,6 +286,7 @@ class LeastSquares:
                 cost = c2
                 res.costs.append(cost)
                 res.times.append(time.perf_counter() - start)
+                res.cpu_times.append(time.process_time() - start_cpu)
                 if done:
                     break
             else:
