@@ -21,15 +21,21 @@ Writes .bench/autolin.json, with the load average at the start and the end.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import shutil
-import sys
-import time
-from pathlib import Path
 
-import numpy as np
+# one BLAS / OpenMP thread (set before numpy loads): every entry runs on one thread, so CPU times
+# compare like with like (scipy's solver otherwise spends its CPU in idle-spinning BLAS threads)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
 
