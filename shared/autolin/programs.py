@@ -120,21 +120,26 @@ def accumulation_program(src: Program) -> Program:
 
 
 # --- lowering to scalar programs -----------------------------------------------------------
-def lower(p: Program, data_sizes: list[int] | None = None) -> tuple[S.ScalarProgram, list[int]]:
+def lower(p: Program, data_sizes: list[int] | None = None,
+          data_consts: dict[int, float] | None = None) -> tuple[S.ScalarProgram, list[int]]:
     """Runs the block program on `Sym` components: a simplified scalar program. Data variables
-    take their sizes from `data_sizes` (as the linearization program produced them). Nodes
-    remember the block instruction they came from (`origin`). Returns the program and the
-    sizes of the data variables it produced or consumed."""
+    take their sizes from `data_sizes` (as the linearization program produced them); data
+    scalars in `data_consts` (by position among all data scalars) are constants, folded into
+    the program instead of read. Nodes remember the block instruction they came from
+    (`origin`). Returns the program and the sizes of the data variables it produced or consumed."""
     b = S.Builder(simplify=True)
     env: dict[int, tuple[Any, ...]] = {}
     sizes = list(data_sizes or [])
-    di = 0
+    consts = data_consts or {}
+    di = fi = 0
     for v in p.inputs:
         if p.types[v] == "data":
             n = sizes[di]
             di += 1
-        else:
-            n = O.SIZE[p.types[v]]
+            env[v] = tuple(b.const(consts[fi + c]) if fi + c in consts else b.input(f"v{v}_{c}") for c in range(n))
+            fi += n
+            continue
+        n = O.SIZE[p.types[v]]
         env[v] = tuple(b.input(f"v{v}_{c}") for c in range(n))
     for v, c in p.consts.items():
         env[v] = tuple(b.const(x) for x in c)
@@ -311,7 +316,7 @@ class CLinearized(Linearized):
 
     def __post_init__(self) -> None:
         gi, go = [O.GRAD[t] for t in self.in_types], [O.GRAD[t] for t in self.out_types]
-        nd = sum(self.data_sizes)
+        nd = len(self.scalar["linearize"].outputs) - _size(self.out_types)  # stored data scalars
         self.widths = {"in": _size(self.in_types), "out": _size(self.out_types), "grad_in": _size(gi),
                        "grad_out": _size(go), "data": nd}
         w = self.widths
@@ -406,9 +411,16 @@ def generate(src: Program) -> Linearized:
     block = {"linearize": lin, "forward": forward_program(src), "reverse": reverse_program(src),
              "accumulate": accumulation_program(src)}
     scal: dict[str, S.ScalarProgram] = {}
-    scal["linearize"], sizes = lower(lin)
+    lp, sizes = lower(lin)
+    # linearization data that is the same finite constant for every sample (a constant axis, a
+    # derivative factor of a linear operator) is folded into forward and reverse, not stored
+    n_out = len(lp.outputs) - sum(sizes)
+    consts = {k: float(lp.nodes[o].value) for k, o in enumerate(lp.outputs[n_out:])
+              if lp.nodes[o].op in ("const", "zero") and np.isfinite(lp.nodes[o].value)}
+    lp.outputs = lp.outputs[:n_out] + [o for k, o in enumerate(lp.outputs[n_out:]) if k not in consts]
+    scal["linearize"] = S.prune(lp)
     for name in ("forward", "reverse"):
-        scal[name], _ = lower(block[name], sizes)
+        scal[name], _ = lower(block[name], sizes, consts)
     scal["accumulate"], _ = lower(block["accumulate"])
     return Linearized(src, block, scal, sizes)
 
