@@ -83,7 +83,9 @@ def product_fns(cp: C.CameraProblem, with_torch: bool, with_casadi: bool, c_mode
         _, Lc = fc.linearize(*xs)
         G = np.concatenate([g.reshape(batch, -1) for g in grad], axis=1)
         Wr = np.stack(w, axis=1)  # packed beforehand, as CasADi's inputs are
-        fns.update(autolin_c_jv_ms=lambda: fc.forward_rows(Lc, G), autolin_c_jtv_ms=lambda: fc.reverse_rows(Lc, Wr),
+        oj, ot = np.empty((batch, fc.widths["grad_out"])), np.empty((batch, fc.widths["grad_in"]))  # reused, as in CG
+        fns.update(autolin_c_jv_ms=lambda: fc.forward_rows(Lc, G, oj),
+                   autolin_c_jtv_ms=lambda: fc.reverse_rows(Lc, Wr, ot),
                    autolin_c_typed_jv_ms=lambda: fc.forward(Lc, *grad),
                    autolin_c_typed_jtv_ms=lambda: fc.reverse(Lc, *w))
     # the references take quaternion tangents: the rotation vectors padded with a zero

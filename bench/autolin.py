@@ -138,8 +138,8 @@ def chain_batch(batch: int) -> tuple:
 
 def autolin_fns(batch: int) -> dict:
     """J v and J^T v of the five-frame chain: register plan (numpy), C on packed rows (inputs
-    packed beforehand, as CasADi's are), C on typed arrays (packing and unpacking in the call),
-    and the node-by-node interpreter as the in-run baseline."""
+    packed beforehand, as CasADi's are; output buffers reused, as inside CG), C on typed arrays
+    (packing and unpacking in the call), and the node-by-node interpreter as the in-run baseline."""
     xs, ds, w = chain_batch(batch)
     f = al.compile(chain, TYPES)
     c = f.with_c()
@@ -149,9 +149,10 @@ def autolin_fns(batch: int) -> dict:
     W = np.concatenate(w, axis=1)
     interp = al.Linearized(f.source, f.block, f.scalar, f.data_sizes)
     interp.exe = {k: (lambda ins, p=p: S.replay(p, ins)) for k, p in f.scalar.items()}
+    oj, ot = np.empty((batch, c.widths["grad_out"])), np.empty((batch, c.widths["grad_in"]))  # reused, as in CG
     return {"autolin_linearize_ms": lambda: f.linearize(*xs), "autolin_jv_ms": lambda: f.forward(L, *ds),
-            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward_rows(Lc, D),
-            "autolin_c_jtv_ms": lambda: c.reverse_rows(Lc, W), "autolin_c_typed_jv_ms": lambda: c.forward(Lc, *ds),
+            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward_rows(Lc, D, oj),
+            "autolin_c_jtv_ms": lambda: c.reverse_rows(Lc, W, ot), "autolin_c_typed_jv_ms": lambda: c.forward(Lc, *ds),
             "autolin_c_typed_jtv_ms": lambda: c.reverse(Lc, *w), "interpreted_jv_ms": lambda: interp.forward(L, *ds),
             "interpreted_jtv_ms": lambda: interp.reverse(L, *w)}
 

@@ -185,15 +185,20 @@ class CProgram:
         kind, width = seg
         return (n, width) if kind == "rows" else (lane_groups(n), width, LANES)
 
-    def run(self, n: int, a: np.ndarray, b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def run(self, n: int, a: np.ndarray, b: np.ndarray | None = None,
+            out: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One call on a batch of n: `a` and `b` C-contiguous float64 arrays in the input
-        segments' layouts; returns the two output segments, newly allocated."""
-        for x, seg in ((a, self.ins[0]), (b, self.ins[1])):
+        segments' layouts; returns the two output segments, written into `out` when given (a
+        caller that runs a program repeatedly, e.g. inside CG, reuses its buffers: a fresh large
+        array is fresh pages from the allocator, which can cost as much as the program)."""
+        checks = [(a, self.ins[0]), (b, self.ins[1])]
+        checks += list(zip(out, self.outs, strict=True)) if out else []
+        for x, seg in checks:
             if seg[1] and (x is None or x.shape != self._shape(seg, n) or x.dtype != np.float64
                            or not x.flags.c_contiguous):
-                raise ValueError(f"input segment {seg} of a batch of {n} needs a C-contiguous float64 array of shape "
+                raise ValueError(f"segment {seg} of a batch of {n} needs a C-contiguous float64 array of shape "
                                  f"{self._shape(seg, n)}, got {None if x is None else (x.shape, x.dtype)}")
-        y, z = np.empty(self._shape(self.outs[0], n)), np.empty(self._shape(self.outs[1], n))
+        y, z = out or (np.empty(self._shape(self.outs[0], n)), np.empty(self._shape(self.outs[1], n)))
         self._fn(n, a.ctypes.data if self.ins[0][1] else None, b.ctypes.data if self.ins[1][1] else None,
                  y.ctypes.data, z.ctypes.data)
         return y, z

@@ -304,6 +304,9 @@ class CData:
         return list(from_lanes(self.lanes, int(np.prod(self.batch))).reshape((-1,) + self.batch))
 
 
+_NO_OUTPUT = np.empty((0, 0))  # the unused second output segment of forward and reverse
+
+
 def _size(types: list[str]) -> int:
     return sum(O.SIZE[t] for t in types)
 
@@ -338,13 +341,17 @@ class CLinearized(Linearized):
             raise NonFiniteError(self._explain_nonfinite(list(x.T), (len(x),)))
         return y, CData(z, (len(x),))
 
-    def forward_rows(self, data: CData, dx: np.ndarray) -> np.ndarray:
-        """J v on packed rows: (n, grad-in width) -> (n, grad-out width)."""
-        return self.exe["forward"].run(len(dx), data.lanes, dx)[0]  # type: ignore[attr-defined]
+    def forward_rows(self, data: CData, dx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """J v on packed rows: (n, grad-in width) -> (n, grad-out width), into `out` if given."""
+        return self._rows_call("forward", data, dx, out)
 
-    def reverse_rows(self, data: CData, w: np.ndarray) -> np.ndarray:
-        """J^T w on packed rows: (n, grad-out width) -> (n, grad-in width)."""
-        return self.exe["reverse"].run(len(w), data.lanes, w)[0]  # type: ignore[attr-defined]
+    def reverse_rows(self, data: CData, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """J^T w on packed rows: (n, grad-out width) -> (n, grad-in width), into `out` if given."""
+        return self._rows_call("reverse", data, w, out)
+
+    def _rows_call(self, name: str, data: CData, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        prog: CProgram = self.exe[name]  # type: ignore[assignment]
+        return prog.run(len(x), data.lanes, x, None if out is None else (out, _NO_OUTPUT))[0]
 
     def linearize(self, *xs: Any) -> tuple[list[np.ndarray], CData]:  # type: ignore[override]
         x, batch = _rows(xs, self.in_types)

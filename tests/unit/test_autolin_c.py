@@ -115,8 +115,13 @@ def test_rows_calls_match_typed_calls(chain_programs):
     jtv = c.reverse_rows(L, np.concatenate(w, axis=1))
     np.testing.assert_allclose(jtv, np.concatenate([g.reshape(n, -1) for g in c.reverse(L, *w)], axis=1), rtol=0,
                                atol=0)
+    buf = np.full_like(jtv, np.nan)
+    assert c.reverse_rows(L, np.concatenate(w, axis=1), buf) is buf
+    np.testing.assert_array_equal(buf, jtv)
     with pytest.raises(ValueError, match="C-contiguous float64"):
         c.forward_rows(L, np.zeros((n, 3)))
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        c.reverse_rows(L, np.concatenate(w, axis=1), np.empty((n, 3)))
 
 
 def test_nonfinite_linearization_in_c_names_the_instruction():
