@@ -120,24 +120,31 @@ def accumulation_program(src: Program) -> Program:
 
 
 # --- lowering to scalar programs -----------------------------------------------------------
-def lower(p: Program, data_sizes: list[int] | None = None,
-          data_consts: dict[int, float] | None = None) -> tuple[S.ScalarProgram, list[int]]:
+def lower(p: Program, data_sizes: list[int] | None = None, data_consts: dict[int, float] | None = None,
+          data_alias: dict[int, int] | None = None) -> tuple[S.ScalarProgram, list[int]]:
     """Runs the block program on `Sym` components: a simplified scalar program. Data variables
-    take their sizes from `data_sizes` (as the linearization program produced them); data
-    scalars in `data_consts` (by position among all data scalars) are constants, folded into
-    the program instead of read. Nodes remember the block instruction they came from
-    (`origin`). Returns the program and the sizes of the data variables it produced or consumed."""
+    take their sizes from `data_sizes` (as the linearization program produced them); by
+    position among all data scalars, those in `data_consts` are constants, folded into the
+    program instead of read, and those in `data_alias` read the earlier data scalar they equal.
+    Nodes remember the block instruction they came from (`origin`). Returns the program and the
+    sizes of the data variables it produced or consumed."""
     b = S.Builder(simplify=True)
     env: dict[int, tuple[Any, ...]] = {}
     sizes = list(data_sizes or [])
-    consts = data_consts or {}
-    di = fi = 0
+    consts, alias = data_consts or {}, data_alias or {}
+    flat: dict[int, Any] = {}
+    di = 0
     for v in p.inputs:
         if p.types[v] == "data":
             n = sizes[di]
             di += 1
-            env[v] = tuple(b.const(consts[fi + c]) if fi + c in consts else b.input(f"v{v}_{c}") for c in range(n))
-            fi += n
+            comps = []
+            for c in range(n):
+                j = len(flat)
+                flat[j] = (b.const(consts[j]) if j in consts else flat[alias[j]] if j in alias
+                           else b.input(f"v{v}_{c}"))
+                comps.append(flat[j])
+            env[v] = tuple(comps)
             continue
         n = O.SIZE[p.types[v]]
         env[v] = tuple(b.input(f"v{v}_{c}") for c in range(n))
@@ -420,14 +427,19 @@ def generate(src: Program) -> Linearized:
     scal: dict[str, S.ScalarProgram] = {}
     lp, sizes = lower(lin)
     # linearization data that is the same finite constant for every sample (a constant axis, a
-    # derivative factor of a linear operator) is folded into forward and reverse, not stored
+    # derivative factor of a linear operator) is folded into forward and reverse, not stored;
+    # data equal to earlier data (an argument several linearizers keep) is stored once
     n_out = len(lp.outputs) - sum(sizes)
-    consts = {k: float(lp.nodes[o].value) for k, o in enumerate(lp.outputs[n_out:])
+    data = lp.outputs[n_out:]
+    consts = {k: float(lp.nodes[o].value) for k, o in enumerate(data)
               if lp.nodes[o].op in ("const", "zero") and np.isfinite(lp.nodes[o].value)}
-    lp.outputs = lp.outputs[:n_out] + [o for k, o in enumerate(lp.outputs[n_out:]) if k not in consts]
+    first: dict[int, int] = {}
+    alias = {k: first.setdefault(o, k) for k, o in enumerate(data) if k not in consts}
+    alias = {k: j for k, j in alias.items() if j != k}
+    lp.outputs = lp.outputs[:n_out] + [o for k, o in enumerate(data) if k not in consts and k not in alias]
     scal["linearize"] = S.prune(lp)
     for name in ("forward", "reverse"):
-        scal[name], _ = lower(block[name], sizes, consts)
+        scal[name], _ = lower(block[name], sizes, consts, alias)
     scal["accumulate"], _ = lower(block["accumulate"])
     return Linearized(src, block, scal, sizes)
 
