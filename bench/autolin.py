@@ -5,8 +5,8 @@ reverse mode, simplified the same way), and the thesis's figures: forward 33 / r
 for quaternion chaining against 60 / 56 (quaternion) and 99 / 90 (matrix); 13 memory
 operations against 20 / 45.
 
-Speed, medians interleaved in one run, one thread each, ratios against references timed in the
-same run:
+Speed, medians of process CPU time interleaved in one run, one thread each, ratios against
+references timed in the same run:
 - the five-frame chain (q, t, joint angle per frame), batch 1024: J v and J^T v through the
   generated programs (numpy register plan and plain C; the node-by-node interpreter as an in-run
   baseline) against torch.func's jvp (which evaluates the function again), the pullback of
@@ -21,15 +21,21 @@ Writes .bench/autolin.json, with the load average at the start and the end.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import shutil
-import sys
-import time
-from pathlib import Path
 
-import numpy as np
+# one BLAS / OpenMP thread (set before numpy loads): every entry runs on one thread, so CPU times
+# compare like with like (scipy's solver otherwise spends its CPU in idle-spinning BLAS threads)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
 
@@ -96,17 +102,24 @@ def counts() -> dict:
     return res
 
 
-def medians_ms(fns: dict, reps: int) -> dict[str, float]:
-    """Median wall time of each function, interleaved rep by rep so load changes hit all alike."""
-    ts: dict[str, list[float]] = {k: [] for k in fns}
+def medians_ms(fns: dict, reps: int) -> dict:
+    """Median CPU time of the process for each function, interleaved rep by rep. CPU time rather
+    than wall time: on the shared machine a run is preempted often, which inflates long entries'
+    wall times far more than short ones' (torch runs with one thread; CasADi's and autolin's C
+    run in the calling thread). Wall medians go in "wall_ms"."""
+    cpu: dict[str, list[float]] = {k: [] for k in fns}
+    wall: dict[str, list[float]] = {k: [] for k in fns}
     for fn in fns.values():
         fn()  # warm-up
     for _ in range(reps):
         for k, fn in fns.items():
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             fn()
-            ts[k].append(time.perf_counter() - t0)
-    return {k: float(np.median(v) * 1e3) for k, v in ts.items()}
+            cpu[k].append(time.process_time() - c0)
+            wall[k].append(time.perf_counter() - t0)
+    out: dict = {k: float(np.median(v) * 1e3) for k, v in cpu.items()}
+    out["wall_ms"] = {k: float(np.median(v) * 1e3) for k, v in wall.items()}
+    return out
 
 
 def chain_batch(batch: int) -> tuple:
@@ -124,17 +137,23 @@ def chain_batch(batch: int) -> tuple:
 
 
 def autolin_fns(batch: int) -> dict:
-    """J v and J^T v of the five-frame chain: register plan (numpy), plain C, and the
-    node-by-node interpreter as the in-run baseline."""
+    """J v and J^T v of the five-frame chain: register plan (numpy), C on packed rows (inputs
+    packed beforehand, as CasADi's are; output buffers reused, as inside CG), C on typed arrays
+    (packing and unpacking in the call), and the node-by-node interpreter as the in-run baseline."""
     xs, ds, w = chain_batch(batch)
     f = al.compile(chain, TYPES)
     c = f.with_c()
     _, L = f.linearize(*xs)
+    _, Lc = c.linearize(*xs)
+    D = np.concatenate([d.reshape(batch, -1) for d in ds], axis=1)
+    W = np.concatenate(w, axis=1)
     interp = al.Linearized(f.source, f.block, f.scalar, f.data_sizes)
     interp.exe = {k: (lambda ins, p=p: S.replay(p, ins)) for k, p in f.scalar.items()}
+    oj, ot = np.empty((batch, c.widths["grad_out"])), np.empty((batch, c.widths["grad_in"]))  # reused, as in CG
     return {"autolin_linearize_ms": lambda: f.linearize(*xs), "autolin_jv_ms": lambda: f.forward(L, *ds),
-            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward(L, *ds),
-            "autolin_c_jtv_ms": lambda: c.reverse(L, *w), "interpreted_jv_ms": lambda: interp.forward(L, *ds),
+            "autolin_jtv_ms": lambda: f.reverse(L, *w), "autolin_c_jv_ms": lambda: c.forward_rows(Lc, D, oj),
+            "autolin_c_jtv_ms": lambda: c.reverse_rows(Lc, W, ot), "autolin_c_typed_jv_ms": lambda: c.forward(Lc, *ds),
+            "autolin_c_typed_jtv_ms": lambda: c.reverse(Lc, *w), "interpreted_jv_ms": lambda: interp.forward(L, *ds),
             "interpreted_jtv_ms": lambda: interp.reverse(L, *w)}
 
 
@@ -220,12 +239,12 @@ def bundle(reps: int) -> dict:
     out: dict = {}
     t: dict[str, list[float]] = {"autolin_gn_cg_s": [], "scipy_least_squares_s": []}
     for _ in range(reps):
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         res = ls.solve([pr.quats, pr.trans, pr.points], [pr.uv[:, 0], pr.uv[:, 1]], fixed=fixed)
-        t["autolin_gn_cg_s"].append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
+        t["autolin_gn_cg_s"].append(time.process_time() - t0)
+        t0 = time.process_time()
         ref = least_squares(numpy_residuals, numpy_start(pr), args=(pr,), method="trf", x_scale="jac")
-        t["scipy_least_squares_s"].append(time.perf_counter() - t0)
+        t["scipy_least_squares_s"].append(time.process_time() - t0)
     out = {k: float(np.median(v)) for k, v in t.items()}
     out.update(observations=int(pr.cam.size), compile_s=compile_s, autolin_cost=res.cost, scipy_cost=float(ref.cost),
                autolin_iterations=res.iterations, autolin_cg_iterations=res.cg_iterations, scipy_nfev=int(ref.nfev))
@@ -254,12 +273,12 @@ def calibration(args: argparse.Namespace) -> dict:
             print(f"  {ref[:-3]} {p[ref]:.2f} ms: {p[f'{ref[:-3]}_over_{mine}_{k}']:.2f}x")
     s = cal.solve(args.calib_frames, 3, c_mode, args.dense)
     out["solve"] = s
-    sec, cost = s["seconds"], s["final_cost"]
+    sec, wall, cost = s["cpu_seconds"], s["seconds"], s["final_cost"]
     print(f"calibration bundle adjustment, {s['cameras']} cameras, {s['frames']} frame sets, {s['observations']} "
           f"corners, {s['unknowns']} unknowns, median of {s['reps']} (start cost {cost['start']:.6f}):")
     for k in sec:
         extra = s.get(k, {})
-        print(f"  {k:20s} {sec[k]:7.2f} s  final cost {cost[k]:.9f}  " + "  ".join(
+        print(f"  {k:20s} {sec[k]:7.2f} s CPU ({wall[k]:.2f} wall)  final cost {cost[k]:.9f}  " + "  ".join(
             f"{a}={b:.3g}" if isinstance(b, float) else f"{a}={b}" for a, b in extra.items()))
     return out
 

@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 SIZE = {"scalar": 1, "vec3": 3, "quat": 4, "mat3": 9, "rot3": 9}
 GRAD = {"scalar": "scalar", "vec3": "vec3", "quat": "vec3", "mat3": "mat3", "rot3": "vec3"}
+SHAPE = {"scalar": (), "vec3": (3,), "quat": (4,), "mat3": (3, 3), "rot3": (3, 3)}  # trailing array shapes
 
 Comps = tuple[Any, ...]
 counters: Counter[str] = Counter()  # bad input met by tracing and execution, by kind

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import ops as O
 from . import scalar as S
-from .emit_c import CProgram
+from .emit_c import CProgram, from_lanes, to_lanes
 from .memory import Executable
 from .trace import Instr, Program, trace
 
@@ -120,21 +120,33 @@ def accumulation_program(src: Program) -> Program:
 
 
 # --- lowering to scalar programs -----------------------------------------------------------
-def lower(p: Program, data_sizes: list[int] | None = None) -> tuple[S.ScalarProgram, list[int]]:
+def lower(p: Program, data_sizes: list[int] | None = None, data_consts: dict[int, float] | None = None,
+          data_alias: dict[int, int] | None = None) -> tuple[S.ScalarProgram, list[int]]:
     """Runs the block program on `Sym` components: a simplified scalar program. Data variables
-    take their sizes from `data_sizes` (as the linearization program produced them). Nodes
-    remember the block instruction they came from (`origin`). Returns the program and the
+    take their sizes from `data_sizes` (as the linearization program produced them); by
+    position among all data scalars, those in `data_consts` are constants, folded into the
+    program instead of read, and those in `data_alias` read the earlier data scalar they equal.
+    Nodes remember the block instruction they came from (`origin`). Returns the program and the
     sizes of the data variables it produced or consumed."""
     b = S.Builder(simplify=True)
     env: dict[int, tuple[Any, ...]] = {}
     sizes = list(data_sizes or [])
+    consts, alias = data_consts or {}, data_alias or {}
+    flat: dict[int, Any] = {}
     di = 0
     for v in p.inputs:
         if p.types[v] == "data":
             n = sizes[di]
             di += 1
-        else:
-            n = O.SIZE[p.types[v]]
+            comps = []
+            for c in range(n):
+                j = len(flat)
+                flat[j] = (b.const(consts[j]) if j in consts else flat[alias[j]] if j in alias
+                           else b.input(f"v{v}_{c}"))
+                comps.append(flat[j])
+            env[v] = tuple(comps)
+            continue
+        n = O.SIZE[p.types[v]]
         env[v] = tuple(b.input(f"v{v}_{c}") for c in range(n))
     for v, c in p.consts.items():
         env[v] = tuple(b.const(x) for x in c)
@@ -198,11 +210,9 @@ class Linearized:
     def __post_init__(self) -> None:
         self.exe = {k: Executable(p) for k, p in self.scalar.items()}
 
-    def with_c(self) -> Linearized:
-        """The same programs compiled to plain C (`emit_c`) and run through ctypes."""
-        out = Linearized(self.source, self.block, self.scalar, self.data_sizes)
-        out.exe = {k: CProgram(p, f"autolin_{k}") for k, p in self.scalar.items()}
-        return out
+    def with_c(self) -> CLinearized:
+        """The same programs compiled to plain C (`emit_c`), one call per batch."""
+        return CLinearized(self.source, self.block, self.scalar, self.data_sizes)
 
     @property
     def in_types(self) -> list[str]:
@@ -228,7 +238,10 @@ class Linearized:
         if bad:
             counters["nonfinite_linearization"] += 1
             raise NonFiniteError(self._explain_nonfinite(flat, batch))
-        return self._unflatten(res[:n_out], self.out_types, batch), [np.broadcast_to(r, batch) for r in res[n_out:]]
+        # data read many times (every CG product) is made contiguous once; broadcast constants stay views
+        data = [np.broadcast_to(r, batch) for r in res[n_out:]]
+        data = [d if d.flags.c_contiguous or 0 in d.strides else np.ascontiguousarray(d) for d in data]
+        return self._unflatten(res[:n_out], self.out_types, batch), data
 
     def forward(self, data: list[np.ndarray], *dxs: Any) -> list[np.ndarray]:
         """J v: output gradients from input gradients (rotation vectors for quaternions)."""
@@ -286,15 +299,147 @@ class Linearized:
         return f"non-finite value from instruction {ins.op} ({node.op} of its scalars) at {ins.line or '?'}"
 
 
+@dataclass
+class CData:
+    """Linearization data of a batch in emit_c's "lanes" layout, as the C programs read it."""
+
+    lanes: np.ndarray      # (groups, scalars, LANES)
+    batch: tuple[int, ...]
+
+    def arrays(self) -> list[np.ndarray]:
+        """The numpy plan's form: one array per data scalar."""
+        return list(from_lanes(self.lanes, int(np.prod(self.batch))).reshape((-1,) + self.batch))
+
+
+_NO_OUTPUT = np.empty((0, 0))  # the unused second output segment of forward and reverse
+
+
+def _size(types: list[str]) -> int:
+    return sum(O.SIZE[t] for t in types)
+
+
+class CLinearized(Linearized):
+    """`Linearized` with the four programs compiled to C, each run in one call per batch on
+    packed arrays: inputs and gradients as rows (one (n, width) block, a sample's values
+    contiguous), the linearization data as a `CData`. The `*_rows` methods take and return the
+    packed blocks directly; the others pack and unpack typed arrays around them."""
+
+    def __post_init__(self) -> None:
+        gi, go = [O.GRAD[t] for t in self.in_types], [O.GRAD[t] for t in self.out_types]
+        nd = len(self.scalar["linearize"].outputs) - _size(self.out_types)  # stored data scalars
+        self.widths = {"in": _size(self.in_types), "out": _size(self.out_types), "grad_in": _size(gi),
+                       "grad_out": _size(go), "data": nd}
+        w = self.widths
+        self.exe = {
+            "linearize": CProgram(self.scalar["linearize"], "autolin_linearize", ins=[("rows", w["in"])],
+                                  outs=[("rows", w["out"]), ("lanes", nd)]),
+            "forward": CProgram(self.scalar["forward"], "autolin_forward", ins=[("lanes", nd), ("rows", w["grad_in"])],
+                                outs=[("rows", w["grad_out"])]),
+            "reverse": CProgram(self.scalar["reverse"], "autolin_reverse", ins=[("lanes", nd), ("rows", w["grad_out"])],
+                                outs=[("rows", w["grad_in"])]),
+            "accumulate": CProgram(self.scalar["accumulate"], "autolin_accumulate",
+                                   ins=[("rows", w["in"]), ("rows", w["grad_in"])], outs=[("rows", w["in"])])}
+
+    def linearize_rows(self, x: np.ndarray) -> tuple[np.ndarray, CData]:
+        """Output values (n, out width) and the data from the inputs packed as (n, in width)."""
+        y, z = self.exe["linearize"].run(len(x), x)  # type: ignore[attr-defined]
+        if not (np.isfinite(y).all() and np.isfinite(z).all()):
+            counters["nonfinite_linearization"] += 1
+            raise NonFiniteError(self._explain_nonfinite(list(x.T), (len(x),)))
+        return y, CData(z, (len(x),))
+
+    def forward_rows(self, data: CData, dx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """J v on packed rows: (n, grad-in width) -> (n, grad-out width), into `out` if given."""
+        return self._rows_call("forward", data, dx, out)
+
+    def reverse_rows(self, data: CData, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """J^T w on packed rows: (n, grad-out width) -> (n, grad-in width), into `out` if given."""
+        return self._rows_call("reverse", data, w, out)
+
+    def _rows_call(self, name: str, data: CData, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        prog: CProgram = self.exe[name]  # type: ignore[assignment]
+        return prog.run(len(x), data.lanes, x, None if out is None else (out, _NO_OUTPUT))[0]
+
+    def linearize(self, *xs: Any) -> tuple[list[np.ndarray], CData]:  # type: ignore[override]
+        x, batch = _rows(xs, self.in_types)
+        y, d = self.linearize_rows(x)
+        d.batch = batch
+        return _unrows(y, self.out_types, batch), d
+
+    def forward(self, data: CData | list[np.ndarray], *dxs: Any) -> list[np.ndarray]:  # type: ignore[override]
+        d = self._data(data)
+        dx, batch = _rows(dxs, [O.GRAD[t] for t in self.in_types], d.batch)
+        return _unrows(self.forward_rows(d, dx), [O.GRAD[t] for t in self.out_types], batch)
+
+    def reverse(self, data: CData | list[np.ndarray], *gys: Any) -> list[np.ndarray]:  # type: ignore[override]
+        d = self._data(data)
+        w, batch = _rows(gys, [O.GRAD[t] for t in self.out_types], d.batch)
+        return _unrows(self.reverse_rows(d, w), [O.GRAD[t] for t in self.in_types], batch)
+
+    def accumulate(self, xs: Sequence[Any], dxs: Sequence[Any]) -> list[np.ndarray]:
+        x, batch = _rows(xs, self.in_types)
+        dx, batch = _rows(dxs, [O.GRAD[t] for t in self.in_types], batch)
+        y, _ = self.exe["accumulate"].run(len(x), x, dx)  # type: ignore[attr-defined]
+        return _unrows(y, self.in_types, batch)
+
+    def _data(self, data: CData | list[np.ndarray]) -> CData:
+        if isinstance(data, CData):
+            return data
+        batch = np.broadcast_shapes(*[np.shape(a) for a in data])  # the numpy plan's data: repacked
+        cols = np.array([np.broadcast_to(a, batch).ravel() for a in data]).reshape(len(data), -1)
+        return CData(to_lanes(cols), batch)
+
+
+def _rows(xs: Sequence[Any], types: list[str], batch: tuple[int, ...] = ()) -> tuple[np.ndarray, tuple[int, ...]]:
+    """Typed arrays (broadcast over the batch) packed into one (n, width) C-order block."""
+    if len(xs) != len(types):
+        raise ValueError(f"expected {len(types)} arguments ({', '.join(types)}), got {len(xs)}")
+    arrs = [np.asarray(x, dtype=float) for x in xs]
+    trail = [O.SHAPE[t] for t in types]
+    for a, t, s in zip(arrs, types, trail, strict=True):
+        if a.shape[a.ndim - len(s):] != s or a.ndim < len(s):
+            raise ValueError(f"a {t} needs trailing shape {s}, got {a.shape}")
+    batch = np.broadcast_shapes(batch, *[a.shape[:a.ndim - len(s)] for a, s in zip(arrs, trail, strict=True)])
+    n = int(np.prod(batch))
+    out = np.empty((n, _size(types)))
+    k = 0
+    for a, t, s in zip(arrs, types, trail, strict=True):
+        m = O.SIZE[t]
+        out[:, k:k + m] = np.broadcast_to(a, batch + s).reshape(n, m)
+        k += m
+    return out, batch
+
+
+def _unrows(y: np.ndarray, types: list[str], batch: tuple[int, ...]) -> list[np.ndarray]:
+    out, k = [], 0
+    for t in types:
+        m = O.SIZE[t]
+        out.append(y[:, k:k + m].reshape(batch + O.SHAPE[t]))
+        k += m
+    return out
+
+
 def generate(src: Program) -> Linearized:
     """The four programs of a recorded program, lowered and simplified."""
     lin, _ = linearization_program(src)
     block = {"linearize": lin, "forward": forward_program(src), "reverse": reverse_program(src),
              "accumulate": accumulation_program(src)}
     scal: dict[str, S.ScalarProgram] = {}
-    scal["linearize"], sizes = lower(lin)
+    lp, sizes = lower(lin)
+    # linearization data that is the same finite constant for every sample (a constant axis, a
+    # derivative factor of a linear operator) is folded into forward and reverse, not stored;
+    # data equal to earlier data (an argument several linearizers keep) is stored once
+    n_out = len(lp.outputs) - sum(sizes)
+    data = lp.outputs[n_out:]
+    consts = {k: float(lp.nodes[o].value) for k, o in enumerate(data)
+              if lp.nodes[o].op in ("const", "zero") and np.isfinite(lp.nodes[o].value)}
+    first: dict[int, int] = {}
+    alias = {k: first.setdefault(o, k) for k, o in enumerate(data) if k not in consts}
+    alias = {k: j for k, j in alias.items() if j != k}
+    lp.outputs = lp.outputs[:n_out] + [o for k, o in enumerate(data) if k not in consts and k not in alias]
+    scal["linearize"] = S.prune(lp)
     for name in ("forward", "reverse"):
-        scal[name], _ = lower(block[name], sizes)
+        scal[name], _ = lower(block[name], sizes, consts, alias)
     scal["accumulate"], _ = lower(block["accumulate"])
     return Linearized(src, block, scal, sizes)
 

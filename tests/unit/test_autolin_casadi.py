@@ -39,20 +39,30 @@ def samples(n: int, rng: np.random.Generator) -> list[np.ndarray]:
             rng.normal(size=n)]
 
 
-@pytest.mark.parametrize("mode", MODES)
-def test_casadi_products_match_autolin(mode: str):
-    rng = np.random.default_rng(4)
-    n = 16
-    xs = samples(n, rng)
+BACKENDS = ["numpy"] + (["c"] if shutil.which("cc") else [])
+
+
+@pytest.fixture(scope="module")
+def camera_programs() -> dict[str, al.Linearized]:
     f = al.compile(C.reprojection, C.PARAM_TYPES + C.DATA_TYPES)
+    return {"numpy": f, **({"c": f.with_c()} if "c" in BACKENDS else {})}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("mode", MODES)
+def test_casadi_products_match_autolin(mode: str, backend: str, camera_programs: dict):
+    rng = np.random.default_rng(4)
+    n = 17  # odd: the C programs' last, partial group of samples is exercised
+    xs = samples(n, rng)
+    f = camera_programs[backend]
     _, L = f.linearize(*xs)
     jv, jtv = CR.products(*CR.camera_expr(), "camera")
     fj, fr = CR.batched(jv, n, mode), CR.batched(jtv, n, mode)
     X = CR.columns(xs)
     d = [rng.normal(size=x.shape[:1] + (3,) if t == "quat" else x.shape) for x, t in zip(xs, f.in_types, strict=True)]
     dq = [tangent(x, v) if t == "quat" else v for x, v, t in zip(xs, d, f.in_types, strict=True)]
-    np.testing.assert_allclose(np.array(fj(X, CR.columns(dq))).T, np.stack(f.forward(L, *d), 1), rtol=1e-9,
-                               atol=1e-9)
+    np.testing.assert_allclose(np.array(fj(X, CR.columns(dq))).T, np.stack(f.forward(L, *d), 1), rtol=1e-12,
+                               atol=1e-12)
     w = [rng.normal(size=n), rng.normal(size=n)]
     g = np.array(fr(X, CR.columns(w))).T  # (n, 28): quaternion-space gradients
     mine = f.reverse(L, *w)
@@ -62,7 +72,7 @@ def test_casadi_products_match_autolin(mode: str):
         gc = g[:, k:k + size]
         if t == "quat":  # rotation-vector gradient: component i is <g_q, tangent(q, e_i)>
             gc = np.stack([np.sum(gc * tangent(x, np.tile(e, (n, 1))), 1) for e in np.eye(3)], 1)
-        np.testing.assert_allclose(gc.reshape(gm.shape), gm, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(gc.reshape(gm.shape), gm, rtol=1e-12, atol=1e-12)
         k += size
 
 
@@ -87,3 +97,43 @@ def test_chain_casadi_matches_autolin_values():
     parts = np.split(vals, np.cumsum(CR.CHAIN_SIZES)[:-1])
     (q, t), _ = f.linearize(*[p[None] if len(p) > 1 else p for p in parts])
     np.testing.assert_allclose(out, np.r_[q[0], t[0]], atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_chain_products_match_casadi(backend: str):
+    """The five-frame chain's J v (position rows) and J^T w (a position cotangent) against CasADi's
+    jtimes on random inputs, to 1e-12."""
+    axes = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
+    types = ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"]
+
+    def chain(*a):
+        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
+        q, t = qs[0] * al.angle_axis(th[0], axes[0]), ts[0]
+        for k in range(1, 5):
+            t = t + q * ts[k]
+            q = q * (qs[k] * al.angle_axis(th[k], axes[k]))
+        return q, t + q * p
+
+    f = al.compile(chain, types)
+    f = f.with_c() if backend == "c" else f
+    rng = np.random.default_rng(6)
+    n = 9
+    xs = [rng.normal(size=(n, O.SIZE[t])) if t != "scalar" else rng.normal(size=n) for t in types]
+    xs = [x / np.linalg.norm(x, axis=1, keepdims=True) if t == "quat" else x for x, t in zip(xs, types, strict=True)]
+    d = [rng.normal(size=(n, 3)) if t != "scalar" else rng.normal(size=n) for t in types]
+    dq = [tangent(x, v) if t == "quat" else v for x, v, t in zip(xs, d, types, strict=True)]
+    jv, jtv = CR.products(*CR.chain_expr(axes), "chain")
+    X = CR.columns(xs)
+    _, L = f.linearize(*xs)
+    np.testing.assert_allclose(np.array(jv.map(n)(X, CR.columns(dq))).T[:, 4:], f.forward(L, *d)[1], rtol=1e-12,
+                               atol=1e-12)
+    w = rng.normal(size=(n, 3))
+    g = np.array(jtv.map(n)(X, CR.columns([np.zeros((n, 4)), w]))).T
+    k = 0
+    for x, t, gm in zip(xs, types, f.reverse(L, np.zeros((n, 3)), w), strict=True):
+        size = 4 if t == "quat" else (3 if t == "vec3" else 1)
+        gc = g[:, k:k + size]
+        if t == "quat":
+            gc = np.stack([np.sum(gc * tangent(x, np.tile(e, (n, 1))), 1) for e in np.eye(3)], 1)
+        np.testing.assert_allclose(gc.reshape(gm.shape), gm, rtol=1e-12, atol=1e-12)
+        k += size

@@ -29,9 +29,10 @@ def test_gauss_newton_cg_reaches_scipy_cost_on_bundle_adjustment():
 
 def test_noise_free_problem_is_solved_to_zero_residual():
     pr = make_problem(n_cams=3, n_points=15, noise_px=0.0, seed=2)
-    res = solve(pr, iterations=50)
-    assert res.cost < 1e-12
-    assert res.cg_iterations > res.iterations  # the inner loop did the work
+    runs = {pc: solve(pr, iterations=50, preconditioner=pc) for pc in ("schur-jacobi", "auto")}
+    assert all(r.cost < 1e-12 for r in runs.values())
+    res = runs["schur-jacobi"]
+    assert res.cg_iterations > res.iterations  # matrix-free: the inner loop did the work
 
 
 def dense_jacobian(ls, L, shapes, data):
@@ -70,6 +71,9 @@ def test_both_regularizations_and_preconditioners_reach_scipy_cost():
     # the complete Schur complement as preconditioner: CG converges in a step or two
     assert runs["diagonal", "schur"].cg_iterations <= 2 * runs["diagonal", "schur"].iterations
     assert runs["diagonal", "schur-jacobi"].cg_iterations > runs["diagonal", "schur"].cg_iterations
+    # the default takes the complete complement here: 3 kept cameras, 18 unknowns
+    auto = solve(pr)
+    assert (auto.cost, auto.cg_iterations) == (runs["diagonal", "schur"].cost, runs["diagonal", "schur"].cg_iterations)
     with pytest.raises(ValueError, match="regularization"):
         solve(pr, regularization="trust")
     with pytest.raises(ValueError, match="preconditioner"):
