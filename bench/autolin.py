@@ -42,28 +42,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a sc
 import shared.autolin as al  # noqa: E402
 from shared.autolin import ops as O  # noqa: E402
 from shared.autolin import scalar as S  # noqa: E402
+from shared.autolin.chain import AXES, CHAIN_TYPES, chain  # noqa: E402
 
 THESIS = {"quat_chain": {"forward": 33, "reverse": 30, "memory_ops": 13},
           "scalar_ad_quat": {"forward": 60, "reverse": 56, "memory_ops": 20},
           "scalar_ad_matrix": {"forward": 99, "reverse": 90, "memory_ops": 45}}
-AXES = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
-TYPES = ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"]
+TYPES = CHAIN_TYPES
 
 
 def summary(p: S.ScalarProgram) -> dict[str, int]:
     c = p.counts()
     return {k: c[k] for k in ("instructions", "muls", "adds", "loads", "stores", "memory_ops",
                               "sin", "cos", "sqrt", "div")}
-
-
-def chain(*a):
-    """Five frames composed and applied to a point; each frame turns about its joint axis."""
-    qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-    q, t = qs[0] * al.angle_axis(th[0], AXES[0]), ts[0]
-    for k in range(1, 5):
-        t = t + q * ts[k]
-        q = q * (qs[k] * al.angle_axis(th[k], AXES[k]))
-    return q, t + q * p
 
 
 def chain_components(*x):

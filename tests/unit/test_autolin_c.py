@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import shared.autolin as al
+from shared.autolin.chain import CHAIN_TYPES, chain
 from shared.autolin.emit_c import CProgram, c_source
 
 pytestmark = pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
@@ -49,17 +50,6 @@ def test_linearized_runs_in_c():
         np.testing.assert_allclose(g, h, rtol=1e-13)
 
 
-AXES = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
-CHAIN_TYPES = ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"]
-
-
-def chain(*a):
-    qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-    q, t = qs[0] * al.angle_axis(th[0], AXES[0]), ts[0]
-    for k in range(1, 5):
-        t = t + q * ts[k]
-        q = q * (qs[k] * al.angle_axis(th[k], AXES[k]))
-    return q, t + q * p
 
 
 def random_args(types: list[str], batch: tuple[int, ...], rng: np.random.Generator) -> list[np.ndarray]:

@@ -7,33 +7,16 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from calibration.bundle import Problem, observations
-from calibration.cli import true_cameras
-from calibration.init import initial_guess
-from calibration.synthetic import project_views
-from services.world import calibration_sequence as calseq
+from bench._autolin_calibration import make_problem
+from calibration.bundle import Problem
 from shared.autolin import camera as C
 from shared.autolin.solver import LeastSquares
-from shared.charuco import BoardSpec
 
 SIZE = (640, 480)
 
 
 def calibration_problem(frames: int = 20) -> tuple[Problem, np.ndarray, C.CameraProblem]:
-    board = BoardSpec()
-    cams = true_cameras(*SIZE)
-    names = list(cams)
-    det = project_views(board, names, [SIZE] * len(names), [cams[n][0] for n in names], [np.zeros(5)] * len(names),
-                        [cams[n][1] for n in names], calseq.sequence(board, frames, 0), noise_px=0.1, seed=0)
-    init = initial_guess(det, board)
-    obs = observations(det, board, set(init.rig_T_board))
-    prob = Problem(len(names), init.reference, obs, "full")
-    x0 = prob.pack(init.K, init.dist, init.cam_T_rig, init.rig_T_board)
-    ext = np.zeros((prob.n, 6))  # the reference camera's pose is the rig frame
-    ext[prob.movable] = x0[prob.o_ext:prob.o_board].reshape(-1, 6)
-    cp = C.from_rotation_vectors(prob.intrinsics(x0), ext, x0[prob.o_board:].reshape(-1, 6), prob.ref, obs.cam,
-                                 obs.frame, obs.obj, obs.uv)
-    return prob, x0, cp
+    return make_problem(frames, seed=0, noise_px=0.1)
 
 
 def to_x(prob: Problem, params: list[np.ndarray]) -> np.ndarray:

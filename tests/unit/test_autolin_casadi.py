@@ -14,6 +14,7 @@ import shared.autolin as al
 from shared.autolin import camera as C
 from shared.autolin import casadi_reference as CR
 from shared.autolin import ops as O
+from shared.autolin.chain import AXES, CHAIN_TYPES, chain
 
 MODES = ["vm"] + (["c"] if shutil.which("cc") or shutil.which("gcc") else [])
 
@@ -77,23 +78,14 @@ def test_casadi_products_match_autolin(mode: str, backend: str, camera_programs:
 
 
 def test_chain_casadi_matches_autolin_values():
-    axes = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
-    x, y = CR.chain_expr(axes)
+    x, y = CR.chain_expr(AXES)
     rng = np.random.default_rng(5)
     vals = rng.normal(size=x.numel())
     for k in range(5):
         vals[4 * k:4 * k + 4] /= np.linalg.norm(vals[4 * k:4 * k + 4])
     out = np.array(ca.Function("chain", [x], [y])(vals)).ravel()
 
-    def chain(*a):
-        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-        q, t = qs[0] * al.angle_axis(th[0], axes[0]), ts[0]
-        for k in range(1, 5):
-            t = t + q * ts[k]
-            q = q * (qs[k] * al.angle_axis(th[k], axes[k]))
-        return q, t + q * p
-
-    f = al.compile(chain, ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"])
+    f = al.compile(chain, CHAIN_TYPES)
     parts = np.split(vals, np.cumsum(CR.CHAIN_SIZES)[:-1])
     (q, t), _ = f.linearize(*[p[None] if len(p) > 1 else p for p in parts])
     np.testing.assert_allclose(out, np.r_[q[0], t[0]], atol=1e-12)
@@ -103,26 +95,17 @@ def test_chain_casadi_matches_autolin_values():
 def test_chain_products_match_casadi(backend: str):
     """The five-frame chain's J v (position rows) and J^T w (a position cotangent) against CasADi's
     jtimes on random inputs, to 1e-12."""
-    axes = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
-    types = ["quat"] * 5 + ["vec3"] * 5 + ["scalar"] * 5 + ["vec3"]
 
-    def chain(*a):
-        qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-        q, t = qs[0] * al.angle_axis(th[0], axes[0]), ts[0]
-        for k in range(1, 5):
-            t = t + q * ts[k]
-            q = q * (qs[k] * al.angle_axis(th[k], axes[k]))
-        return q, t + q * p
-
-    f = al.compile(chain, types)
+    f = al.compile(chain, CHAIN_TYPES)
     f = f.with_c() if backend == "c" else f
     rng = np.random.default_rng(6)
     n = 9
-    xs = [rng.normal(size=(n, O.SIZE[t])) if t != "scalar" else rng.normal(size=n) for t in types]
-    xs = [x / np.linalg.norm(x, axis=1, keepdims=True) if t == "quat" else x for x, t in zip(xs, types, strict=True)]
-    d = [rng.normal(size=(n, 3)) if t != "scalar" else rng.normal(size=n) for t in types]
-    dq = [tangent(x, v) if t == "quat" else v for x, v, t in zip(xs, d, types, strict=True)]
-    jv, jtv = CR.products(*CR.chain_expr(axes), "chain")
+    xs = [rng.normal(size=(n, O.SIZE[t])) if t != "scalar" else rng.normal(size=n) for t in CHAIN_TYPES]
+    xs = [x / np.linalg.norm(x, axis=1, keepdims=True) if t == "quat" else x
+          for x, t in zip(xs, CHAIN_TYPES, strict=True)]
+    d = [rng.normal(size=(n, 3)) if t != "scalar" else rng.normal(size=n) for t in CHAIN_TYPES]
+    dq = [tangent(x, v) if t == "quat" else v for x, v, t in zip(xs, d, CHAIN_TYPES, strict=True)]
+    jv, jtv = CR.products(*CR.chain_expr(AXES), "chain")
     X = CR.columns(xs)
     _, L = f.linearize(*xs)
     np.testing.assert_allclose(np.array(jv.map(n)(X, CR.columns(dq))).T[:, 4:], f.forward(L, *d)[1], rtol=1e-12,
@@ -130,7 +113,7 @@ def test_chain_products_match_casadi(backend: str):
     w = rng.normal(size=(n, 3))
     g = np.array(jtv.map(n)(X, CR.columns([np.zeros((n, 4)), w]))).T
     k = 0
-    for x, t, gm in zip(xs, types, f.reverse(L, np.zeros((n, 3)), w), strict=True):
+    for x, t, gm in zip(xs, CHAIN_TYPES, f.reverse(L, np.zeros((n, 3)), w), strict=True):
         size = 4 if t == "quat" else (3 if t == "vec3" else 1)
         gc = g[:, k:k + size]
         if t == "quat":

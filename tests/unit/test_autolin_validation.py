@@ -10,6 +10,7 @@ import pytest
 import shared.autolin as al
 from shared.autolin import ops as O
 from shared.autolin import scalar as S
+from shared.autolin.chain import chain
 
 N = 64  # samples per domain, batched
 
@@ -179,18 +180,6 @@ def test_suite2_self_test_against_scalar_ad(name: str):
 
 
 # --- suite 3: chains of five random coordinate frames against torch.func -----------------
-def chain(*a):
-    """Five frames (q_i, t_i) composed, applied to a point; also each joint turns by an angle."""
-    qs, ts, th, p = a[0:5], a[5:10], a[10:15], a[15]
-    axes = ([0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0], [0, 0.6, 0.8], [0.48, 0.6, 0.64])
-    q, t = qs[0] * al.angle_axis(th[0], axes[0]), ts[0]
-    for k in range(1, 5):
-        qk = qs[k] * al.angle_axis(th[k], axes[k])
-        t = t + q * ts[k]
-        q = q * qk
-    return q, t + q * p
-
-
 def test_suite3_five_frame_chains_match_torch_func(record_property):
     torch = pytest.importorskip("torch")
     from torch.func import jvp, vjp
