@@ -1,7 +1,9 @@
 """P1: the typed runtime against raw zenoh-python in the same run.
 
 Ping-pong latency (64 B payload, p50/p99) and one-way throughput of 4 kB and 300 kB messages
-(a camera frame), through a router on loopback as in a deployment. The typed runtime is measured
+(a camera frame), through a router on loopback as in a deployment. Throughput publishers block
+when the transport is congested (raw and typed alike), so both count delivered capacity rather
+than what a flood left after drops. The typed runtime is measured
 both ways a subscription can run: handlers on the event loop (the default) and ``inline`` on
 Zenoh's threads (shared/runtime/node.py). Writes .bench/runtime.json; targets: latency <= 1.15x
 raw, throughput >= 0.8x raw.
@@ -20,6 +22,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
+from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
 
@@ -75,7 +79,7 @@ def raw_throughput(endpoint: str, size: int) -> float:
             done.set()
 
     b.declare_subscriber("bench/raw/bulk", on)
-    pub = a.declare_publisher("bench/raw/bulk")
+    pub = a.declare_publisher("bench/raw/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
     time.sleep(0.5)
     payload = b"y" * size
     t0 = time.perf_counter()
@@ -86,6 +90,48 @@ def raw_throughput(endpoint: str, size: int) -> float:
     b.close()
     print(f"raw throughput {size} B: {count[0]}/{n} received")
     return count[0] / elapsed
+
+
+def shm_throughput(size: int) -> dict[str, float]:
+    """Raw zenoh-python at ``size`` through a router with Zenoh's shared-memory transport on: each
+    message put from a buffer of the publisher's SHM pool, against plain bytes through the same
+    router. The deployment keeps SHM off (shared/runtime/zsession.py): this is the measurement."""
+    def config(mode: str, **endpoints: list[str]) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/shared_memory/enabled", "true")
+        for k, v in endpoints.items():
+            conf.insert_json5(f"{k}/endpoints", json.dumps(v))
+        return conf
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(config("router", listen=[endpoint]))
+    a, b = zenoh.open(config("client", connect=[endpoint])), zenoh.open(config("client", connect=[endpoint]))
+    count, shm_seen = [0], [0]
+
+    def on(sample: zenoh.Sample) -> None:
+        count[0] += 1
+        shm_seen[0] += sample.payload.as_shm() is not None
+
+    b.declare_subscriber("bench/shm/bulk", on)
+    pub = a.declare_publisher("bench/shm/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
+    provider = ShmProvider.default_backend(64 * 1024 * 1024)
+    time.sleep(0.5)
+    n, payload, out = n_for(size), b"y" * size, {}
+    for label in ("shm", "bytes"):
+        count[0] = shm_seen[0] = 0
+        t0 = time.perf_counter()
+        for _ in range(n):
+            if label == "shm":
+                pub.put(provider.alloc(size, policy=BlockOn(GarbageCollect())))
+            else:
+                pub.put(payload)
+        out[label] = count[0] / wait_counted(count, lambda: count[0] >= n, t0)
+        out[f"{label}_delivered_as_shm"] = shm_seen[0]
+    for s in (a, b, router):
+        s.close()
+    return out
 
 
 def n_for(size: int) -> int:
@@ -156,7 +202,7 @@ async def typed_throughput(endpoint: str, size: int, inline: bool) -> float:
             count[0] += 1
 
     b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=BULK_TYPE, inline=inline)
-    pub = a.publisher("xm/bench/src/bulk", BULK_TYPE)
+    pub = a.publisher("xm/bench/src/bulk", BULK_TYPE, block=True)
     await asyncio.sleep(0.5)
     layout = msgs.make("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
     msg = msgs.make(BULK_TYPE, layout=layout, data=np.full(size - 16, 7, np.uint8))  # size bytes on the wire
@@ -196,8 +242,9 @@ def main() -> None:
                          "loop": asyncio.run(typed_throughput(endpoint, size, False)),
                          "inline": asyncio.run(typed_throughput(endpoint, size, True))}
     router.close()
+    shm = shm_throughput(SIZES[-1])
     res: dict = {"latency_us": {k: percentiles(v) for k, v in lat.items()}, "throughput_msg_s": tp,
-                 "loadavg_1m": os.getloadavg()[0]}
+                 "shared_memory_raw_msg_s": shm, "loadavg_1m": os.getloadavg()[0]}
     res["ratios"] = {path: {
         "latency_p50": res["latency_us"][path]["p50_us"] / res["latency_us"]["raw"]["p50_us"],
         "latency_p99": res["latency_us"][path]["p99_us"] / res["latency_us"]["raw"]["p99_us"],
@@ -210,6 +257,8 @@ def main() -> None:
     for path in ("raw", "loop", "inline"):
         print(f"{path:>8}{res['latency_us'][path]['p50_us']:>10.0f}{res['latency_us'][path]['p99_us']:>10.0f}"
               + "".join(f"{tp[str(s)][path]:>16.0f}" for s in SIZES))
+    print(f"raw {SIZES[-1]} B with the shared-memory transport: {shm['shm']:.0f} msg/s from SHM buffers, "
+          f"{shm['bytes']:.0f} msg/s from bytes ({shm['shm_delivered_as_shm']} delivered as SHM)")
     for path, r in res["ratios"].items():
         print(f"{path} / raw: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items())
               + " (targets: latency <= 1.15x, throughput >= 0.8x)")

@@ -331,6 +331,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=str(ROOT / ".bench/soak.json"))
     args = parser.parse_args(argv)
 
+    # SIGTERM (kill, a CI timeout) ends the soak as Ctrl-C does: the cell and the hog are stopped below.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     tmp = Path(tempfile.mkdtemp(prefix="xm-soak-"))
     deployment, router = private_deployment(Path(args.deployment), tmp)
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}

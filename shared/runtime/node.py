@@ -34,52 +34,28 @@ import zenoh
 from shared import keys as keyreg
 from shared import msgs
 from shared.ports import QueuePolicy, fifo, latest
-from shared.runtime import validate
+from shared.runtime import schemas, validate
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
+from shared.runtime.stats import RateMeter, Stats
 from shared.wiring import Binding
 
 __all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
 
-RATE_WINDOW_S = 5.0
 LOG_SUMMARY_S = 10.0  # a recurring warning is summarised at most this often
 
 
-class RateMeter:
-    """Message rate over the last few seconds, from arrival times. Ticked from transport threads and
-    read from the health timer: one lock keeps the window consistent."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self._times: collections.deque[float] = collections.deque()
-        self._lock = threading.Lock()
-
-    def tick(self, now: float) -> None:
-        with self._lock:
-            self.count += 1
-            self._times.append(now)
-            self._trim(now)
-
-    def rate(self, now: float) -> float:
-        with self._lock:
-            self._trim(now)
-            n, first = len(self._times), (self._times[0] if self._times else now)
-        if n < 2:
-            return 0.0
-        span = max(now - first, 1e-6)
-        return (n - 1) / span if span < RATE_WINDOW_S * 0.5 else n / RATE_WINDOW_S
-
-    def _trim(self, now: float) -> None:
-        while self._times and self._times[0] < now - RATE_WINDOW_S:
-            self._times.popleft()
-
-
 class Publisher:
-    def __init__(self, node: Node, key: str, msgtype: str) -> None:
+    """Typed puts on one key. ``block``: when the transport is congested, ``put`` waits instead of
+    dropping (for bulk transfers that must arrive whole; a control loop wants the default, drop)."""
+
+    def __init__(self, node: Node, key: str, msgtype: str, block: bool = False) -> None:
         self.key = key
         self.msgtype = msgtype
         self._node = node
-        self._pub = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._pub = node.session.declare_publisher(key, congestion_control=congestion)
+        self._type_token = node.session.liveliness().declare_token(schemas.token_key(key, msgtype))
         self.meter = node.stats.published.setdefault(key, RateMeter())
 
     def put(self, msg: Any) -> None:
@@ -114,13 +90,47 @@ class Subscription:
         # Per key: samples that arrived, and those the queue policy discarded (Zenoh thread, under _lock).
         self.arrived: collections.Counter[str] = collections.Counter()
         self.dropped: collections.Counter[str] = collections.Counter()
+        # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
+        self.refused: dict[str, dict[str, str]] = {}
+        self._types = (None if msgtype == "raw" else
+                       node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
+                                                                    history=True))
         self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
+
+    # Zenoh thread: a publisher's type token came or went.
+    def _on_type(self, sample: zenoh.Sample) -> None:
+        token = str(sample.key_expr)
+        declared = schemas.parse_token(token)
+        if declared is None:
+            return
+        expected = self.msgtype or keyreg.msgtype_of(declared.key)
+        why = schemas.mismatch(declared, expected) if expected else None
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE or why is None:
+                gone = self.refused.get(declared.key, {})
+                gone.pop(token, None)
+                if not gone:
+                    self.refused.pop(declared.key, None)
+                return
+            self.refused.setdefault(declared.key, {})[token] = why
+        self._node.stats.count("type_mismatch_publisher", declared.key)
+        self._node.log.error("refusing %s: %s", declared.key, why)
+
+    def _refuse(self, key: str) -> bool:
+        """A sample on a refused key: counted, dropped."""
+        why = self.refused.get(key)
+        if not why:
+            return False
+        self._node.reject(key, "type_mismatch", next(iter(why.values()), ""))
+        return True
 
     # Zenoh thread, inline: decode, validate and handle at once.
     def _on_inline(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         with self._lock:
             self.arrived[key] += 1
+        if self.refused and self._refuse(key):
+            return
         msg = self._decode(key, sample.payload.to_bytes(), time.monotonic())
         if msg is not None:
             try:
@@ -131,6 +141,10 @@ class Subscription:
     # Zenoh thread: copy and hand over, nothing else.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         item = (str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
+        if self.refused and self._refuse(item[0]):
+            with self._lock:
+                self.arrived[item[0]] += 1
+            return
         with self._lock:
             self.arrived[item[0]] += 1
             if len(self._queue) >= self.policy.depth:
@@ -212,39 +226,10 @@ class Subscription:
 
     def close(self) -> None:
         self._sub.undeclare()
+        if self._types is not None:
+            self._types.undeclare()
         if self._task is not None:
             self._task.cancel()
-
-
-class Stats:
-    """Counters of one node, counted from the loop and from inline handlers' Zenoh threads."""
-
-    def __init__(self) -> None:
-        self.published: dict[str, RateMeter] = {}
-        self.received: dict[str, RateMeter] = {}
-        self.errors: collections.Counter[str] = collections.Counter()
-        self.rejected: dict[str, collections.Counter[str]] = {}  # key -> reason -> count
-        self._lock = threading.Lock()
-
-    def reject(self, key: str, reason: str) -> None:
-        with self._lock:
-            self.rejected.setdefault(key, collections.Counter())[reason] += 1
-        self.count(reason, key)
-
-    def count(self, name: str, key: str | None = None, n: int = 1) -> None:
-        with self._lock:
-            self.errors[name if key is None else f"{name}:{key}"] += n
-
-    def received_meter(self, key: str) -> RateMeter:
-        with self._lock:
-            return self.received.setdefault(key, RateMeter())
-
-    def snapshot(self) -> tuple[dict, dict, dict, dict]:
-        """(published, received meters, errors, rejected) copied at one moment: inline handlers add
-        keys from Zenoh threads while the health report is built."""
-        with self._lock:
-            return (dict(self.published), dict(self.received), dict(self.errors),
-                    {k: dict(c) for k, c in self.rejected.items()})
 
 
 class Node:
@@ -319,12 +304,12 @@ class Node:
             self.stats.count("task_crash")
             self.set_status("error", f"task {task.get_name()} crashed: {task.exception()!r}")
 
-    def publisher(self, topic_or_key: str, msgtype: str | None = None) -> Publisher:
+    def publisher(self, topic_or_key: str, msgtype: str | None = None, block: bool = False) -> Publisher:
         key = topic_or_key if topic_or_key.startswith("xm/") else self.key(topic_or_key)
         msgtype = msgtype or keyreg.msgtype_of(key)
         if msgtype is None:
             raise ValueError(f"key {key} is declared by no services/*/ports.py; declare it or pass msgtype")
-        return Publisher(self, key, msgtype)
+        return Publisher(self, key, msgtype, block)
 
     def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
                   msgtype: str | None = None, inline: bool = False) -> Subscription:

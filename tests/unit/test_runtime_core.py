@@ -129,6 +129,13 @@ def test_rate_meter():
         meter.tick(i * 0.01)
     assert meter.rate(1.0) == pytest.approx(100.0, rel=0.02)
     assert meter.rate(100.0) == 0.0
+    steady = RateMeter()
+    for i in range(2000):  # 100 Hz for 20 s, then 10 Hz for 10 s: the rate of the last few seconds
+        steady.tick(i * 0.01)
+    assert steady.rate(20.0) == pytest.approx(100.0, rel=0.03)
+    for i in range(100):
+        steady.tick(20.0 + i * 0.1)
+    assert steady.rate(30.0) == pytest.approx(10.0, rel=0.05)
 
 
 def test_rate_meter_ticked_and_read_from_several_threads_keeps_count():
