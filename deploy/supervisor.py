@@ -28,6 +28,8 @@ from pathlib import Path
 
 import zenoh
 
+from deploy.certs import check_cert
+from deploy.hosts import HostError, load_hosts, router_config
 from shared.config import ConfigError, Deployment, load_deployment
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
@@ -78,12 +80,21 @@ class Child:
 
 class Supervisor:
     def __init__(self, deployment: Deployment, only: list[str] | None = None, quiet: bool = False,
-                 standby: bool = False) -> None:
+                 standby: bool = False, host: str | None = None) -> None:
         self.deployment = deployment
         self.quiet = quiet
         self.standby = standby
         self._spare_tasks: set[asyncio.Task] = set()
         wanted = start_order(deployment)  # the deployment's order; services hosting devices (world) first
+        self.router_config: dict | None = None
+        if host is not None:  # one host of a multi-host deployment: its services, its router's TLS links and ACL
+            hosts = load_hosts(deployment)
+            mine = set(hosts.host(host).services)
+            wanted = [w for w in wanted if w in mine]
+            problem = check_cert(hosts.tls_dir / f"{host}.pem", hosts.tls_dir / "ca.pem")
+            if problem:  # zenoh's own TLS error would not say which file or why
+                raise ConfigError(f"host {host}: {problem}")
+            self.router_config = router_config(deployment, hosts, host)
         if only:
             unknown = sorted(set(only) - {s for s, _ in wanted})
             if unknown:
@@ -104,7 +115,7 @@ class Supervisor:
     async def run(self, stop: asyncio.Event, open_browser: bool = False) -> None:
         self.deployment.run_dir.mkdir(parents=True, exist_ok=True)
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        router = open_router(self.deployment.router)
+        router = open_router(self.deployment.router, self.router_config)
         node = Node("deploy", "supervisor", router, "wall", self.log)
         node.health_extra = self.children_report
         node.set_status("ok")
@@ -249,6 +260,8 @@ def up_main(argv: list[str] | None = None) -> int:
                                      "every service as its own process, restarted when it dies.")
     parser.add_argument("deployment", nargs="?", default="deploy/sim.toml", help="deployment TOML file")
     parser.add_argument("--only", help="comma-separated services to run (default: all of the deployment)")
+    parser.add_argument("--host", help="run one host of a multi-host deployment: its router (TLS links to the "
+                        "other hosts, access control) and the services placed on it (docs/multihost.md)")
     parser.add_argument("--duration", type=float, help="stop after this many seconds")
     parser.add_argument("--open", action="store_true", help="open the dashboard in a browser if there is a screen")
     parser.add_argument("--quiet", action="store_true", help="logs only to files, not the console")
@@ -259,8 +272,9 @@ def up_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         deployment = load_deployment(args.deployment)
-        sup = Supervisor(deployment, args.only.split(",") if args.only else None, args.quiet, args.standby)
-    except ConfigError as exc:
+        sup = Supervisor(deployment, args.only.split(",") if args.only else None, args.quiet, args.standby,
+                         args.host)
+    except (ConfigError, HostError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -8,6 +8,7 @@ import sys
 # subcommand -> (module:function taking argv, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("deploy.supervisor:up_main", "run a deployment: router + every service, restarts, logs"),
+    "certs": ("deploy.certs:main", "certificates for a multi-host deployment's TLS links (docs/multihost.md)"),
     "status": ("deploy.supervisor:status_main", "list running services: pid, uptime, restarts, rates"),
     "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
     "recon": ("services.recon.cli:main", "reconstruct a recording offline (live stages + trajectory refinement)"),

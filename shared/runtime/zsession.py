@@ -12,7 +12,8 @@ class EndpointError(RuntimeError):
     """The router endpoint is unusable (bad syntax or the port is taken)."""
 
 
-def _config(mode: str, listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
+def _config(mode: str, listen: list[str] | None = None, connect: list[str] | None = None,
+            extra: dict | None = None) -> zenoh.Config:
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -23,6 +24,8 @@ def _config(mode: str, listen: list[str] | None = None, connect: list[str] | Non
     conf.insert_json5("transport/shared_memory/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))
     conf.insert_json5("connect/endpoints", json.dumps(connect or []))
+    for path, value in (extra or {}).items():  # e.g. a host's TLS links and access control (deploy/hosts.py)
+        conf.insert_json5(path, json.dumps(value))
     return conf
 
 
@@ -48,9 +51,10 @@ def check_port_free(endpoint: str) -> None:
                 f"stop it, or set [deployment] router to a free port)") from None
 
 
-def open_router(endpoint: str) -> zenoh.Session:
+def open_router(endpoint: str, extra: dict | None = None) -> zenoh.Session:
+    """A router listening on ``endpoint``; ``extra``: further configuration entries (path -> value)."""
     check_port_free(endpoint)
-    return zenoh.open(_config("router", listen=[endpoint]))
+    return zenoh.open(_config("router", listen=[endpoint], extra=extra))
 
 
 def open_client(endpoint: str) -> zenoh.Session:
