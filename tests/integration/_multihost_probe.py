@@ -42,10 +42,10 @@ def wait_health(session, key: str, timeout: float) -> bool:
 def main(argv: list[str]) -> dict:
     cmd, endpoint = argv[0], argv[1]
     if cmd == "connect":
-        extra = {"transport/link/tls/root_ca_certificate": argv[2], "connect/timeout_ms": 3000}
+        extra = {"transport/link/tls/root_ca_certificate": argv[2], "connect/timeout_ms": 10000}
         if len(argv) > 3:
             extra |= {"transport/link/tls/connect_certificate": argv[3],
-                      "transport/link/tls/connect_private_key": argv[4]}
+                      "transport/link/tls/connect_private_key": argv[4], "transport/link/tls/enable_mtls": True}
         try:
             zenoh.open(_config("client", connect=[endpoint], extra=extra)).close()
             return {"connected": True}
