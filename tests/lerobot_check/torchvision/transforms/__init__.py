@@ -1,0 +1,3 @@
+"""Empty: LeRobot imports the module; augmentation is not used by the tests."""
+
+v2 = None
