@@ -49,14 +49,15 @@ def import_main(argv: list[str]) -> int:
     sub = parser.add_subparsers(dest="format", required=True)
     p = sub.add_parser("lerobot", help="a LeRobot v3 dataset written by `xm export lerobot`")
     p.add_argument("dataset", help="dataset directory (meta/info.json inside)")
-    p.add_argument("-o", "--out", default=None, help="directory for the demonstrations (default: DATASET/demos)")
+    p.add_argument("-o", "--out", default=None,
+                   help="directory for the demonstrations, one .npz each (default: NAME-demos beside DATASET)")
     args = parser.parse_args(argv)
     try:
         demos = import_dataset(args.dataset)
     except (fmt.FormatError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    paths = save_demos(demos, args.out or f"{args.dataset.rstrip('/')}/demos")
+    paths = save_demos(demos, args.out or f"{args.dataset.rstrip('/')}-demos")
     steps = sum(d.steps for d in demos)
     print(f"read {len(demos)} demonstrations ({steps} steps); wrote {len(paths)} files to {paths[0].parent}"
           if paths else "the dataset has no episodes")

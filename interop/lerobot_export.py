@@ -127,9 +127,12 @@ def _episode(rec: Recording, demo, t0: float, layout: _Layout, dt: float) -> fmt
         stream = rec.robots.get(layout.robot_key)
         if stream is None:
             raise DatasetError(f"no robot joint states ({layout.robot_key} missing from the recording)")
-        idx, age = stream.at(times, MAX_ROBOT_AGE_S)
+        idx, age = stream.at(times)
+        if not np.isfinite(age):
+            raise DatasetError(f"no robot joint state on {layout.robot_key} at its start")
         if age > MAX_ROBOT_AGE_S:
-            raise DatasetError(f"robot joint states on {layout.robot_key} missing for {age:.2f} s of it")
+            raise DatasetError(f"a gap of {age:.2f} s in the robot joint states on {layout.robot_key} "
+                               f"(at most {MAX_ROBOT_AGE_S} s allowed)")
         if any(stream.values[i][0] != layout.joint_names for i in set(idx.tolist())):
             raise DatasetError(f"joint names on {layout.robot_key} differ from {layout.joint_names}")
         ep.joints = np.stack([stream.values[i][1] for i in idx])
@@ -137,9 +140,12 @@ def _episode(rec: Recording, demo, t0: float, layout: _Layout, dt: float) -> fmt
         stream = rec.images.get(cam)
         if stream is None:
             raise DatasetError(f"no frames of camera {cam!r} (xm/camhub/{cam}/image missing from the recording)")
-        idx, age = stream.at(times, MAX_IMAGE_AGE_S)
+        idx, age = stream.at(times)
+        if not np.isfinite(age):
+            raise DatasetError(f"no frame of camera {cam!r} at its start")
         if age > MAX_IMAGE_AGE_S:
-            raise DatasetError(f"camera {cam!r} has no frame for {age:.2f} s of it")
+            raise DatasetError(f"a gap of {age:.2f} s in the frames of camera {cam!r} (at most {MAX_IMAGE_AGE_S} s "
+                               f"allowed)")
         infos = rec.infos.get(cam, {})
         decoded: dict[int, np.ndarray] = {}
         frames = []

@@ -35,8 +35,9 @@ class Stream:
         order = np.argsort(np.asarray(self.stamps), kind="stable")
         return Stream([self.stamps[i] for i in order], [self.values[i] for i in order])
 
-    def at(self, times: np.ndarray, max_age_s: float) -> tuple[np.ndarray, float]:
-        """Index of the latest sample at or before each time and the worst age; -1 where none."""
+    def at(self, times: np.ndarray) -> tuple[np.ndarray, float]:
+        """Index of the latest sample at or before each time and the largest age (inf: none before
+        the first time)."""
         st = np.asarray(self.stamps)
         idx = np.searchsorted(st, times, side="right") - 1
         if len(st) == 0 or (idx < 0).any():
