@@ -14,8 +14,7 @@ import websockets
 
 from shared import msgs
 from shared.kinematics import load_robot
-from tests.conftest import (ServiceProcess, free_port, query_json, wait_for, wait_until_async,
-                            write_deployment)
+from tests.conftest import ServiceProcess, free_port, query_json, wait_for, wait_until_async, write_deployment
 
 SUBPROTOCOL = "foxglove.sdk.v1"  # the SDK server accepts only this name of the protocol
 MESSAGE_DATA = 0x01  # binary opcode: u32 subscription id, u64 receive time, payload
