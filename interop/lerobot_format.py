@@ -7,6 +7,8 @@ so the dataset's fps is 1 / dt). Columns of a frame:
   keypoints (x y z each), metres, float32; ``observation.state_mask``: 1 where observed.
 - ``action``: the same keypoints one step later (the last frame repeats its own state): the
   target a keypoint policy is trained to reach.
+- ``observation.environment_state``: the object keypoints alone (LeRobot's name for the state of
+  the world around the robot, which state-only policies such as its Diffusion Policy take).
 - ``observation.tactile`` / ``observation.tactile_mask``: 2 hands x 6 regions, kPa.
 - ``observation.robot_joints``: the robot's measured joint positions (when exported).
 - ``observation.phase``: index into the phase names of the feature's ``names``.
@@ -84,6 +86,8 @@ def features(object_names: list[str], joint_names: list[str] | None, cameras: di
         "observation.state": {"dtype": "float32", "shape": [3 * p], "names": names},
         "observation.state_mask": {"dtype": "float32", "shape": [p], "names": point_names(object_names)},
         "action": {"dtype": "float32", "shape": [3 * p], "names": names},
+        "observation.environment_state": {"dtype": "float32", "shape": [3 * len(object_names)],
+                                          "names": names[3 * (p - len(object_names)):]},
         "observation.tactile": {"dtype": "float32", "shape": [len(tactile_names())], "names": tactile_names()},
         "observation.tactile_mask": {"dtype": "float32", "shape": [len(tactile_names())], "names": tactile_names()},
         "observation.phase": {"dtype": "int64", "shape": [1], "names": list(PHASES)},
@@ -118,6 +122,7 @@ def frame_columns(ep: Episode, episode_index: int, first_index: int, task_index:
         "observation.state": state,
         "observation.state_mask": mask,
         "action": action,
+        "observation.environment_state": d.objects.reshape(t, -1).astype(np.float32),
         "observation.tactile": d.tactile.reshape(t, -1).astype(np.float32),
         "observation.tactile_mask": d.tactile_mask.reshape(t, -1).astype(np.float32),
         "observation.phase": np.asarray(phases, np.int64),

@@ -151,16 +151,25 @@ def test_import_refuses_what_it_cannot_read(tmp_path):
     assert import_main(["lerobot", str(tmp_path)]) == 2
 
 
-@pytest.mark.skipif(not LEROBOT_SITE.exists(), reason="LeRobot is not installed beside the venv: "
-                    "pip install --target .cache/lerobot-site --no-deps -r tests/lerobot_check/requirements.txt")
-def test_lerobot_dataset_class_reads_the_export(session):
-    _, out = session
+needs_lerobot = pytest.mark.skipif(
+    not LEROBOT_SITE.exists(), reason="LeRobot is not installed beside the venv: .venv/bin/pip install --target "
+    ".cache/lerobot-site --no-deps -r tests/lerobot_check/requirements.txt (docs/lerobot.md)")
+
+
+def run_lerobot(script: str, *args: str) -> dict:
+    """A script of tests/lerobot_check in a process that sees LeRobot; its last stdout line as JSON."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "tests/lerobot_check"), str(LEROBOT_SITE)]),
-               HF_HUB_OFFLINE="1", HF_DATASETS_CACHE=str(out.parent / "hf-cache"))
-    proc = subprocess.run([sys.executable, str(ROOT / "tests/lerobot_check/load_export.py"), str(out)],
+               HF_HUB_OFFLINE="1", HF_DATASETS_CACHE=str(Path(args[0]).parent / "hf-cache"))
+    proc = subprocess.run([sys.executable, str(ROOT / "tests/lerobot_check" / script), *args],
                           capture_output=True, text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    seen = json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@needs_lerobot
+def test_lerobot_dataset_class_reads_the_export(session):
+    _, out = session
+    seen = run_lerobot("load_export.py", str(out))
     info = json.loads((out / "meta/info.json").read_text())
     episodes = pq.read_table(out / fmt.EPISODES_PATH).to_pylist()
     assert seen["warnings"] == []
@@ -168,6 +177,7 @@ def test_lerobot_dataset_class_reads_the_export(session):
     assert seen["from"] == [e["dataset_from_index"] for e in episodes]
     assert seen["to"] == [e["dataset_to_index"] for e in episodes]
     assert seen["shapes"]["observation.state"] == [135] and seen["shapes"]["action"] == [135]
+    assert seen["shapes"]["observation.environment_state"] == [9]
     assert seen["shapes"]["observation.robot_joints"] == [4] and seen["tasks"] == ["assembly"]
     lengths = [e["length"] for e in episodes]
     assert seen["episode_of_row"] == [i for i, n in enumerate(lengths) for _ in range(n)]
@@ -176,3 +186,16 @@ def test_lerobot_dataset_class_reads_the_export(session):
     assert seen["video_frames"] == {k: lengths for k in seen["camera_keys"]}
     first = import_dataset(out)[0]
     np.testing.assert_array_equal(np.asarray(seen["state_first"], np.float32)[:63], first.hands[0, 0].ravel())
+
+
+@needs_lerobot
+def test_lerobot_diffusion_policy_trains_on_the_export(session, tmp_path):
+    recs, _ = session
+    out = tmp_path / "dataset"  # no cameras: LeRobot decodes video only through CUDA-built packages here
+    export(recs, out, ExportOptions(fps=FPS, cameras=[]))
+    seen = run_lerobot("train_policy.py", str(out), "5")
+    losses = seen["losses"]
+    assert len(losses) == 5 and all(np.isfinite(losses))
+    assert losses[-1] < losses[0]  # the optimizer moves the policy on these batches
+    assert seen["state_window"] == [2, 135] and seen["action_window"] == [8, 135]
+    assert seen["action_is_pad"][0] and not any(seen["action_is_pad"][1:])  # frame 0 has no past action

@@ -1,3 +1,1 @@
-"""Empty: LeRobot imports the module; augmentation is not used by the tests."""
-
-v2 = None
+"""Empty: LeRobot imports the module; image augmentation is not used by the tests."""
