@@ -117,10 +117,17 @@ def test_bridge_forwards_keys_and_draws_the_scene(router, tmp_path):
         assert b"hand/left" in update and b"hand/right" in update and b"object/lens" in update
         assert client.channels["/tf"]["schemaName"] == "foxglove.FrameTransforms"
         assert b"world" in client.received["/tf"][-1]
-        health = wait_for(lambda: [h for h in _health(session) if h.get("forwarded")], 10)
+        junk = session.declare_publisher("xm/nothing/here")  # matches `keys`, but no service declares it
+
+        def counted() -> list[dict]:
+            junk.put(b"junk")
+            return [h for h in _health(session) if h.get("errors", {}).get("unregistered_key:xm/nothing/here")]
+        health = wait_for(counted, 30)
         assert health and health[0]["url"] == f"ws://127.0.0.1:{port}"
+        forwarded = health[0]["forwarded"]
+        assert forwarded.get("xm/recon/main/scene", 0) > 0 and "xm/nothing/here" not in forwarded
     finally:
-        assert svc.stop() in (0, -15), svc.output()
+        assert svc.stop(timeout=30) in (0, -15), svc.output()  # a loaded host can take seconds to exit
 
 
 def _health(session) -> list[dict]:
