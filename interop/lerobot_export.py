@@ -24,6 +24,7 @@ import pyarrow.parquet as pq
 from interop import lerobot_format as fmt
 from interop.recording_streams import Recording, camera_frame, camera_size, demos_with_starts, read_recording
 from learning.dataset import DatasetError
+from shared.demo import Demo
 
 MAX_ROBOT_AGE_S = 0.5  # a joint state older than this at a frame: the robot's stream stopped
 MAX_IMAGE_AGE_S = 1.0  # a camera frame older than this (nominal 5 Hz): the camera stopped
@@ -79,6 +80,8 @@ def export(recordings: list[str | Path], out: str | Path, opts: ExportOptions | 
         except DatasetError as exc:
             res.skipped.append(f"{path}: skipped: {exc}")
             continue
+        if rec.malformed:
+            res.report.append(f"{path}: {rec.malformed} messages that do not decode as their key's type left out")
         if layout is None:
             layout = _layout(rec, demos[0][0], opts)
         for demo, t0 in demos:
@@ -98,7 +101,7 @@ def export(recordings: list[str | Path], out: str | Path, opts: ExportOptions | 
     return res
 
 
-def _layout(rec: Recording, demo, opts: ExportOptions) -> _Layout:
+def _layout(rec: Recording, demo: Demo, opts: ExportOptions) -> _Layout:
     robot_key = None
     if opts.robot == "auto":
         robot_key = sorted(rec.robots)[0] if rec.robots else None
@@ -118,7 +121,7 @@ def _layout(rec: Recording, demo, opts: ExportOptions) -> _Layout:
     return _Layout(list(demo.object_names), robot_key, joint_names, cameras)
 
 
-def _episode(rec: Recording, demo, t0: float, layout: _Layout, dt: float) -> fmt.Episode:
+def _episode(rec: Recording, demo: Demo, t0: float, layout: _Layout, dt: float) -> fmt.Episode:
     if list(demo.object_names) != layout.object_names:
         raise DatasetError(f"object keypoints {demo.object_names} differ from the dataset's {layout.object_names}")
     times = t0 + np.arange(demo.steps) * dt
@@ -133,9 +136,14 @@ def _episode(rec: Recording, demo, t0: float, layout: _Layout, dt: float) -> fmt
         if age > MAX_ROBOT_AGE_S:
             raise DatasetError(f"a gap of {age:.2f} s in the robot joint states on {layout.robot_key} "
                                f"(at most {MAX_ROBOT_AGE_S} s allowed)")
+        n = len(layout.joint_names)
         if any(stream.values[i][0] != layout.joint_names for i in set(idx.tolist())):
             raise DatasetError(f"joint names on {layout.robot_key} differ from {layout.joint_names}")
+        if any(len(stream.values[i][1]) != n for i in set(idx.tolist())):
+            raise DatasetError(f"joint states on {layout.robot_key} without one position per joint")
         ep.joints = np.stack([stream.values[i][1] for i in idx])
+        if not np.isfinite(ep.joints).all():
+            raise DatasetError(f"non-finite joint positions on {layout.robot_key}")
     for cam, size in layout.cameras.items():
         stream = rec.images.get(cam)
         if stream is None:

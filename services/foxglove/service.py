@@ -8,7 +8,9 @@ entities and the robot's links as frame transforms. A key no service declares is
 
 from __future__ import annotations
 
+import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,7 +52,8 @@ class FoxgloveService:
         except Exception as exc:  # the SDK raises its own error type for a taken or invalid address
             raise EndpointError(f"foxglove: cannot listen on ws://{params.host}:{params.port} ({exc}); "
                                 f"set [services.foxglove.<instance>] port to a free one") from None
-        self.forwarded: dict[str, int] = {}
+        self.forwarded: Counter[str] = Counter()  # per key; handlers run on several Zenoh threads
+        self._lock = threading.Lock()
         for pattern in params.keys:
             node.subscribe(pattern, self._forward, msgtype="raw", inline=True)  # no queue: the server keeps
             # a backlog per client and drops for a slow one
@@ -67,7 +70,8 @@ class FoxgloveService:
             self.node.stats.count("unregistered_key", key)
             return
         self.server.forward(key, msgtype, bytes(payload), time.time_ns())
-        self.forwarded[key] = self.forwarded.get(key, 0) + 1
+        with self._lock:
+            self.forwarded[key] += 1
 
     def _scene(self, msg: Any) -> None:
         try:
@@ -85,7 +89,9 @@ class FoxgloveService:
         self.server.transforms(frames, msgs.stamp_seconds(msg.header.stamp), time.time_ns())
 
     def health(self) -> dict:
-        return {"url": f"ws://{self.p.host}:{self.server.port}", "forwarded": dict(self.forwarded),
+        with self._lock:
+            forwarded = dict(self.forwarded)
+        return {"url": f"ws://{self.p.host}:{self.server.port}", "forwarded": forwarded,
                 "robot_frames": self.robot is not None}
 
     async def close(self) -> None:
