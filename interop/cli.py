@@ -16,7 +16,8 @@ def export_main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="xm export", description="export recorded demonstrations")
     sub = parser.add_subparsers(dest="format", required=True)
     p = sub.add_parser("lerobot", help="LeRobot dataset v3 (Parquet tables, MP4 camera streams)")
-    p.add_argument("recordings", nargs="+", help="MCAP recordings (a first segment, a directory or files)")
+    p.add_argument("recordings", nargs="+",
+                   help="MCAP recordings: first segments (the rest are found beside them) or directories of them")
     p.add_argument("-o", "--out", required=True, help="dataset directory (an earlier export there is replaced)")
     p.add_argument("--fps", type=int, default=50, help="frames per second: the demonstrations' time step")
     p.add_argument("--robot", default="auto",

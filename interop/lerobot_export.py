@@ -25,6 +25,7 @@ from interop import lerobot_format as fmt
 from interop.recording_streams import Recording, camera_frame, camera_size, demos_with_starts, read_recording
 from learning.dataset import DatasetError
 from shared.demo import Demo
+from shared.recording_files import segment_key
 
 MAX_ROBOT_AGE_S = 0.5  # a joint state older than this at a frame: the robot's stream stopped
 MAX_IMAGE_AGE_S = 1.0  # a camera frame older than this (nominal 5 Hz): the camera stopped
@@ -73,7 +74,7 @@ def export(recordings: list[str | Path], out: str | Path, opts: ExportOptions | 
     layout: _Layout | None = None
     writer = _Writer(out, opts)
     dt = 1.0 / opts.fps
-    for path in recordings:
+    for path in recording_list(recordings):
         try:
             rec = read_recording(path)
             demos = demos_with_starts(rec, dt, res.report)
@@ -99,6 +100,19 @@ def export(recordings: list[str | Path], out: str | Path, opts: ExportOptions | 
     writer.close(feats, opts.robot_type)
     res.episodes, res.frames, res.features = len(writer.episodes), writer.frames, list(feats)
     return res
+
+
+def recording_list(paths: list[str | Path]) -> list[Path]:
+    """Each recording once, by its first segment: a directory gives every recording in it (by name),
+    a later segment whose first one is also given is part of that one."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out += sorted(f for f in p.glob("*.mcap") if f.is_file() and segment_key(f)[1] == 0)
+        else:
+            out.append(p)
+    firsts = {(f.parent, segment_key(f)[0]) for f in out if segment_key(f)[1] == 0}
+    return [f for f in out if segment_key(f)[1] == 0 or (f.parent, segment_key(f)[0]) not in firsts]
 
 
 def _layout(rec: Recording, demo: Demo, opts: ExportOptions) -> _Layout:

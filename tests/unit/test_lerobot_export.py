@@ -16,7 +16,7 @@ import pytest
 
 from interop import lerobot_format as fmt
 from interop.cli import export_main, import_main
-from interop.lerobot_export import ExportOptions, export
+from interop.lerobot_export import ExportOptions, export, recording_list
 from interop.lerobot_import import import_dataset
 from learning.dataset import DatasetError, demos_from_mcap
 from shared.demo import Demo
@@ -130,6 +130,13 @@ def test_missing_keys_skip_the_episode_with_the_reason(tmp_path):
     assert f"{blind}: demonstration 0: skipped: no frames of camera 'cam1'" in text
     assert f"{other}: demonstration 0: skipped: joint names" in text
     assert f"{empty}: skipped:" in text and "xm/recon/main/scene" in text
+
+
+def test_a_directory_is_its_recordings_each_once(session, tmp_path):
+    recs, _ = session
+    seg = recs[0].with_name("a.seg0001.mcap")
+    assert recording_list([recs[0].parent]) == sorted(recs)  # a.mcap, b.mcap: not one merged recording
+    assert recording_list([recs[0], seg, recs[1]]) == [recs[0], recs[1]]
 
 
 def test_nothing_to_export_is_an_error(tmp_path):
