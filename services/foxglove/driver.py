@@ -55,6 +55,13 @@ class FoxgloveServer:
                                                        context=self.context)
         ch.log(payload, log_time=log_time_ns)
 
+    def wants_scene(self) -> bool:
+        """Whether a client subscribes to the scene entities (else they need not be built)."""
+        return self.scene.has_sinks()
+
+    def wants_frames(self) -> bool:
+        return self.frames.has_sinks()
+
     def draw(self, entities: list[Entity], stamp_s: float, log_time_ns: int) -> None:
         ts = _timestamp(stamp_s)
         self.scene.log(SceneUpdate(entities=[_entity(e, ts) for e in entities]), log_time=log_time_ns)

@@ -74,6 +74,8 @@ class FoxgloveService:
             self.forwarded[key] += 1
 
     def _scene(self, msg: Any) -> None:
+        if not self.server.wants_scene():
+            return
         try:
             entities = scene_entities(msg)
         except ValueError as exc:  # lengths the validator let through but the hands do not fit
@@ -83,7 +85,7 @@ class FoxgloveService:
         self.server.draw(entities, msgs.stamp_seconds(msg.header.stamp), time.time_ns())
 
     def _state(self, msg: Any) -> None:
-        if self.robot is None:
+        if self.robot is None or not self.server.wants_frames():
             return
         frames = robot_frames(self.robot, list(msg.name), msg.position)
         self.server.transforms(frames, msgs.stamp_seconds(msg.header.stamp), time.time_ns())
