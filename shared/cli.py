@@ -13,6 +13,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "graph": ("deploy.graph:main", "print a deployment's dataflow (edges, types, rates, queues), draw an SVG"),
     "recon": ("services.recon.cli:main", "reconstruct a recording offline (live stages + trajectory refinement)"),
     "record": ("services.recorder.cli:record_main", "record keys to an MCAP file"),
+    "export": ("interop.cli:export_main", "export demonstrations: `xm export lerobot REC.mcap... -o DIR`"),
+    "import": ("interop.cli:import_main", "import demonstrations: `xm import lerobot DIR`"),
     "replay": ("services.recorder.cli:replay_main", "republish an MCAP recording with original timing"),
     "train": ("learning.cli:train_main", "train the policy from recordings or teacher demos"),
     "simulate": ("learning.cli:simulate_main", "neural simulation of a trained policy"),

@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted([ROOT / "README.md", ROOT / "hdl" / "README.md", *(ROOT / "docs").rglob("*.md")])
 # Top-level folders whose paths the docs cite; generated folders (runs/, .bench/) are not checked.
 TRACKED_ROOTS = ("services", "shared", "docs", "deploy", "bench", "tests", "hdl", "learning", "evaluation",
-                 "calibration", "perception", "skin")
+                 "calibration", "perception", "skin", "interop")
 LINK = re.compile(r"\[[^\]]*\]\(([^)\s]+)\)")
 CODE = re.compile(r"`([^`\s]+)`")
 PLAIN = re.compile(r"(?<![\w/.])((?:" + "|".join(TRACKED_ROOTS) + r")/[\w./-]*\w)")  # not inside runs/...

@@ -1,0 +1,1 @@
+"""Empty: LeRobot imports the module; image augmentation is not used by the tests."""

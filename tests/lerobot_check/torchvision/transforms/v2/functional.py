@@ -1,0 +1,1 @@
+"""Empty: imported by LeRobot's processors for image steps the tests do not use."""
