@@ -79,7 +79,7 @@ def test_bad_deployments_name_file_key_and_type(tmp_path):
     with pytest.raises(ConfigError, match=r"bad.toml: deployment.name: expected str, got int"):
         load_deployment(bad)
     bad.write_text('[deployment]\n[services.teleporter.main]\n')
-    with pytest.raises(ConfigError, match="unknown service.*known: camhub, glove.*world"):
+    with pytest.raises(ConfigError, match="unknown service.*known: camhub, .*glove.*world"):
         load_deployment(bad)
     bad.write_text('[deployment\n')
     with pytest.raises(ConfigError, match="not valid TOML"):
