@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from services.recon.hand_model import kabsch, rodrigues, rotvec
+from services.recon.hand_model import kabsch, rodrigues
 
 GATE_PX = 6.0  # a detection within this of the pose's projection is an inlier
 CAUCHY_PX = 2.5  # the robust loss's scale: residuals beyond it count less and less

@@ -67,7 +67,7 @@ class Reconstructor:
                  fit: FitConfig | None = None, fit_hands: bool = True,
                  object_names: list[str] | None = None, identity: bool = True,
                  min_confidence: float = 0.0, hand_present_confidence: float = 0.0,
-                 object_fit: str = "reprojection") -> None:
+                 object_fit: str = "kabsch") -> None:
         """``object_names``: the keypoints the detector reports, when they are not the task's own
         (then no rigid model applies and objects stay triangulated points). ``identity``: give hand
         detections to the tracked hand nearest their ray (hand_identity.py); ``min_confidence``:

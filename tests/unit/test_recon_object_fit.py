@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.recon.hand_model import rodrigues
 from services.recon import object_fit
+from services.recon.hand_model import rodrigues
 from services.recon.object_fit import RigidTracker, fit_pose, hypotheses, reprojection
 from services.recon.objects import object_models
 from services.recon.pipeline import Reconstructor
@@ -108,7 +108,7 @@ def test_resting_object_pools_frames_and_a_move_restarts_the_window() -> None:
 def test_pipeline_reports_the_posed_objects_from_detections() -> None:
     rng = np.random.default_rng(6)
     P = rig()
-    rec = Reconstructor("assembly")
+    rec = Reconstructor("assembly", object_fit="reprojection")
     models = object_models("assembly")
     R, t = pose(0.3, (0.05, -0.07, 0.0))
     board = models[0].points @ R.T + t
