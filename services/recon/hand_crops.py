@@ -4,8 +4,8 @@ The first stage sees both hands in one small window image and often puts a keypo
 the other. The second stage looks at one hand at a time: each hand's centre is the median of the
 confident first-stage keypoints, triangulated across the views with outlier rejection, that lie
 nearer that hand than the other (``hand_centres``), projected back into every view; the crop
-around it spans a fixed metric size at the hand's depth, so which hand a crop shows comes from the geometry of all views, not from one view's appearance.
-Left-hand crops are mirrored so that one network, trained on right-hand-looking crops, serves both
+around it spans a fixed metric size at the hand's depth, so which hand a crop shows comes from the
+geometry of all views, not from one view's appearance. Left-hand crops are mirrored so that one network, trained on right-hand-looking crops, serves both
 hands.
 """
 
