@@ -5,8 +5,8 @@ the other. The second stage looks at one hand at a time: each hand's centre is t
 confident first-stage keypoints, triangulated across the views with outlier rejection, that lie
 nearer that hand than the other (``hand_centres``), projected back into every view; the crop
 around it spans a fixed metric size at the hand's depth, so which hand a crop shows comes from the
-geometry of all views, not from one view's appearance. Left-hand crops are mirrored so that one network, trained on right-hand-looking crops, serves both
-hands.
+geometry of all views, not from one view's appearance. Left-hand crops are mirrored so that one
+network, trained on right-hand-looking crops, serves both hands.
 """
 
 from __future__ import annotations
