@@ -10,6 +10,7 @@ import numpy as np
 
 from services.recon.hand_fit import FitConfig, HandTracker
 from services.recon.hand_identity import absent_hands, assign_hands, gate_tracked, outside_windows
+from services.recon.object_fit import RigidTracker
 from services.recon.objects import ObjectSmoother, object_models, pose_objects, task_keypoint_names
 from services.recon.triangulation import triangulate_robust
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
@@ -65,13 +66,18 @@ class Reconstructor:
     def __init__(self, task: str, hand_names: tuple[str, ...] = HAND_NAMES, gate_px: float = 6.0,
                  fit: FitConfig | None = None, fit_hands: bool = True,
                  object_names: list[str] | None = None, identity: bool = True,
-                 min_confidence: float = 0.0, hand_present_confidence: float = 0.0) -> None:
+                 min_confidence: float = 0.0, hand_present_confidence: float = 0.0,
+                 object_fit: str = "kabsch") -> None:
         """``object_names``: the keypoints the detector reports, when they are not the task's own
         (then no rigid model applies and objects stay triangulated points). ``identity``: give hand
         detections to the tracked hand nearest their ray (hand_identity.py); ``min_confidence``:
         detections below it count as none there; ``hand_present_confidence``: a view whose detections of
         a hand have a lower median confidence does not show that hand (a learned detector's
-        calibration: ``LearnedDetector.hand_present_confidence``; 0: off)."""
+        calibration: ``LearnedDetector.hand_present_confidence``; 0: off). ``object_fit``:
+        ``reprojection`` poses each rigid object on its 2-D detections in every view, pooled while
+        it rests (object_fit.py); ``kabsch`` on its triangulated keypoints alone (objects.py)."""
+        if object_fit not in ("reprojection", "kabsch"):
+            raise ValueError(f"object_fit: 'reprojection' or 'kabsch', not {object_fit!r}")
         self.hand_names = list(hand_names)
         names = task_keypoint_names(task)
         self.object_names = names if object_names is None else list(object_names)
@@ -80,6 +86,8 @@ class Reconstructor:
         self.fit_hands = fit_hands
         self.trackers = {h: HandTracker(h, fit or FitConfig()) for h in self.hand_names}
         self.smoother = ObjectSmoother()
+        self.rigid = {m.name: RigidTracker(m.points) for m in self.models} if object_fit == "reprojection" else {}
+        self.object_fit_restarts = 0  # a resting object's window restarted: it moved
         self.hands_seen_twice = 0  # frame sets where one hand was dropped as the other's double
         self.beyond_hand = 0  # hand keypoints masked as too far from their hand
         self.identity = identity
@@ -159,6 +167,18 @@ class Reconstructor:
         t2 = time.perf_counter()
         objects, object_mask, posed, rms, used = pose_objects(self.models, pts[nh:], mask[nh:], views[nh:])
         objects = self.smoother.update(self.models, objects, posed, rms, used)
+        if self.rigid:
+            w = (np.nan_to_num(np.asarray(confidence, float))[:, nh:] > self.min_confidence).astype(float)
+            for m in self.models:
+                tracker = self.rigid[m.name]
+                before = tracker.restarts
+                fit = tracker.update(P, uv[:, nh:][:, m.slice], w[:, m.slice], pts[nh:][m.slice], mask[nh:][m.slice])
+                self.object_fit_restarts += tracker.restarts - before
+                if fit is not None:
+                    objects[m.slice], object_mask[m.slice] = fit.points(m.points), 1
+                    i = self.models.index(m)
+                    posed[i] = True
+                    inliers[:, nh + np.arange(m.slice.start, m.slice.stop)] = fit.inliers
         self._objects, self._objects_known = objects.copy(), object_mask.astype(bool)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,

@@ -83,6 +83,26 @@ def test_hand_centres_survive_peaks_on_the_other_hand_and_need_two_views():
     assert found.tolist() == [True, False]
 
 
+def test_hand_centres_are_not_dragged_toward_the_other_hand():
+    """Peaks of one hand's channel that every view puts on the other hand triangulate there; they
+    must not pull the crop's centre (the second stage follows its crop's centre)."""
+    rng = np.random.default_rng(4)
+    P = rig()
+    pts = two_hands(rng)
+    uv, _ = project(P, pts)
+    uv = uv + rng.normal(0, 1.0, uv.shape)
+    wrong = rng.permutation(21)[:8]  # 8 of the right hand's keypoints found on the left hand in every view
+    uv[:, 21 + wrong] = uv[:, wrong]
+    conf = np.ones(uv.shape[:2])
+    slices = [slice(0, 21), slice(21, 42)]
+    centres, found = hand_crops.hand_centres(P, uv, conf, slices)
+    per_view, _ = hand_crops._median_centres(P, uv, conf, slices, 0.3)
+    truth = np.median(pts[21:], axis=0)
+    assert found.all()
+    assert np.linalg.norm(centres[1] - truth) < 0.015
+    assert np.linalg.norm(centres[1] - truth) < 0.5 * np.linalg.norm(per_view[1] - truth)
+
+
 def second_stage(tmp_path, half_px_peak: float) -> LearnedDetector:
     names = keypoint_names("assembly")
     torch.save(UNet(len(names)).state_dict(), tmp_path / "weights.pt")
