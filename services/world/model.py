@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from services.world import wiping
+from services.world import bottle, wiping
 from shared.charuco import BoardSpec
 from shared.geometry import look_at
 from shared.kinematics import load_robot
@@ -52,7 +52,10 @@ OBJECTS = {  # name -> list of (geom type, size (half extents), offset, rgba, ma
         "plate": [("box", (0.06, 0.06, 0.0025), (0.0, 0.0, 0.0025), (0.3, 0.3, 0.8, 1), 0.2)],
     },
     "wiping": wiping.GEOMS,
+    "bottle": bottle.GEOMS,
 }
+GEOM_TYPES = {"box": mujoco.mjtGeom.mjGEOM_BOX, "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+              "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
 OBJECTS["latch"] = OBJECTS["assembly"]
 ASSEMBLY_TASKS = ("assembly", "latch")  # the tasks with the connector's snap-fit
 
@@ -107,7 +110,7 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
         body = world.add_body(name=name, pos=[0, 0, 0])
         body.add_freejoint(name=f"{name}_free")
         for gtype, size, offset, rgba, mass in geoms:
-            body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX if gtype == "box" else mujoco.mjtGeom.mjGEOM_SPHERE,
+            body.add_geom(type=GEOM_TYPES[gtype],
                           size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001],
                           contype=1, conaffinity=3, solref=OBJECT_SOLREF)
     if task in ASSEMBLY_TASKS:  # the connector's snap-fit, engaged by WorldSim when pressed home (robot mode)

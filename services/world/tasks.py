@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.world import latch, wiping
+from services.world import bottle, latch, wiping
 from services.world.teacher import KPA_PER_N, Teacher, assembly_protocol, generate_demo
 from shared.demo import HAND_NAMES, TACTILE_REGIONS, Demo
 
@@ -75,6 +75,11 @@ TASKS: dict[str, TaskSpec] = {
         ">= 90 % of the marked area under the pad while it presses with 4-9 N", 5, 10,
         RobotMapping("park", GRIP + "; middle + ring + palm pressure is the gripper's downward force (force control "
                      "in z once the pad is within 5 mm of the plate)"), measure="coverage"),
+    "bottle": TaskSpec(
+        "bottle", "a bottle's cap twisted off in repeated turns under the thread's load and lifted",
+        "the cap turned a full turn at steps where the grip held it (>= 3 N per finger), then 3 cm above the neck",
+        1, 10, RobotMapping("park", "thumb + index pressure is the gripper's squeeze while the wrist turns"),
+        measure="turns"),
     "pick_place": TaskSpec(
         "pick_place", "a box grasped and placed on a plate",
         "box released with its bottom on the plate, within 3 cm of its centre", 10, 10, RobotMapping("park", GRIP)),
@@ -99,6 +104,9 @@ def press_force(name: str, hands: np.ndarray, objects: np.ndarray, names: list[s
     if name == "latch":
         return (latch.press_from_tactile(hands, objects, names, tactile, KPA_PER_N, INDEX) if tactile is not None
                 else latch.press_from_positions(hands, objects, names))
+    if name == "bottle":
+        return (bottle.grip_from_tactile(hands, objects, names, tactile, KPA_PER_N, TACTILE_REGIONS)
+                if tactile is not None else bottle.grip_from_positions(hands, objects, names))
     raise UnknownTaskError(f"task {name!r} has no force-decided outcome")
 
 
@@ -112,6 +120,8 @@ def outcome(name: str, hands: np.ndarray, objects: np.ndarray, names: list[str],
         return wiping.outcome(objects, names, force, contact_m=0.005 if tactile is not None else 0.0)
     if name == "latch":
         return latch.outcome(objects, names, press_force(name, hands, objects, names, tactile))
+    if name == "bottle":
+        return bottle.outcome(objects, names, press_force(name, hands, objects, names, tactile))
     if name == "assembly":
         return latch.outcome(objects, names, np.full(len(objects), latch.LATCH_FORCE_N)) | {"force_decides": False}
     if name == "pick_place":

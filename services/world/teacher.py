@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.world import latch, wiping
+from services.world import bottle, latch, wiping
 from services.world.hand import local_keypoints, local_to_world, pinch_shape, point_shape
 from services.world.tracks import Track, rot_z, yaw_quat
 from shared.demo import FINGERTIPS, HAND_NAMES, TACTILE_REGIONS, Demo
@@ -43,6 +43,7 @@ OBJECT_POINTS = {
         "plate": {"center": (0.0, 0.0, 0.005), "c0": (-0.06, -0.06, 0.005), "c1": (0.06, 0.06, 0.005)},
     },
     "wiping": wiping.OBJECT_POINTS,
+    "bottle": bottle.OBJECT_POINTS,
 }
 OBJECT_POINTS["latch"] = OBJECT_POINTS["assembly"]  # the assembly, its connector pressed until it latches
 ASSEMBLY_TASKS = ("assembly", "latch")
@@ -64,6 +65,8 @@ def sample_layout(task: str, rng: np.random.Generator) -> dict:
         return layout
     if task == "wiping":
         return wiping.sample_layout(rng)
+    if task == "bottle":
+        return bottle.sample_layout(rng)
     if task == "pick_place":
         return {"box": [rng.uniform(-0.1, 0.1), rng.uniform(0.05, 0.15), rng.uniform(-0.5, 0.5)],
                 "plate": [rng.uniform(-0.1, 0.1), rng.uniform(-0.15, -0.05), 0.0]}
@@ -120,6 +123,10 @@ class Teacher:
             start_g = np.array([-0.12, 0.30 * side[g], 0.16]) + jitter(0.01)
             start_p = np.array([-0.15, 0.30 * side[p], 0.15]) + jitter(0.01)
             wiping.build(self, rng, T, jitter, start_g, start_p, square_pinch_yaw(g))
+        elif self.task == "bottle":
+            start_g = np.array([-0.12, 0.30 * side[g], 0.20]) + jitter(0.01)
+            start_p = np.array([-0.15, 0.30 * side[p], 0.15]) + jitter(0.01)
+            bottle.build(self, rng, T, jitter, start_g, start_p, square_pinch_yaw(g))
         elif self.task in ASSEMBLY_TASKS:
             bx, by, byaw = self.layout["board"]
             cx, cy, cyaw = self.layout["camera"]
@@ -186,7 +193,7 @@ class Teacher:
             self.insert_time = np.inf
             self.top0, self.byaw, self.plate = top0, byaw, np.array([px, py, 0.0])
             self.duration = T(7.0)
-        if self.task != "wiping":  # wiping.build sets its own
+        if self.task not in ("wiping", "bottle"):  # their build sets their own
             self.pinch, self.tip = pin, tip
 
     # --- evaluation -------------------------------------------------------------------------
@@ -223,6 +230,8 @@ class Teacher:
         grasped = self.grasp_window[0] <= t < self.grasp_window[1]
         if self.task == "wiping":
             return wiping.objects(self, t, pinch_now)
+        if self.task == "bottle":
+            return bottle.objects(self, t, pinch_now)
         if self.task in ASSEMBLY_TASKS:
             if grasped:
                 cam_pos = pinch_now - [0, 0, 0.004] + [0, 0, 0]
@@ -264,6 +273,8 @@ class Teacher:
         gi, pi = HAND_NAMES.index(self.grasp_hand), HAND_NAMES.index(self.press_hand)
         if self.task == "wiping":
             return wiping.forces(self, t, TACTILE_REGIONS, gi)
+        if self.task == "bottle":
+            return bottle.forces(self, t, TACTILE_REGIONS, gi, pi)
         g0, g1 = self.grasp_window
         if g0 - 0.3 <= t < g1 + 0.2:  # ramps as the fingers close and open
             ramp = min(1.0, (t - (g0 - 0.3)) / 0.3) * (1.0 if t < g1 else max(0.0, 1 - (t - g1) / 0.2))

@@ -23,8 +23,8 @@ SEEDS = (0, 1, 2)
 
 
 def test_the_registry_names_the_chapter_7_tasks_and_refuses_others():
-    assert {"assembly", "latch", "wiping", "pick_place"} <= set(TASKS)
-    assert task("wiping").train == 5 and task("pick_place").train == 10  # the thesis's counts
+    assert {"assembly", "latch", "wiping", "pick_place", "bottle"} <= set(TASKS)
+    assert (task("wiping").train, task("pick_place").train, task("bottle").train) == (5, 10, 1)  # the thesis's
     with pytest.raises(UnknownTaskError, match="known tasks: .*wiping"):
         task("juggling")
     with pytest.raises(EvaluationError, match="known tasks"):
@@ -44,7 +44,7 @@ def test_execute_refuses_a_task_without_a_robot_loop(capsys):
     assert "no robot loop" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("name", ["wiping", "latch", "pick_place", "assembly"])
+@pytest.mark.parametrize("name", ["wiping", "latch", "bottle", "pick_place", "assembly"])
 @pytest.mark.parametrize("seed", SEEDS)
 def test_the_teachers_demonstrations_pass_the_world_success_test(name, seed):
     demo = generate_demo(name, 1000 * seed + seed, grasp_hand="left" if seed % 2 == 0 else "right")
@@ -103,6 +103,18 @@ def test_a_latch_pressed_below_its_snap_force_or_crushed_fails():
     assert not under["latched"] and not under["success"]
     crushed = outcome("latch", d.hands, d.objects, d.object_names, touch * 2.5)
     assert crushed["peak_force_n"] > latch.DAMAGE_FORCE_N and not crushed["success"]
+
+
+def test_a_cap_turned_with_a_slipping_grip_or_left_on_the_bottle_fails():
+    d = generate_demo("bottle", 5, grasp_hand="right", tactile_hand="right")
+    touch = d.tactile.astype(float)
+    assert outcome("bottle", d.hands, d.objects, d.object_names, touch)["success"]
+    slipping = outcome("bottle", d.hands, d.objects, d.object_names, touch * 0.5)  # < 3 N per finger
+    assert slipping["turns"] == 0.0 and not slipping["success"]
+    kept = d.objects.copy()
+    lift = d.phase.index("lift")
+    kept[lift:] = kept[lift]  # the cap stays on the bottle
+    assert not outcome("bottle", d.hands, kept, d.object_names, touch)["success"]
 
 
 def test_a_box_dropped_beside_the_plate_fails():
