@@ -45,8 +45,7 @@ class WorldSim:
         self._dadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in self.joint_names])
         self._act = {m.actuator(i).name: i for i in range(m.nu)}
         self._act_index = [self._act.get(n, -1) for n in self.joint_names]
-        self._bodies = [name for name in ("board", "camera", "box", "plate", "sponge", "bottle", "cap")
-                        if _has_body(m, name)]
+        self._bodies = [name for name in OBJECT_POINTS[task] if _has_body(m, name)]  # the teacher's order
         self._free = {b: m.jnt_qposadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._free_dof = {b: m.jnt_dofadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._mocap = np.array([[m.body_mocapid[m.body(f"{h}_kp{k}").id] for k in range(21)] for h in HAND_NAMES])

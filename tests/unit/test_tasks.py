@@ -178,3 +178,13 @@ def test_the_latch_snaps_only_at_its_force(push_n, snaps):
     push_and_lift(sim, push_n)  # 3 N seats the assembly's connector (2 N), not the latch (5 N)
     assert (sim.seated_at is not None) == snaps
     assert sim.task_success()["success"] == snaps
+
+
+@pytest.mark.parametrize("name", ["wiping", "latch", "bottle", "pick_place"])
+def test_the_world_builds_each_task_and_its_objects_follow_the_teacher(name):
+    sim = WorldSim(name, seed=1, width=32, height=24)
+    sim.step(1500)  # 3 s: past every task's grasp
+    names, points = sim.object_keypoints()
+    state = sim.teacher.state(min(sim.demo_time(), sim.teacher.duration))
+    assert names == sim.teacher.names
+    np.testing.assert_allclose(points, state.keypoints, atol=1e-6)
