@@ -99,7 +99,8 @@ def press_force(name: str, hands: np.ndarray, objects: np.ndarray, names: list[s
     predicted touch executed by force control) where given, else from the positions (what a
     position-controlled robot following them would press with)."""
     if name == "wiping":
-        return (wiping.press_from_tactile(tactile, KPA_PER_N, TACTILE_REGIONS) if tactile is not None
+        return (wiping.press_from_tactile(hands, objects, names, tactile, KPA_PER_N, TACTILE_REGIONS)
+                if tactile is not None
                 else wiping.press_from_positions(objects, names))
     if name == "latch":
         return (latch.press_from_tactile(hands, objects, names, tactile, KPA_PER_N, INDEX) if tactile is not None

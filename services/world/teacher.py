@@ -9,6 +9,10 @@ rigidly attached to the camera module (that is what "lifting the board by the mo
 Assembly (thesis 5.8, 7.6.8): approach (objects still), precision grasp of the camera module at
 the lens end, transport, place its connector on the board's connector, the other hand's index
 finger presses the connector, the grasping hand lifts the module and the board comes with it.
+Latch: the same, the press driven through the connector's snap (services/world/latch.py).
+Pick-place (7.6.1): a box grasped from the top and set down on a plate. Wiping (7.6.2) and bottle
+(7.6.3): their scripts are in services/world/wiping.py and bottle.py. The task registry with each
+task's protocol and success test is services/world/tasks.py.
 """
 
 from __future__ import annotations

@@ -142,10 +142,15 @@ def forces(teacher, t: float, regions: tuple[str, ...], grasp: int) -> np.ndarra
 
 
 # --- the success test ------------------------------------------------------------------------
-def press_from_tactile(tactile: np.ndarray, kpa_per_n: float, regions: tuple[str, ...]) -> np.ndarray:
-    """(T,) N pressed, from the glove's (T,2,R) kPa: both hands' press regions."""
+def press_from_tactile(hands: np.ndarray, objects: np.ndarray, names: list[str], tactile: np.ndarray,
+                       kpa_per_n: float, regions: tuple[str, ...]) -> np.ndarray:
+    """(T,) N pressed, from the (T,2,R) kPa of the hand holding the sponge (its pinch closest to the
+    handle at each step): its press regions."""
+    pinch = 0.5 * (hands[:, :, 4] + hands[:, :, 8])
+    handle = objects[:, names.index("sponge/handle")] - [0, 0, HANDLE_TOP - GRIP_Z]
+    near = np.argmin(np.linalg.norm(pinch - handle[:, None], axis=-1), axis=1)
     idx = [regions.index(r) for r in PRESS_SHARE]
-    return tactile[:, :, idx].sum(axis=(1, 2)) / kpa_per_n
+    return tactile[np.arange(len(hands)), near][:, idx].sum(axis=-1) / kpa_per_n
 
 
 def compression(objects: np.ndarray, names: list[str]) -> np.ndarray:

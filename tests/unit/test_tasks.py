@@ -17,6 +17,7 @@ from services.world import latch, wiping
 from services.world.sim import WorldSim
 from services.world.tasks import TASKS, UnknownTaskError, demo_outcome, outcome, task
 from services.world.teacher import KPA_PER_N, generate_demo
+from shared.demo import TACTILE_REGIONS
 from tests.unit.test_world_assembly import place_module_on_connector, push_and_lift
 
 SEEDS = (0, 1, 2)
@@ -84,7 +85,7 @@ def test_wiping_beside_the_marked_area_fails():
 
 def test_wiping_force_from_positions_is_the_foam_compression():
     d, touch = _wiping(2)
-    from_touch = wiping.press_from_tactile(touch, KPA_PER_N, ("thumb", "index", "middle", "ring", "little", "palm"))
+    from_touch = wiping.press_from_tactile(d.hands, d.objects, d.object_names, touch, KPA_PER_N, TACTILE_REGIONS)
     from_pos = wiping.press_from_positions(d.objects, d.object_names)
     pressing = from_touch > 3.0
     # the same force within the hand's 0.5 mm sway (1 N of foam), and zero off the plate
