@@ -186,6 +186,6 @@ def test_the_world_builds_each_task_and_its_objects_follow_the_teacher(name):
     sim = WorldSim(name, seed=1, width=32, height=24)
     sim.step(1500)  # 3 s: past every task's grasp
     names, points = sim.object_keypoints()
-    state = sim.teacher.state(min(sim.demo_time(), sim.teacher.duration))
+    state = sim.teacher.state(min(sim._applied_at, sim.teacher.duration))  # the script's last update
     assert names == sim.teacher.names
-    np.testing.assert_allclose(points, state.keypoints, atol=1e-6)
+    np.testing.assert_allclose(points, state.keypoints, atol=1e-4)  # one physics step under gravity
