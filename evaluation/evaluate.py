@@ -342,15 +342,17 @@ def plot_rollout(name: str, out: tuple[np.ndarray, np.ndarray], demo: Demo, path
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="xm eval", description="Table 7.1 protocol: fit every method on 3 teacher demonstrations, roll out "
-        "from 12 validation start states, score with the symmetric closest-point distance. Writes results.json, "
+        prog="xm eval", description="Table 7.1 protocol: fit every method on the task's training demonstrations "
+        "(assembly: 3), roll out from its validation start states (assembly: 12), score with the symmetric "
+        "closest-point distance. Writes results.json, "
         "results.md, results.png, rollout_<method>.png and, for rows (1)-(4), the scored net policy_<method>.pt "
         "into --out.")
     parser.add_argument("--task", default="assembly", choices=list(TASKS),
                         help="demonstrated task: " + "; ".join(f"{t.name} ({t.train} train / {t.validation} "
                                                                f"validation demos)" for t in TASKS.values())
                         + " (default %(default)s; docs/tasks.md)")
-    parser.add_argument("--seed", type=int, default=0, help="teacher layout seed of the 15 demos (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="teacher layout seed of the task's demos (default %(default)s)")
     parser.add_argument("--out", default="runs/eval", help="output directory (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
