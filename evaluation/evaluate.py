@@ -37,10 +37,13 @@ from evaluation.reconstructed import (
     reconstructed_demos,
     reconstruction_error,
 )
+from evaluation.task_measure import measure_table, task_measure
 from learning.metrics import SCORE_KEYS, trajectory_scores
 from learning.ours import Ours
 from learning.presets import PRESETS, config_changes, quick_budget
 from services.policy.model import Policy, PolicyError
+from services.world.tasks import TASKS, UnknownTaskError
+from services.world.tasks import task as task_spec
 from services.world.teacher import assembly_protocol
 from shared.demo import Demo
 
@@ -123,13 +126,15 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise EvaluationError(f"unknown method(s) {unknown}; known: {', '.join(METHODS)}")
-    if task != "assembly":
-        raise EvaluationError(f"task {task!r}: only the assembly protocol of Table 7.1 exists")
+    try:
+        spec = task_spec(task)
+    except UnknownTaskError as exc:
+        raise EvaluationError(str(exc)) from exc
     # one thread: the summation order of every product is then fixed, and so is the trained net
     # (two threads on two cores trained the seed-0 multimodal row to 29.1 mm instead of 20.5: docs/policy.md)
     torch.set_num_threads(1)
     if demos is None:
-        demos = assembly_protocol(seed)
+        demos = spec.protocol(seed)
     train, val = split(demos)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -146,6 +151,7 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     if merge and (out / "results.json").exists():
         results = json.loads((out / "results.json").read_text())
         timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}
+    measures = {}  # the task's force-decided outcome per method (tasks with a measure)
     train_seed = seed + 1000 * draw  # the other learned baselines' seed; draw 0 keeps the protocol's
     bar = tqdm(list(methods), desc="methods", disable=not progress)
     for name in bar:
@@ -158,6 +164,11 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         outs = rollouts(method, val, progress, starts)
         t2 = time.perf_counter()
         results[name] = score(outs, val)
+        measure = task_measure(task, method, outs, val, starts)
+        if measure is not None:
+            measures[name] = measure
+            (out / "task_measure.json").write_text(json.dumps({"task": task, "seed": seed, "draw": draw,
+                                                               "methods": measures}, indent=2))
         save_rollouts(outs, out / f"rollouts_{name}.npz", seed, quick)
         if hasattr(method, "save"):  # rows (1)-(4): the very net scored, for `xm eval --execute --checkpoint`
             method.save(str(out / f"policy_{name}.pt"))
@@ -167,7 +178,10 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
-    write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes, observed)
+    write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes, observed, task=task)
+    if measures:
+        with (out / "results.md").open("a") as f:
+            f.write(measure_table(task, measures, {k: v[0] for k, v in ROWS.items()}))
     return results
 
 
@@ -192,11 +206,11 @@ def in_table_order(results: dict) -> dict:
 
 
 def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool, n_train: int, n_val: int,
-                 draw: int = 0, changes: dict | None = None, observed: str = "truth") -> None:
+                 draw: int = 0, changes: dict | None = None, observed: str = "truth", task: str = "assembly") -> None:
     """results.json, results.md and results.png of one run."""
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val,
-                                          draw=draw, changes=changes, observed=observed))
+                                          draw=draw, changes=changes, observed=observed, task=task))
     plot_results(results, out / "results.png")
 
 
@@ -244,10 +258,11 @@ def _fmt(x: float) -> str:
 
 
 def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool = False, n_train: int = 3,
-          n_val: int = 12, draw: int = 0, changes: dict | None = None, observed: str = "truth") -> str:
+          n_val: int = 12, draw: int = 0, changes: dict | None = None, observed: str = "truth",
+          task: str = "assembly") -> str:
     """Markdown in the layout of Table 7.1, each cell with its ratio to the reference method."""
     ref = results.get(REFERENCE)
-    lines = [f"Table 7.1 protocol, simulated assembly, seed {seed}"
+    lines = [f"Table 7.1 protocol, simulated {task}, seed {seed}"
              + (f", training draw {draw}" if draw else "")
              + (", rows (1)-(4) with " + ", ".join(f"{k}={v}" for k, v in changes.items()) if changes else "")
              + f": {n_train} train / {n_val} validation demos"
@@ -327,13 +342,17 @@ def plot_rollout(name: str, out: tuple[np.ndarray, np.ndarray], demo: Demo, path
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="xm eval", description="Table 7.1 protocol: fit every method on 3 teacher demonstrations, roll out "
-        "from 12 validation start states, score with the symmetric closest-point distance. Writes results.json, "
+        prog="xm eval", description="Table 7.1 protocol: fit every method on the task's training demonstrations "
+        "(assembly: 3), roll out from its validation start states (assembly: 12), score with the symmetric "
+        "closest-point distance. Writes results.json, "
         "results.md, results.png, rollout_<method>.png and, for rows (1)-(4), the scored net policy_<method>.pt "
         "into --out.")
-    parser.add_argument("--task", default="assembly", choices=["assembly"],
-                        help="demonstrated task (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="teacher layout seed of the 15 demos (default %(default)s)")
+    parser.add_argument("--task", default="assembly", choices=list(TASKS),
+                        help="demonstrated task: " + "; ".join(f"{t.name} ({t.train} train / {t.validation} "
+                                                               f"validation demos)" for t in TASKS.values())
+                        + " (default %(default)s; docs/tasks.md)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="teacher layout seed of the task's demos (default %(default)s)")
     parser.add_argument("--out", default="runs/eval", help="output directory (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
@@ -392,6 +411,11 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     if args.execute:
+        if not TASKS[args.task].executable:
+            print(f"error: --execute runs the robot loop of: "
+                  f"{', '.join(t.name for t in TASKS.values() if t.executable)}; task {args.task!r} has its world "
+                  "success test and robot mapping (docs/tasks.md) but no robot loop", file=sys.stderr)
+            return 2
         if args.catch_mm < 0 or not np.isfinite(args.catch_mm):
             print(f"error: --catch-mm must be 0 or a positive distance in mm, not {args.catch_mm}", file=sys.stderr)
             return 2
@@ -407,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.observations == "reconstructed":
             recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
         if args.rescore:
-            rescore(args.out, args.seed)
+            rescore(args.out, args.seed, demos=task_spec(args.task).protocol(args.seed))
         else:
             evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
                      merge=args.merge, draw=args.draw, changes=changes, recon=recon, recon_cache=args.recon_cache)

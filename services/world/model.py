@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from services.world import bottle, wiping
 from shared.charuco import BoardSpec
 from shared.geometry import look_at
 from shared.kinematics import load_robot
@@ -50,7 +51,13 @@ OBJECTS = {  # name -> list of (geom type, size (half extents), offset, rgba, ma
         "box": [("box", (0.025, 0.025, 0.025), (0.0, 0.0, 0.025), (0.8, 0.3, 0.1, 1), 0.05)],
         "plate": [("box", (0.06, 0.06, 0.0025), (0.0, 0.0, 0.0025), (0.3, 0.3, 0.8, 1), 0.2)],
     },
+    "wiping": wiping.GEOMS,
+    "bottle": bottle.GEOMS,
 }
+GEOM_TYPES = {"box": mujoco.mjtGeom.mjGEOM_BOX, "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+              "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
+OBJECTS["latch"] = OBJECTS["assembly"]
+ASSEMBLY_TASKS = ("assembly", "latch")  # the tasks with the connector's snap-fit
 
 
 @dataclass
@@ -97,14 +104,16 @@ def build_model(task: str = "assembly", width: int = 320, height: int = 240,
             world.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=[0.01, 0.01, 0.4], pos=[x, y, 0.4],
                            rgba=[0.3, 0.3, 0.3, 1], contype=0, conaffinity=0)
     _drives(spec, robot)
+    if task not in OBJECTS:
+        raise ValueError(f"unknown task {task!r} (known: {', '.join(OBJECTS)})")
     for name, geoms in OBJECTS[task].items():
         body = world.add_body(name=name, pos=[0, 0, 0])
         body.add_freejoint(name=f"{name}_free")
         for gtype, size, offset, rgba, mass in geoms:
-            body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX if gtype == "box" else mujoco.mjtGeom.mjGEOM_SPHERE,
+            body.add_geom(type=GEOM_TYPES[gtype],
                           size=list(size), pos=list(offset), rgba=list(rgba), mass=mass, friction=[1.0, 0.01, 0.001],
                           contype=1, conaffinity=3, solref=OBJECT_SOLREF)
-    if task == "assembly":  # the connector's snap-fit, engaged by WorldSim when pressed home (robot mode)
+    if task in ASSEMBLY_TASKS:  # the connector's snap-fit, engaged by WorldSim when pressed home (robot mode)
         spec.add_equality(name=LATCH, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
                           name1="camera", name2="board", active=0,
                           solref=[2 * PHYSICS_DT, 1.0])  # as stiff as the step allows

@@ -10,7 +10,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from services.world.model import LATCH, PHYSICS_DT, build_model, camera_specs
+from services.world import latch, wiping
+from services.world.model import ASSEMBLY_TASKS, LATCH, PHYSICS_DT, build_model, camera_specs
 from services.world.teacher import OBJECT_POINTS, Teacher, occlusion
 from shared.demo import HAND_NAMES, TACTILE_REGIONS
 from shared.kinematics import load_robot
@@ -20,6 +21,9 @@ PAUSE_BETWEEN_DEMOS_S = 1.0
 TEACHER_DT = 0.01  # the script is evaluated at 100 Hz; physics runs at 500 Hz
 SEAT_GAP_M = 0.003  # module connector this close to the board's: aligned (the success test uses it too)
 SEAT_FORCE_N = 2.0  # module-on-board normal force that snaps an aligned connector home (robot mode)
+# the latch task's snap-fit needs the press of services/world/latch.py
+SEAT_FORCE_BY_TASK = {"assembly": SEAT_FORCE_N, "latch": latch.LATCH_FORCE_N}
+WIPE_CHECK_EVERY = 5  # physics steps between updates of the wiping test (10 ms)
 
 
 class WorldSim:
@@ -41,14 +45,19 @@ class WorldSim:
         self._dadr = np.array([m.jnt_dofadr[m.joint(n).id] for n in self.joint_names])
         self._act = {m.actuator(i).name: i for i in range(m.nu)}
         self._act_index = [self._act.get(n, -1) for n in self.joint_names]
-        self._bodies = [name for name in ("board", "camera", "box", "plate") if _has_body(m, name)]
+        self._bodies = [name for name in OBJECT_POINTS[task] if _has_body(m, name)]  # the teacher's order
         self._free = {b: m.jnt_qposadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._free_dof = {b: m.jnt_dofadr[m.joint(f"{b}_free").id] for b in self._bodies}
         self._mocap = np.array([[m.body_mocapid[m.body(f"{h}_kp{k}").id] for k in range(21)] for h in HAND_NAMES])
-        self._latch = m.equality(LATCH).id if task == "assembly" else None
-        self._seat_bodies = {m.body("camera").id, m.body("board").id} if task == "assembly" else set()
+        snap_fit = task in ASSEMBLY_TASKS
+        self._latch = m.equality(LATCH).id if snap_fit else None
+        self._seat_force_n = SEAT_FORCE_BY_TASK.get(task, SEAT_FORCE_N)
+        self._seat_bodies = {m.body("camera").id, m.body("board").id} if snap_fit else set()
         self._connectors = [(m.body(b).id, np.array(OBJECT_POINTS["assembly"][b]["connector"]))
-                            for b in ("camera", "board")] if task == "assembly" else []
+                            for b in ("camera", "board")] if snap_fit else []
+        self._wipe_bodies = {m.body("sponge").id, m.body("plate").id} if task == "wiping" else set()
+        self.wipe_monitor = wiping.WipeMonitor()  # the wiping test in robot mode
+        self._steps = 0
         self.seated_at: float | None = None  # simulated time the connector snapped home (robot mode)
         self.robot_mode = "teacher"
         self.demo = 0
@@ -108,6 +117,10 @@ class WorldSim:
             mujoco.mj_step(self.model, self.data)
             if self.robot_mode == "robot" and self._latch is not None and self.seated_at is None:
                 self._check_seat()
+            self._steps += 1
+            if self.robot_mode == "robot" and self._wipe_bodies and self._steps % WIPE_CHECK_EVERY == 0:
+                names, pts = self.object_keypoints()
+                self.wipe_monitor.update(pts, names, self._contact_force(self._wipe_bodies))
 
     # --- the connector's snap-fit (robot mode) -----------------------------------------------
     def connector_gap(self) -> float:
@@ -119,16 +132,20 @@ class WorldSim:
 
     def _seat_force(self) -> float:
         """Total normal force between the module and the board (N)."""
+        return self._contact_force(self._seat_bodies)
+
+    def _contact_force(self, bodies: set[int]) -> float:
+        """Total normal force between the two ``bodies`` (N)."""
         total, f6 = 0.0, np.zeros(6)
         for i in range(self.data.ncon):
             c = self.data.contact[i]
-            if {self.model.geom_bodyid[c.geom1], self.model.geom_bodyid[c.geom2]} == self._seat_bodies:
+            if {self.model.geom_bodyid[c.geom1], self.model.geom_bodyid[c.geom2]} == bodies:
                 mujoco.mj_contactForce(self.model, self.data, i, f6)
                 total += abs(f6[0])
         return total
 
     def _check_seat(self) -> None:
-        if self.connector_gap() < SEAT_GAP_M and self._seat_force() >= SEAT_FORCE_N:
+        if self.connector_gap() < SEAT_GAP_M and self._seat_force() >= self._seat_force_n:
             self._engage_latch(True)
 
     def _engage_latch(self, on: bool) -> None:
@@ -169,6 +186,7 @@ class WorldSim:
         if mode not in ("teacher", "robot"):
             raise ValueError(f"mode must be 'teacher' or 'robot', got {mode!r}")
         self.robot_mode = mode
+        self.wipe_monitor = wiping.WipeMonitor()
         if mode == "robot":
             self.data.mocap_pos[self._mocap.ravel()] = [0.0, 0.0, -1.0]  # hands leave the cell
 
@@ -218,9 +236,23 @@ class WorldSim:
     def camera_specs(self):
         return camera_specs(self.width, self.height)
 
+    def task_success(self) -> dict:
+        """The task's success test on the physical world (robot mode), with its measurements."""
+        if self.task in ASSEMBLY_TASKS:  # latch: the snap engages only at its force (SEAT_FORCE_BY_TASK)
+            return {"success": self.assembly_success(), "seated": self.seated_at is not None,
+                    "connector_gap_mm": self.connector_gap() * 1e3}
+        if self.task == "wiping":
+            return self.wipe_monitor.result()
+        if self.task == "bottle":  # the cap's thread is not modelled in MuJoCo: no physical test
+            return {"success": False, "checked": False}
+        names, pts = self.object_keypoints()  # pick_place: the box resting on the plate
+        bottom, center = pts[names.index("box/bottom")], pts[names.index("plate/center")]
+        off = float(np.linalg.norm(bottom[:2] - center[:2]))
+        return {"offset_mm": off * 1e3, "success": bool(off < 0.03 and abs(bottom[2] - center[2]) < 0.005)}
+
     def assembly_success(self) -> bool:
         """Camera module seated on the board's connector and the board lifted off the table."""
-        if self.task != "assembly":
+        if self.task not in ASSEMBLY_TASKS:
             return False
         names, pts = self.object_keypoints()
         board_z = min(pts[names.index(f"board/c{i}")][2] for i in range(4))

@@ -9,15 +9,21 @@ rigidly attached to the camera module (that is what "lifting the board by the mo
 Assembly (thesis 5.8, 7.6.8): approach (objects still), precision grasp of the camera module at
 the lens end, transport, place its connector on the board's connector, the other hand's index
 finger presses the connector, the grasping hand lifts the module and the board comes with it.
+Latch: the same, the press driven through the connector's snap (services/world/latch.py).
+Pick-place (7.6.1): a box grasped from the top and set down on a plate. Wiping (7.6.2) and bottle
+(7.6.3): their scripts are in services/world/wiping.py and bottle.py. The task registry with each
+task's protocol and success test is services/world/tasks.py.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from services.world import bottle, latch, wiping
 from services.world.hand import local_keypoints, local_to_world, pinch_shape, point_shape
+from services.world.tracks import Track, rot_z, yaw_quat
 from shared.demo import FINGERTIPS, HAND_NAMES, TACTILE_REGIONS, Demo
 
 TABLE_Z = 0.0
@@ -40,17 +46,12 @@ OBJECT_POINTS = {
                 "bottom": (0.0, 0.0, 0.0)},
         "plate": {"center": (0.0, 0.0, 0.005), "c0": (-0.06, -0.06, 0.005), "c1": (0.06, 0.06, 0.005)},
     },
+    "wiping": wiping.OBJECT_POINTS,
+    "bottle": bottle.OBJECT_POINTS,
 }
+OBJECT_POINTS["latch"] = OBJECT_POINTS["assembly"]  # the assembly, its connector pressed until it latches
+ASSEMBLY_TASKS = ("assembly", "latch")
 TASKS = tuple(OBJECT_POINTS)
-
-
-def rot_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def yaw_quat(yaw: float) -> np.ndarray:
-    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
 
 
 def object_names(task: str) -> list[str]:
@@ -59,10 +60,17 @@ def object_names(task: str) -> list[str]:
 
 def sample_layout(task: str, rng: np.random.Generator) -> dict:
     """Initial placement, inside the robot's reach on the table."""
-    if task == "assembly":
+    if task in ASSEMBLY_TASKS:
         board = [rng.uniform(0.0, 0.12), rng.uniform(-0.12, -0.02), rng.uniform(-0.5, 0.5)]
         camera = [rng.uniform(-0.05, 0.08), rng.uniform(0.04, 0.14), rng.uniform(-0.6, 0.6) + np.pi]
-        return {"board": board, "camera": camera}
+        layout = {"board": board, "camera": camera}
+        if task == "latch":
+            layout["press_n"] = latch.sample_force(rng)
+        return layout
+    if task == "wiping":
+        return wiping.sample_layout(rng)
+    if task == "bottle":
+        return bottle.sample_layout(rng)
     if task == "pick_place":
         return {"box": [rng.uniform(-0.1, 0.1), rng.uniform(0.05, 0.15), rng.uniform(-0.5, 0.5)],
                 "plate": [rng.uniform(-0.1, 0.1), rng.uniform(-0.15, -0.05), 0.0]}
@@ -77,37 +85,6 @@ def square_pinch_yaw(hand: str) -> float:
     d = pts[FINGERTIPS["index"]] - pts[FINGERTIPS["thumb"]]
     off = (np.pi / 2 - np.arctan2(d[1], d[0])) % np.pi
     return float(off - np.pi if off > np.pi / 2 else off)
-
-
-def _min_jerk(s: np.ndarray) -> np.ndarray:
-    s = np.clip(s, 0.0, 1.0)
-    return s ** 3 * (10 - 15 * s + 6 * s ** 2)
-
-
-@dataclass
-class Track:
-    """Piecewise minimum-jerk trajectory through (time, value) waypoints."""
-
-    times: list[float] = field(default_factory=list)
-    values: list[np.ndarray] = field(default_factory=list)
-
-    def add(self, t: float, value) -> Track:
-        self.times.append(t)
-        self.values.append(np.atleast_1d(np.asarray(value, float)))
-        return self
-
-    def hold(self, t: float) -> Track:
-        return self.add(t, self.values[-1])
-
-    def __call__(self, t: float) -> np.ndarray:
-        times = self.times
-        if t <= times[0]:
-            return self.values[0]
-        if t >= times[-1]:
-            return self.values[-1]
-        k = int(np.searchsorted(times, t, side="right")) - 1
-        s = _min_jerk(np.array((t - times[k]) / max(times[k + 1] - times[k], 1e-9)))
-        return self.values[k] + (self.values[k + 1] - self.values[k]) * s
 
 
 @dataclass
@@ -145,7 +122,16 @@ class Teacher:
         T = lambda t: t * tempo  # noqa: E731
         side = {"left": 1.0, "right": -1.0}
         g, p = self.grasp_hand, self.press_hand
-        if self.task == "assembly":
+        self.press_force = None  # force track (N) of the tasks whose success the force decides
+        if self.task == "wiping":
+            start_g = np.array([-0.12, 0.30 * side[g], 0.16]) + jitter(0.01)
+            start_p = np.array([-0.15, 0.30 * side[p], 0.15]) + jitter(0.01)
+            wiping.build(self, rng, T, jitter, start_g, start_p, square_pinch_yaw(g))
+        elif self.task == "bottle":
+            start_g = np.array([-0.12, 0.30 * side[g], 0.20]) + jitter(0.01)
+            start_p = np.array([-0.15, 0.30 * side[p], 0.15]) + jitter(0.01)
+            bottle.build(self, rng, T, jitter, start_g, start_p, square_pinch_yaw(g))
+        elif self.task in ASSEMBLY_TASKS:
             bx, by, byaw = self.layout["board"]
             cx, cy, cyaw = self.layout["camera"]
             lens0 = np.array([cx, cy, 0.0])
@@ -170,6 +156,9 @@ class Teacher:
                    .add(T(5.8), board_conn + [0, 0, 0.0045]).hold(T(6.1))
                    .add(T(6.5), board_conn + [-0.04, 0.03 * side[p], 0.07])
                    .add(T(8.0), start_p))
+            if self.task == "latch":  # down onto the connector and through its snap
+                tip, self.press_force, self.press_window = latch.press_tracks(
+                    T, board_conn, tip.values[2], tip.values[7], start_p, self.layout["press_n"])
             square = square_pinch_yaw(g)  # thumb-index line across the lens body's faces
             self.pinch_yaw = Track().add(0, 0.0).hold(T(0.5)).add(T(2.4), cyaw + square).hold(T(3.5)) \
                 .add(T(4.6), place_yaw + square).hold(T(8.0))
@@ -180,7 +169,8 @@ class Teacher:
             self.phases = [(0.0, "approach"), (T(2.5), "grasp"), (T(3.0), "transport"), (T(4.6), "place"),
                            (T(5.2), "press"), (T(6.3), "lift"), (T(7.5), "done")]
             self.grasp_window = (T(2.9), np.inf)
-            self.press_window = (T(5.6), T(6.2))
+            if self.task != "latch":
+                self.press_window = (T(5.6), T(6.2))
             self.insert_time = T(6.1)
             self.lens0, self.cyaw, self.board0, self.byaw = lens0, cyaw, np.array([bx, by, 0.0]), byaw
             self.duration = T(8.0)
@@ -207,7 +197,8 @@ class Teacher:
             self.insert_time = np.inf
             self.top0, self.byaw, self.plate = top0, byaw, np.array([px, py, 0.0])
             self.duration = T(7.0)
-        self.pinch, self.tip = pin, tip
+        if self.task not in ("wiping", "bottle"):  # their build sets their own
+            self.pinch, self.tip = pin, tip
 
     # --- evaluation -------------------------------------------------------------------------
     def phase(self, t: float) -> str:
@@ -241,7 +232,11 @@ class Teacher:
         gi = HAND_NAMES.index(self.grasp_hand)
         pinch_now = 0.5 * (hands[gi, 4] + hands[gi, 8])
         grasped = self.grasp_window[0] <= t < self.grasp_window[1]
-        if self.task == "assembly":
+        if self.task == "wiping":
+            return wiping.objects(self, t, pinch_now)
+        if self.task == "bottle":
+            return bottle.objects(self, t, pinch_now)
+        if self.task in ASSEMBLY_TASKS:
             if grasped:
                 cam_pos = pinch_now - [0, 0, 0.004] + [0, 0, 0]
                 cam_yaw = float(self.pinch_yaw(t)[0]) - float(self.pinch_yaw(self.grasp_window[0])[0]) + self.cyaw
@@ -280,14 +275,20 @@ class Teacher:
     def _forces(self, t: float) -> np.ndarray:
         forces = np.zeros((2, len(TACTILE_REGIONS)))
         gi, pi = HAND_NAMES.index(self.grasp_hand), HAND_NAMES.index(self.press_hand)
+        if self.task == "wiping":
+            return wiping.forces(self, t, TACTILE_REGIONS, gi)
+        if self.task == "bottle":
+            return bottle.forces(self, t, TACTILE_REGIONS, gi, pi)
         g0, g1 = self.grasp_window
         if g0 - 0.3 <= t < g1 + 0.2:  # ramps as the fingers close and open
             ramp = min(1.0, (t - (g0 - 0.3)) / 0.3) * (1.0 if t < g1 else max(0.0, 1 - (t - g1) / 0.2))
-            lift_extra = 1.5 if self.phase(t) in ("lift", "done") and self.task == "assembly" else 1.0
+            lift_extra = 1.5 if self.phase(t) in ("lift", "done") and self.task in ASSEMBLY_TASKS else 1.0
             forces[gi, TACTILE_REGIONS.index("thumb")] = GRASP_FORCE_N * ramp * lift_extra
             forces[gi, TACTILE_REGIONS.index("index")] = GRASP_FORCE_N * ramp * lift_extra
         p0, p1 = self.press_window
-        if p0 - 0.2 <= t < p1 + 0.2:
+        if self.press_force is not None:
+            forces[pi, TACTILE_REGIONS.index("index")] = float(self.press_force(t)[0])
+        elif p0 - 0.2 <= t < p1 + 0.2:
             ramp = np.clip(min((t - (p0 - 0.2)) / 0.2, (p1 + 0.2 - t) / 0.2), 0.0, 1.0)
             forces[pi, TACTILE_REGIONS.index("index")] = PRESS_FORCE_N * ramp
         return forces
