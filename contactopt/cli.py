@@ -47,20 +47,22 @@ def train_main(argv: list[str]) -> int:
     ev = result.evaluation
     print(f"{task.name} {args.optimizer}: {result.iterations} iterations in {result.seconds:.0f} s, "
           f"turn velocity {ev['turn_velocity']:.3f} rad/s (goal {task.omega_goal}), replayed with hard "
-          f"contacts {ev['replay_turn_velocity']:.3f}, success {result.success}; {stem}.png")
+          f"contacts {ev['replay_turn_velocity']:.3f}, softplus {ev['replay_softplus_turn_velocity']:.3f}, success {result.success}; {stem}.png")
     return 0
 
 
 def table(results: list[Result]) -> str:
     rows = ["| task | optimizer | lr | iterations | final batch loss | turn velocity [rad/s] | "
-            "distance loss | replayed (hard contacts) [rad/s] | success |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "distance loss | gap at the forces [mm] | replayed: hard / softplus contacts [rad/s] | success |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         ev = r.evaluation
         last = r.curve[-1][1] if r.curve else float("nan")
         rows.append(f"| {r.task} | {r.optimizer} | {'-' if r.lr is None else f'{r.lr:g}'} | {r.iterations} | "
                     f"{last:.3g} | {ev['turn_velocity']:.3f} | {ev['distance']:.3g} | "
-                    f"{ev['replay_turn_velocity']:.3f} | {'yes' if r.success else 'no'} |")
+                    f"{ev['force_weighted_gap_mm']:.1f} | {ev['replay_turn_velocity']:.3f} / "
+                    f"{ev['replay_softplus_turn_velocity']:.3f} | "
+                    f"{'yes' if r.success else 'no'} |")
     return "\n".join(rows)
 
 

@@ -22,6 +22,7 @@ LOSSES = ("shape", "distance", "friction", "slippage", "intersection")
 class Scales:
     length: float = 0.01    # [m] a point 1 cm outside its shape costs 1
     force: float = 1.0      # [N]
+    friction_force: float = 0.1  # [N] a force 0.1 N outside the friction cone costs 1
     speed: float = 0.1      # [m/s]
     weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0)  # per loss, in LOSSES' order
 
@@ -38,8 +39,11 @@ def shape_residual(s: Step, task: Task, world: World) -> torch.Tensor:
 
 
 def distance_residual(s: Step) -> torch.Tensor:
-    """Eq. 2.10: F_C (x) (P_A - P_B), elementwise: force and distance are complementary."""
-    return s.force * (s.p_a - s.p_b)
+    """Eq. 2.10, force and distance complementary: F_C (x) (P_A - P_B) elementwise as printed, plus
+    |F_C| |P_A - P_B|, without which a force perpendicular to the gap costs nothing (the policy
+    finds that: tangential forces from fingertips centimetres away)."""
+    gap = s.p_a - s.p_b
+    return torch.cat([s.force * gap, (geo.norm(s.force) * geo.norm(gap))[..., None]], -1)
 
 
 def contact_normal(s: Step, task: Task) -> tuple[torch.Tensor, torch.Tensor]:
@@ -79,7 +83,7 @@ def step_residuals(s: Step, task: Task, world: World, scales: Scales) -> list[to
     return [
         shape_residual(s, task, world) / scales.length,
         distance_residual(s) / (scales.force * scales.length),
-        friction_residual(s, n, world) / scales.force,
+        friction_residual(s, n, world) / scales.friction_force,
         slippage_residual(s, n) / (scales.force * scales.speed),
         intersection_residual(d_obj, world) / scales.length,
     ]

@@ -11,7 +11,7 @@ from tqdm import tqdm
 from contactopt.objective import Objective, flat_params, loss_breakdown, residual_fn
 from contactopt.optim import FirstOrder, GaussNewton
 from contactopt.policy import Policy
-from contactopt.sim import rollout
+from contactopt.sim import World, object_sdf, rollout
 from contactopt.tasks import Task, batch_positions, success, turn_velocity
 
 EVAL_SEED = 10_000  # evaluation batches come from a seed no training run uses
@@ -43,15 +43,21 @@ def make_optimizer(name: str, lr: float | None) -> GaussNewton | FirstOrder:
 
 def evaluate(policy: Policy, task: Task, batch: int = 32) -> dict[str, float]:
     """Mean turn velocity under the predicted contacts, the losses, and the turn velocity when the
-    policy's joint commands are replayed with the simulator's own hard contacts (plausibility)."""
+    policy's joint commands are replayed with the simulator's own hard and softplus contacts
+    (plausibility)."""
     pos = batch_positions(task, batch, EVAL_SEED, 0)
     obj = Objective(task)
     out = loss_breakdown(policy, obj, pos)
     with torch.no_grad():
         ro = rollout(policy, task, pos, "predicted")
         out["turn_velocity"] = float(turn_velocity(ro.theta0, ro.theta[:, -1], task).mean())
-        rh = rollout(policy, task, pos, "hard")
-        out["replay_turn_velocity"] = float(turn_velocity(rh.theta0, rh.theta[:, -1], task).mean())
+        s = ro.steps
+        d_obj, _ = object_sdf(s.tips, s.pos, s.theta, task)
+        weight = s.force.norm(dim=-1)  # the fingertip-object gap where the predicted forces act
+        out["force_weighted_gap_mm"] = float(1000 * ((d_obj - World().tip_radius) * weight).sum() / weight.sum())
+        for model, key in (("hard", "replay_turn_velocity"), ("softplus", "replay_softplus_turn_velocity")):
+            rh = rollout(policy, task, pos, model)
+            out[key] = float(turn_velocity(rh.theta0, rh.theta[:, -1], task).mean())
     return out
 
 
