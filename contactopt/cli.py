@@ -47,7 +47,8 @@ def train_main(argv: list[str]) -> int:
     ev = result.evaluation
     print(f"{task.name} {args.optimizer}: {result.iterations} iterations in {result.seconds:.0f} s, "
           f"turn velocity {ev['turn_velocity']:.3f} rad/s (goal {task.omega_goal}), replayed with hard "
-          f"contacts {ev['replay_turn_velocity']:.3f}, softplus {ev['replay_softplus_turn_velocity']:.3f}, success {result.success}; {stem}.png")
+          f"contacts {ev['replay_turn_velocity']:.3f}, softplus {ev['replay_softplus_turn_velocity']:.3f}, "
+          f"success {result.success}; {stem}.png")
     return 0
 
 
