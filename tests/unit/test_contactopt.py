@@ -122,7 +122,7 @@ def test_distance_force_complementarity() -> None:
     r = losses.distance_residual(s)
     assert r[0, 0, :2].tolist() == pytest.approx([2.0 * -0.01, 0.0])
     assert float(r[0, 0, 2]) == pytest.approx(2.0 * math.hypot(0.01, 0.02))
-    assert r[0, 1].abs().max() == 0.0
+    assert r[0, 1].abs().max() < 1e-9  # no force, no gap (norms are smoothed at zero)
     perpendicular = step(((-0.04, 0.0), (0.04, 0.0)), ((-0.04, 0.01), (0.04, 0.0)), ((2.0, 0.0), (0.0, 0.0)))
     r = losses.distance_residual(perpendicular)
     assert r[0, 0, :2].abs().max() == 0.0 and float(r[0, 0, 2]) == pytest.approx(0.02)
