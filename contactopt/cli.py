@@ -60,11 +60,18 @@ def table(results: list[Result]) -> str:
         ev = r.evaluation
         last = r.curve[-1][1] if r.curve else float("nan")
         rows.append(f"| {r.task} | {r.optimizer} | {'-' if r.lr is None else f'{r.lr:g}'} | {r.iterations} | "
-                    f"{last:.3g} | {ev['turn_velocity']:.3f} | {ev['distance']:.3g} | "
-                    f"{ev['force_weighted_gap_mm']:.1f} | {ev['replay_turn_velocity']:.3f} / "
-                    f"{ev['replay_softplus_turn_velocity']:.3f} | "
+                    f"{last:.3g} | {ev['turn_velocity']:.3g} | {ev['distance']:.3g} | "
+                    f"{ev['force_weighted_gap_mm']:.3g} | {ev['replay_turn_velocity']:.3g} / "
+                    f"{ev['replay_softplus_turn_velocity']:.3g} | "
                     f"{'yes' if r.success else 'no'} |")
     return "\n".join(rows)
+
+
+def thin(result: dict, points: int = 200) -> dict:
+    """A result with its learning curve cut to at most `points` entries (the JSON stays small)."""
+    curve = result["curve"]
+    step = max(1, -(-len(curve) // points))
+    return {**result, "curve": curve[::step] + ([curve[-1]] if (len(curve) - 1) % step else [])}
 
 
 def bench_main(argv: list[str]) -> int:
@@ -88,7 +95,7 @@ def bench_main(argv: list[str]) -> int:
         results += task_results
     BENCH.parent.mkdir(exist_ok=True)
     BENCH.write_text(json.dumps({"budget_s": args.budget, "batch": args.batch, "seed": args.seed,
-                                 "results": [asdict(r) for r in results]}, indent=1))
+                                 "results": [thin(asdict(r)) for r in results]}, indent=1))
     text = DOC.read_text()
     if BEGIN in text and END in text:
         head, rest = text.split(BEGIN, 1)
