@@ -105,6 +105,7 @@ def plot_curves(results: list[Result], path: str) -> None:
         label = r.optimizer if r.lr is None else f"{r.optimizer} lr={r.lr:g}"
         ax.plot([t for t, _ in r.curve], [loss for _, loss in r.curve], label=label)
     ax.set_yscale("log")
+    ax.set_ylim(top=1e4)  # diverging runs would otherwise hide the others
     ax.set_xlabel("training time [s]")
     ax.set_ylabel("batch loss (task + consistency)")
     ax.set_title(results[0].task if results else "")
