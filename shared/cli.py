@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "robot": ("services.robot.cli:main", "robot tools: repeatability"),
     "calibrate": ("calibration.cli:main", "calibrate the camera rig with a ChArUco board (report beside the file)"),
     "detector": ("perception.cli:main", "2-D keypoint detector: label, train, eval"),
+    "contactopt": ("contactopt.cli:main", "chapter-2 contact-based policy optimization: train, bench"),
     "skin": ("skin.cli:main", "sensor-skin design: layout on a mesh, unwrap, nesting, cutter SVGs, cell map"),
 }
 

@@ -1,0 +1,115 @@
+"""Training loop shared by `xm contactopt train` and the optimizer comparison."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+from tqdm import tqdm
+
+from contactopt.objective import Objective, flat_params, loss_breakdown, residual_fn
+from contactopt.optim import FirstOrder, GaussNewton
+from contactopt.policy import Policy
+from contactopt.sim import World, object_sdf, rollout
+from contactopt.tasks import Task, batch_positions, success, turn_velocity
+
+EVAL_SEED = 10_000  # evaluation batches come from a seed no training run uses
+OPTIMIZERS = ("gn", "sgd", "adam")
+
+
+@dataclass
+class Result:
+    task: str
+    optimizer: str
+    lr: float | None
+    iterations: int = 0
+    seconds: float = 0.0
+    curve: list[tuple[float, float]] = field(default_factory=list)  # (seconds, batch loss)
+    counters: dict[str, int] = field(default_factory=dict)
+    evaluation: dict[str, float] = field(default_factory=dict)
+    success: bool = False
+
+
+def make_optimizer(name: str, lr: float | None) -> GaussNewton | FirstOrder:
+    if name == "gn":
+        return GaussNewton()
+    if name in ("sgd", "adam"):
+        if lr is None:
+            raise ValueError(f"{name} needs a learning rate")
+        return FirstOrder(name, lr)
+    raise ValueError(f"unknown optimizer {name!r}; optimizers: {', '.join(OPTIMIZERS)}")
+
+
+def evaluate(policy: Policy, task: Task, batch: int = 32) -> dict[str, float]:
+    """Mean turn velocity under the predicted contacts, the losses, and the turn velocity when the
+    policy's joint commands are replayed with the simulator's own hard and softplus contacts
+    (plausibility)."""
+    pos = batch_positions(task, batch, EVAL_SEED, 0)
+    obj = Objective(task)
+    out = loss_breakdown(policy, obj, pos)
+    with torch.no_grad():
+        ro = rollout(policy, task, pos, "predicted")
+        out["turn_velocity"] = float(turn_velocity(ro.theta0, ro.theta[:, -1], task).mean())
+        s = ro.steps
+        d_obj, _ = object_sdf(s.tips, s.pos, s.theta, task)
+        weight = s.force.norm(dim=-1)  # the fingertip-object gap where the predicted forces act
+        out["force_weighted_gap_mm"] = float(1000 * ((d_obj - World().tip_radius) * weight).sum() / weight.sum())
+        for model, key in (("hard", "replay_turn_velocity"), ("softplus", "replay_softplus_turn_velocity")):
+            rh = rollout(policy, task, pos, model)
+            out[key] = float(turn_velocity(rh.theta0, rh.theta[:, -1], task).mean())
+    return out
+
+
+def train(task: Task, optimizer: str = "gn", lr: float | None = None, budget_s: float = 600.0,
+          batch: int = 16, seed: int = 0, max_iterations: int | None = None,
+          progress: bool = True) -> tuple[Policy, Result]:
+    """Optimize a fresh contact-based policy (seeded) on batch k = batch_positions(seed, k) at
+    iteration k until the wall-clock budget (training time only) or max_iterations is spent."""
+    torch.manual_seed(seed)
+    policy = Policy()
+    obj = Objective(task)
+    w, unflatten = flat_params(policy)
+    opt = make_optimizer(optimizer, lr)
+    result = Result(task.name, optimizer, lr)
+    bar = tqdm(total=int(budget_s), unit="s", disable=not progress, desc=f"{task.name} {optimizer}")
+    start = time.perf_counter()
+    k = 0
+    while time.perf_counter() - start < budget_s and (max_iterations is None or k < max_iterations):
+        fn = residual_fn(policy, obj, batch_positions(task, batch, seed, k))
+        w, loss = opt.step(fn, w)
+        k += 1
+        elapsed = time.perf_counter() - start
+        result.curve.append((elapsed, loss))
+        bar.n = min(int(elapsed), int(budget_s))
+        bar.set_postfix(loss=f"{loss:.4g}")
+        bar.refresh()
+    bar.close()
+    result.iterations, result.seconds = k, time.perf_counter() - start
+    result.counters = dict(opt.counters)
+    with torch.no_grad():
+        for p, v in zip(policy.parameters(), unflatten(w).values(), strict=True):
+            p.copy_(v)
+    result.evaluation = evaluate(policy, task)
+    result.success = success(result.evaluation["turn_velocity"], task) and result.evaluation["distance"] < 1.0
+    return policy, result
+
+
+def plot_curves(results: list[Result], path: str) -> None:
+    """Learning curves (batch loss against training seconds) as a PNG."""
+    import matplotlib  # optional heavy dependency, only for the figure
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in results:
+        label = r.optimizer if r.lr is None else f"{r.optimizer} lr={r.lr:g}"
+        ax.plot([t for t, _ in r.curve], [loss for _, loss in r.curve], label=label)
+    ax.set_yscale("log")
+    ax.set_ylim(top=1e4)  # diverging runs would otherwise hide the others
+    ax.set_xlabel("training time [s]")
+    ax.set_ylabel("batch loss (task + consistency)")
+    ax.set_title(results[0].task if results else "")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
