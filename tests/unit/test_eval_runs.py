@@ -98,8 +98,9 @@ def test_summary_refuses_runs_of_different_code_versions(tmp_path):
         runs.summarize([a, b])
 
 
+@pytest.mark.slow
 def test_xm_eval_seeds_and_draws_write_every_run_and_the_summary(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(E, "assembly_protocol", lambda seed: synthetic_protocol(train=3, validation=2, steps=30))
+    monkeypatch.setattr(E, "assembly_protocol", lambda seed: synthetic_protocol(train=3, validation=2, steps=20))
     assert eval_main(["--quick", "--seeds", "0,1", "--draws", "2", "--methods", "multimodal,naive", "--out",
                       str(tmp_path), "--no-progress"]) == 0
     assert sorted(p.name for p in tmp_path.glob("seed*")) == ["seed0-draw0", "seed0-draw1", "seed1-draw0",
