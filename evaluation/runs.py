@@ -120,7 +120,7 @@ def summarize(runs: list[Path]) -> dict:
             {"seed": m["seed"], "draw": m["draw"], **r} for m, r in runs_of]}
         for k in SCORE_KEYS:
             x = np.array([r[k] for _, r in runs_of], dtype=float)
-            row[k] = {"mean": float(np.mean(x)), "std": float(np.std(x, ddof=1)) if len(x) > 1 else 0.0,
+            row[k] = {"mean": float(np.mean(x)), "std": float(np.std(x, ddof=1)) if len(x) > 1 else float("nan"),
                       "min": float(np.min(x)), "max": float(np.max(x))}
             if name != OURS:
                 row[k]["ratio"] = paired_ratio(results, name, k)
@@ -153,7 +153,8 @@ def paired_ratio(results: list[dict], name: str, key: str) -> dict:
 def _mm(s: dict) -> str:
     if not np.isfinite(s["mean"]):
         return "inf"
-    return f"{s['mean'] * 1e3:.1f} ± {s['std'] * 1e3:.1f}"
+    spread = f" ± {s['std'] * 1e3:.1f}" if np.isfinite(s["std"]) else ""  # one run: no spread
+    return f"{s['mean'] * 1e3:.1f}{spread}"
 
 
 def summary_table(summary: dict, labels: dict[str, tuple[str, ...]]) -> str:
