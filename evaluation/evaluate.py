@@ -7,7 +7,10 @@ object keypoints, with and without the validation occlusion masks. Writes result
 results.md (Table 7.1 layout with ratios to "ours" = multimodal), results.png (grouped bars, log
 scale), rollout_<method>.png (one example rollout per method) and rollouts_<method>.npz (every
 rollout, so that `xm eval --rescore` recomputes the scores without fitting again) into --out,
-and for rows (1)-(4) the scored net as policy_<method>.pt (`xm eval --execute --checkpoint`).
+for rows (1)-(4) the scored net as policy_<method>.pt (`xm eval --execute --checkpoint`), for the
+Diffusion Policy rows their validation curve (curve_<method>.json/.png), and run.json: the run's
+seed, draw, settings and per row the code version (evaluation/runs.py), which `--merge` checks.
+`--seeds S,... --draws N` runs the grid into --out/seed<S>-draw<D> and summarizes it (summary.md).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from tqdm import tqdm
 from evaluation.anchors import AnchorError, mine_anchors
 from evaluation.baselines import make
 from evaluation.execute import execute_layout
+from evaluation.plots import plot_results, plot_rollout
 from evaluation.reconstructed import (
     DETECTORS,
     OBSERVATIONS,
@@ -37,10 +41,12 @@ from evaluation.reconstructed import (
     reconstructed_demos,
     reconstruction_error,
 )
+from evaluation.runs import RunError, check_merge, run_grid, run_meta
 from evaluation.task_measure import measure_table, task_measure
 from learning.metrics import SCORE_KEYS, trajectory_scores
 from learning.ours import Ours
 from learning.presets import PRESETS, config_changes, quick_budget
+from services.policy.flat_state import BaselineError
 from services.policy.model import Policy, PolicyError
 from services.world.tasks import TASKS, UnknownTaskError
 from services.world.tasks import task as task_spec
@@ -115,7 +121,10 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
     """Run the protocol; returns {method: {hand, object, hand_masked, object_masked}} (metres).
 
     ``demos`` replaces the teacher's 15 (each needs meta['split'] = 'train' | 'validation').
-    ``merge`` keeps the other methods' rows of an earlier run in ``out_dir`` (same seed) in the table.
+    ``merge`` keeps the other methods' rows of an earlier run in ``out_dir``: only of the same
+    experiment (seed, draw, task, budget, observations, recipe changes, code version of each kept
+    row: evaluation/runs.py), else EvaluationError. A method whose training fails (non-finite loss)
+    scores inf, its reason is kept in run.json's ``failed`` and the run goes on.
     ``draw`` > 0 trains every learned method from other random numbers (initial weights, batches,
     noise): one training run is one draw, and draws of the same recipe differ (docs/policy.md).
     ``changes``: recipe fields changed in rows (1)-(4) (`xm eval --set`).
@@ -148,8 +157,17 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         observed = f"reconstructed ({recon.detector} detector, {recon.windows} windows, {recon.width}x{recon.height})"
         write_reconstruction(out / "reconstruction.json", recon, observed_train + starts, train + val)
     results, timing = {}, {}
+    meta = run_meta(task, seed, draw, quick, observed, changes, methods)
     if merge and (out / "results.json").exists():
         results = json.loads((out / "results.json").read_text())
+        kept = [m for m in results if m not in methods]
+        try:
+            old = check_merge(out, meta, kept)
+        except RunError as exc:
+            raise EvaluationError(str(exc)) from exc
+        results = {m: results[m] for m in kept}
+        meta["versions"] = {**{m: old["versions"][m] for m in kept}, **meta["versions"]}
+        meta["failed"] = {m: why for m, why in old.get("failed", {}).items() if m in kept}
         timing = json.loads((out / "timing.json").read_text()) if (out / "timing.json").exists() else {}
     measures = {}  # the task's force-decided outcome per method (tasks with a measure)
     train_seed = seed + 1000 * draw  # the other learned baselines' seed; draw 0 keeps the protocol's
@@ -158,9 +176,19 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
         bar.set_postfix(method=name)
         torch.manual_seed(train_seed)
         method = make_method(name, quick=quick, seed=train_seed, draw=draw, changes=changes)
+        if hasattr(method, "monitor"):  # the validation curve of a baseline trained for many iterations
+            method.monitor = lambda m: score(rollouts(m, val, False, starts), val)
         t0 = time.perf_counter()
-        method.fit(observed_train, progress=progress)
+        try:
+            method.fit(observed_train, progress=progress)
+        except (BaselineError, PolicyError) as exc:  # diverged: the row says so, the other rows still run
+            results[name], meta["failed"][name] = {k: float("inf") for k in SCORE_KEYS}, str(exc)
+            print(f"{name}: training failed: {exc}", file=sys.stderr)
+            (out / "run.json").write_text(json.dumps(meta, indent=2))
+            continue
         t1 = time.perf_counter()
+        if getattr(method, "curve", None):
+            method.save_curve(out / f"curve_{name}.json", out / f"curve_{name}.png")
         outs = rollouts(method, val, progress, starts)
         t2 = time.perf_counter()
         results[name] = score(outs, val)
@@ -174,9 +202,10 @@ def evaluate(task: str = "assembly", seed: int = 0, methods: list[str] | tuple[s
             method.save(str(out / f"policy_{name}.pt"))
         timing[name] = {"fit_s": t1 - t0, "rollout_s": t2 - t1}
         results = in_table_order(results)
-        plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png")
+        plot_rollout(name, outs[0], val[0], out / f"rollout_{name}.png", ROWS.get(name, (name,))[0])
         # written after every method so that a long run leaves partial results behind
         (out / "results.json").write_text(json.dumps(results, indent=2))
+        (out / "run.json").write_text(json.dumps(meta, indent=2))
     (out / "timing.json").write_text(json.dumps(timing, indent=2))
     write_tables(out, results, timing, seed, quick, len(train), len(val), draw, changes, observed, task=task)
     if measures:
@@ -211,7 +240,7 @@ def write_tables(out: Path, results: dict, timing: dict, seed: int, quick: bool,
     (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(table(results, timing, seed=seed, quick=quick, n_train=n_train, n_val=n_val,
                                           draw=draw, changes=changes, observed=observed, task=task))
-    plot_results(results, out / "results.png")
+    plot_results(results, out / "results.png", ROWS)
 
 
 def save_rollouts(outs: list[tuple[np.ndarray, np.ndarray]], path: Path, seed: int, quick: bool) -> None:
@@ -283,63 +312,6 @@ def table(results: dict, timing: dict | None = None, seed: int = 0, quick: bool 
     return "\n".join(lines) + "\n"
 
 
-def _pyplot():
-    import matplotlib  # optional heavy dependency, loaded only to draw the plots
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_results(results: dict, path: Path) -> None:
-    plt = _pyplot()
-    names = list(results)
-    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(names) + 2), 4.5))
-    x = np.arange(len(names))
-    for i, key in enumerate(SCORE_KEYS):
-        vals = [results[n][key] if np.isfinite(results[n][key]) else np.nan for n in names]
-        ax.bar(x + (i - 1.5) * 0.2, vals, 0.2, label=key.replace("_", " "))
-    ax.set_xticks(x, [ROWS.get(n, (n,))[0] for n in names], rotation=30, ha="right")
-    ax.set_yscale("log")
-    ax.set_ylabel("closest-point distance (m)")
-    ax.set_title("Table 7.1 protocol (simulated assembly), lower is better")
-    ax.grid(axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def plot_rollout(name: str, out: tuple[np.ndarray, np.ndarray], demo: Demo, path: Path) -> None:
-    """Top view and height over time of the grasping hand's index tip and of the objects."""
-    plt = _pyplot()
-    hands, objects = out
-    g = 1 if demo.meta.get("grasp_hand") == "right" else 0
-    t_pred, t_ref = np.arange(len(hands)) * demo.dt, np.arange(demo.steps) * demo.dt
-    fig, (top, side) = plt.subplots(1, 2, figsize=(11, 4.5))
-    top.plot(demo.hands[:, g, 8, 0], demo.hands[:, g, 8, 1], "k--", lw=1.5, label="validation demo (index tip)")
-    top.plot(hands[:, g, 8, 0], hands[:, g, 8, 1], "tab:red", lw=1.2, label=f"{name} (index tip)")
-    top.plot(demo.objects[:, :, 0], demo.objects[:, :, 1], ".", color="0.6", ms=1)
-    top.plot(objects[:, :, 0], objects[:, :, 1], ".", color="tab:green", ms=1)
-    top.set_xlabel("x (m)")
-    top.set_ylabel("y (m)")
-    top.axis("equal")
-    top.legend(fontsize=7)
-    top.set_title("top view (objects: grey demo, green rollout)")
-    side.plot(t_ref, demo.hands[:, g, 8, 2], "k--", lw=1.5, label="demo index tip")
-    side.plot(t_pred, hands[:, g, 8, 2], "tab:red", lw=1.2, label="rollout index tip")
-    side.plot(t_ref, demo.objects[:, 0, 2], ":", color="0.4", label=f"demo {demo.object_names[0]}")
-    side.plot(t_pred, objects[:, 0, 2], color="tab:green", label=f"rollout {demo.object_names[0]}")
-    side.set_xlabel("time (s)")
-    side.set_ylabel("height (m)")
-    side.legend(fontsize=7)
-    side.set_title(f"{ROWS.get(name, (name,))[0]}: validation demo {demo.meta.get('demo', 0)}")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="xm eval", description="Table 7.1 protocol: fit every method on the task's training demonstrations "
@@ -353,6 +325,10 @@ def main(argv: list[str] | None = None) -> int:
                         + " (default %(default)s; docs/tasks.md)")
     parser.add_argument("--seed", type=int, default=0,
                         help="teacher layout seed of the task's demos (default %(default)s)")
+    parser.add_argument("--seeds", default="",
+                        help="comma-separated seeds: one run per seed and draw (--draws) into --out/seed<S>-draw<D>, "
+                        "then summary.md/summary.json in --out: mean and spread per row, paired ratios to ours")
+    parser.add_argument("--draws", type=int, default=1, help="with --seeds: training draws 0..N-1 per seed")
     parser.add_argument("--out", default="runs/eval", help="output directory (default %(default)s)")
     parser.add_argument("--methods", default=",".join(METHODS),
                         help="comma-separated subset of: " + ", ".join(METHODS) + " (default: all)")
@@ -379,7 +355,9 @@ def main(argv: list[str] | None = None) -> int:
                         "and detector (default %(default)s)")
     parser.add_argument("--quick", action="store_true", help="tiny training budgets: a smoke test, not results")
     parser.add_argument("--merge", action="store_true",
-                        help="keep the rows of other methods from an earlier run in --out (same seed) in the table")
+                        help="keep the rows of other methods from an earlier run in --out in the table; refused "
+                        "unless it is the same experiment (seed, draw, task, budget, observations, --set, the code "
+                        "version of every kept row)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--rescore", action="store_true",
                         help="no fitting: recompute the scores of an earlier run in --out from its saved rollouts")
@@ -432,10 +410,20 @@ def main(argv: list[str] | None = None) -> int:
             recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
         if args.rescore:
             rescore(args.out, args.seed, demos=task_spec(args.task).protocol(args.seed))
+        elif args.seeds:
+            try:
+                seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+            except ValueError:
+                raise EvaluationError(f"--seeds {args.seeds!r}: expected comma-separated integers") from None
+            print(run_grid(lambda seed, draw, out: evaluate(
+                args.task, seed, methods, out, quick=args.quick, progress=not args.no_progress, merge=args.merge,
+                draw=draw, changes=changes, recon=recon, recon_cache=args.recon_cache), seeds, args.draws,
+                Path(args.out), ROWS))
+            return 0
         else:
             evaluate(args.task, args.seed, methods, args.out, quick=args.quick, progress=not args.no_progress,
                      merge=args.merge, draw=args.draw, changes=changes, recon=recon, recon_cache=args.recon_cache)
-    except (EvaluationError, ReconstructionError) as e:
+    except (EvaluationError, ReconstructionError, RunError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print((Path(args.out) / "results.md").read_text())

@@ -7,7 +7,7 @@ presets of our own network (learning/presets.py), built by evaluation.evaluate.m
 
 from __future__ import annotations
 
-from evaluation.baselines.diffusion import DiffusionConfig, DiffusionPolicy
+from evaluation.baselines.diffusion_policy import DiffusionConfig, DiffusionPolicy
 from evaluation.baselines.dmp import DMPBaseline
 from evaluation.baselines.promp import ProMPBaseline
 from services.policy.naive import NaiveReplay
