@@ -57,6 +57,10 @@ class PanelService:
         models: str = "runs/models"  # where training jobs started from the page write their models
         train_threads: int = 2  # torch threads of a training job (the cell runs beside it)
         train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
+        # A fresh install's first network: trained as the page's job when this checkpoint (the policy
+        # service's) is missing, while the policy service runs the naive fallback ("": never).
+        first_network: str = ""
+        first_preset: str = "no_tactile"
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -93,6 +97,8 @@ class PanelService:
         self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
                            lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
         self.learn.on_models.append(self.execute.set_models)
+        if params.first_network and not Path(params.first_network).exists():
+            self.learn.start_first(Path(params.first_network), params.first_preset)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera

@@ -8,6 +8,9 @@ arrive; between scenes it runs on its own predictions, the interactive neural si
 `xm train` saves beside the checkpoint (``demos``: a folder of Demo .npz files). A missing or
 unloadable checkpoint falls back to naive and says so in @health; without demonstrations to replay
 the fallback holds: it publishes the observed hands standing still over the horizon, and says so.
+A missing checkpoint is watched for (``WATCH_S``): the dashboard trains the first network of a fresh
+install into that path (its demonstrations first, the checkpoint last in one rename), and the node
+replays the demonstrations once they appear and serves the network once it appears.
 A NaN output is counted and never published. Loading the network is off the start path, so a
 restarted policy plans again at once: the checkpoint and the compiled horizon load in a worker
 thread while the node serves the naive replay (or holds) with status "warming".
@@ -21,6 +24,7 @@ leaves the current method serving and the reply of a later ``@cmd/serve {}`` say
 from __future__ import annotations
 
 import asyncio
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +41,7 @@ from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, Demo
 from shared.runtime import Node
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+WATCH_S = 2.0  # how often a missing checkpoint (and its demonstrations) is looked for
 MAX_CATCH_UP = 25  # policy steps run for ticks the clock skipped (0.5 s at 50 Hz); a longer stall is not caught up
 
 
@@ -68,14 +73,18 @@ class PolicyService:
         self.fallback: list[str] = []  # why the node serves less than it was asked to (@health)
         self.checkpoint: Path | None = None  # set while a checkpoint is to be loaded
         self.served: Path | None = None  # the checkpoint of ``runner``
+        self.waiting_for: Path | None = None  # a checkpoint to serve once it appears
+        self._watched = 0.0  # monotonic time of the last look for it
+        self.demos = Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos"
         if params.method == "learned":
             path = Path(params.checkpoint)
             if path.exists():
                 self.checkpoint = path
             else:
-                self.fallback.append(f"no policy checkpoint at {path}: serving the naive baseline; train one "
-                                     f"with `make policy`")
-        self.naive = self._load_naive(Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos")
+                self.waiting_for = path
+                self.fallback.append(f"no policy checkpoint at {path} yet: serving the naive baseline until it "
+                                     f"appears (the dashboard trains the first network; `make policy` does too)")
+        self.naive = self._load_naive(self.demos)
         if self.checkpoint is not None:
             node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
         elif self.fallback:
@@ -89,7 +98,8 @@ class PolicyService:
         node.queryable("serve", self.cmd_serve)
         node.health_extra = lambda: {"method": self.method_name, "checkpoint": self.serving,
                                      "loading": None if self.loading is None else str(self.checkpoint),
-                                     "load_problem": self.load_problem}
+                                     "load_problem": self.load_problem,
+                                     "waiting_for": None if self.waiting_for is None else str(self.waiting_for)}
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
         node.clock.on_jump(self.on_clock_jump)
@@ -159,13 +169,31 @@ class PolicyService:
             raise ValueError(f"checkpoint {path!r} is not a file")
         if self.loading is not None:
             raise ValueError(f"still loading {self.checkpoint}; ask again once it serves")
-        self.checkpoint = Path(path)
+        self.checkpoint, self.waiting_for = Path(path), None  # the teacher's choice: no longer awaits the first
         self._start_loading()
         return {"ok": True, "loading": path, "method": self.method_name}
 
     def _start_loading(self) -> None:
         self.load_problem = ""
         self.loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
+
+    def _watch(self) -> None:
+        """Look for the awaited checkpoint (start loading it) and, while nothing replays, for the
+        demonstrations the first network's training writes before it trains."""
+        now = time.monotonic()
+        if self.waiting_for is None or now - self._watched < WATCH_S:
+            return
+        self._watched = now
+        if self.naive is None and any(self.demos.glob("*.npz")):
+            self.fallback = [f for f in self.fallback if not f.startswith("no demonstrations")]
+            self.naive = self._load_naive(self.demos)
+            if self.naive is not None:
+                self.node.log.info("replaying the demonstrations in %s until the network is ready", self.demos)
+                self.node.set_status("degraded", "; ".join(self.fallback))
+        if self.waiting_for.is_file() and self.loading is None:
+            self.checkpoint, self.waiting_for = self.waiting_for, None
+            self.node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
+            self._start_loading()
 
     def _take_loaded(self) -> None:
         """The finished load: serve it, or keep serving what was served and say why."""
@@ -198,6 +226,7 @@ class PolicyService:
     async def _run_naive(self) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
+            self._watch()
             if self.loading is not None and self.loading.done():
                 return
             if self.scene is None:
