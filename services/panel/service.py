@@ -22,6 +22,7 @@ import trimesh
 import viser
 
 from services.panel import view
+from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
 from services.panel.learn import Learn
@@ -84,6 +85,7 @@ class PanelService:
         self._logged: set[str] = set()
         self._mesh_seen: dict[str, float] = {}  # hand -> when its tactile mesh was last drawn
         self._mesh_view: tuple[np.ndarray, np.ndarray] | None = None  # camera facing the most pressed hand
+        self.alerts = Alerts(missing_after_s=3 * params.health_period_s)
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
@@ -113,6 +115,7 @@ class PanelService:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
                 "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
+                "alerts": [{"level": a.level, "title": a.title, "body": a.body} for a in self.alerts.recent],
                 **self.teaching.health(), **self.learn.health(), **self.execute.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
@@ -174,6 +177,8 @@ class PanelService:
             self.camera_image = gui.add_image(np.zeros((120, 160, 3), np.uint8), label="view", format="jpeg")
         with gui.add_folder("Services"):
             self.status_md = gui.add_markdown("querying `xm/**/@health`...")
+        with gui.add_folder("Alerts"):  # also shown as toasts when they happen
+            self.alerts_md = gui.add_markdown("no alerts")
 
     def _look_at_glove(self, event: Any) -> None:
         """viser worker thread: moves the clicking browser's camera to the palm side of the hand
@@ -338,12 +343,27 @@ class PanelService:
                 handle.visible = fresh
 
     async def _status_loop(self) -> None:
+        """Health rounds also while nobody watches: the alerts a browser opened later lists stay true."""
         while True:
+            reports = await asyncio.to_thread(self._query_health)
+            fresh = self.alerts.update(reports, time.monotonic())
+            if fresh:
+                self.alerts_md.content = view.alerts_text(list(self.alerts.recent))
             if self.server.get_clients():
-                reports = await asyncio.to_thread(self._query_health)
+                for alert in fresh:
+                    self._toast(alert)
                 self.status_md.content = view.health_table(reports)
                 self.execute.update(reports)
             await asyncio.sleep(self.p.health_period_s)
+
+    def _toast(self, alert: Alert) -> None:
+        for client in list(self.server.get_clients().values()):
+            try:
+                client.add_notification(alert.title, alert.body, color=alert.color,
+                                        auto_close_seconds=30.0 if alert.level == "error" else 10.0)
+            except Exception as exc:  # a browser that left meanwhile
+                self.node.stats.count("toast_error")
+                self.node.log.debug("toast: %r", exc)
 
     def _query_health(self) -> list[dict]:
         out = []
