@@ -19,6 +19,10 @@ thread while the node serves the naive replay (or holds) with status "warming".
 way, in the worker thread, while the current method keeps planning; the node switches to it once
 it has loaded (its demonstrations become the naive fallback's). A checkpoint that does not load
 leaves the current method serving and the reply of a later ``@cmd/serve {}`` says why.
+
+``@cmd/simulate {"seconds": S, "checkpoint": PATH, "start": SCENE}`` (the dashboard's neural
+simulation) rolls a checkpoint (default: the served one) out from the latest observed scene or a
+given one, in a worker thread (simulation.py), and replies the predicted hands, objects and tactile.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from services.policy.flat_state import HAND_DIMS, BaselineError
 from services.policy.model import PolicyError
 from services.policy.naive import NaiveReplay
 from services.policy.runner import PolicyInputError, PolicyRunner, SceneObs
+from services.policy.simulation import Simulator, scene_from_request
 from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, Demo
 from shared.runtime import Node
@@ -96,6 +101,8 @@ class PolicyService:
         self.load_problem = ""  # why the last requested checkpoint is not served
         self.pub = node.output("plan")
         node.queryable("serve", self.cmd_serve)
+        self.simulator = Simulator()
+        node.queryable("simulate", self.cmd_simulate)
         node.health_extra = lambda: {"method": self.method_name, "checkpoint": self.serving,
                                      "loading": None if self.loading is None else str(self.checkpoint),
                                      "load_problem": self.load_problem,
@@ -172,6 +179,24 @@ class PolicyService:
         self.checkpoint, self.waiting_for = Path(path), None  # the teacher's choice: no longer awaits the first
         self._start_loading()
         return {"ok": True, "loading": path, "method": self.method_name}
+
+    async def cmd_simulate(self, req: dict) -> dict:
+        """A neural simulation from the latest scene (or ``start``), off the event loop."""
+        path = req.get("checkpoint") or self.serving
+        if not isinstance(path, str) or not path:
+            raise ValueError("no checkpoint to simulate: the policy serves no network yet; name one (checkpoint)")
+        if req.get("start") is not None:
+            if not isinstance(req["start"], dict):
+                raise ValueError("start must be a scene object (hands, hand_mask, objects, object_mask)")
+            scene = scene_from_request(req["start"])
+        elif self.scene is not None:
+            scene = SceneObs.from_msg(self.scene)
+        else:
+            raise ValueError("no scene observed yet to start from; give one (start)")
+        seconds = req.get("seconds", 3.0)
+        if not isinstance(seconds, (int, float)) or isinstance(seconds, bool):
+            raise ValueError(f"seconds must be a number, got {seconds!r}")
+        return await asyncio.to_thread(self.simulator.rollout, Path(path), scene, float(seconds))
 
     def _start_loading(self) -> None:
         self.load_problem = ""
