@@ -26,6 +26,7 @@ from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
 from services.panel.learn import Learn
+from services.panel.neural import NeuralSim
 from services.panel.teaching import Teaching
 from shared import msgs
 from shared.config import ConfigError, load_deployment
@@ -99,6 +100,8 @@ class PanelService:
         self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
                            lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
         self.learn.on_models.append(self.execute.set_models)
+        self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)
+        self.learn.on_models.append(self.neural.set_models)
         if params.first_network and not Path(params.first_network).exists():
             self.learn.start_first(Path(params.first_network), params.first_preset)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
@@ -116,7 +119,7 @@ class PanelService:
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
                 "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
                 "alerts": [{"level": a.level, "title": a.title, "body": a.body} for a in self.alerts.recent],
-                **self.teaching.health(), **self.learn.health(), **self.execute.health()}
+                **self.teaching.health(), **self.learn.health(), **self.execute.health(), **self.neural.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
@@ -190,10 +193,15 @@ class PanelService:
     def _query_recorder(self, verb: str, request: dict) -> list[dict]:
         return self._query(f"{RECORDER}/{verb}", request)
 
-    def _query(self, key: str, request: dict) -> list[dict]:
-        """viser worker thread: a blocking query is fine here."""
+    def _query(self, key: str, request: dict, timeout: float = 5.0) -> list[dict]:
+        """viser worker thread (or a folder's own): a blocking query is fine here."""
         return [json.loads(r.ok.payload.to_bytes())
-                for r in self.node.session.get(key, payload=json.dumps(request), timeout=5.0) if r.ok is not None]
+                for r in self.node.session.get(key, payload=json.dumps(request), timeout=timeout) if r.ok is not None]
+
+    def _reviewed_scene(self) -> Any:
+        """The Scene message of the reviewed demonstration at the scrubber, or None."""
+        review = self.teaching.review
+        return None if review is None else review.timeline.frame(review.head.position).get("scene")
 
     # --- loops --------------------------------------------------------------------------
     async def run(self) -> None:
@@ -219,6 +227,7 @@ class PanelService:
     def _draw(self, now: float) -> None:
         """The live state, or while a demonstration is reviewed its replayed messages at the scrubber."""
         self.teaching.tick(now)
+        self.neural.tick(now)
         if self.teaching.reviewing:
             replayed = self.teaching.review_frame(now)
 
@@ -376,6 +385,7 @@ class PanelService:
         return out
 
     async def close(self) -> None:
+        self.neural.close()
         self.learn.close()
         self.teaching.close()
         self.server.stop()
