@@ -89,8 +89,13 @@ class Learn:
 
     def start_first(self, checkpoint: Path, preset: str) -> None:
         """The first network of a fresh install (the checkpoint the policy service waits for), trained
-        from the world's scripted teacher as the page's job; a failure is shown in the job line."""
+        from the world's scripted teacher as the page's job when it is missing or does not load (one
+        of other configs); a failure is shown in the job line."""
         def start() -> None:
+            problem = checkpoint_problem(checkpoint)
+            if not problem:
+                return
+            log.info("training the first network: %s", problem)
             try:
                 job = self.trainer.start_first(checkpoint, preset)
             except (JobError, OSError) as exc:
@@ -181,3 +186,15 @@ class Learn:
         self._stop.set()
         self.trainer.cancel()
         self._starter.shutdown(wait=False)
+
+
+def checkpoint_problem(path: Path) -> str:
+    """Why the policy service cannot serve ``path`` ("" when it loads)."""
+    if not path.exists():
+        return f"{path} is missing"
+    from services.policy.model import Policy  # torch: an optional heavy import, only when a checkpoint is there
+    try:
+        Policy.load(str(path))
+    except Exception as exc:  # torch raises unrelated types for files that are no checkpoint
+        return f"{path} does not load ({type(exc).__name__}: {str(exc)[:200]})"
+    return ""

@@ -102,7 +102,7 @@ class PanelService:
         self.learn.on_models.append(self.execute.set_models)
         self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)
         self.learn.on_models.append(self.neural.set_models)
-        if params.first_network and not Path(params.first_network).exists():
+        if params.first_network:
             self.learn.start_first(Path(params.first_network), params.first_preset)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))

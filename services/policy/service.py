@@ -80,6 +80,7 @@ class PolicyService:
         self.served: Path | None = None  # the checkpoint of ``runner``
         self.waiting_for: Path | None = None  # a checkpoint to serve once it appears
         self._watched = 0.0  # monotonic time of the last look for it
+        self._refused: float | None = None  # mtime of the awaited file when it last failed to load
         self.demos = Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos"
         if params.method == "learned":
             path = Path(params.checkpoint)
@@ -215,7 +216,7 @@ class PolicyService:
             if self.naive is not None:
                 self.node.log.info("replaying the demonstrations in %s until the network is ready", self.demos)
                 self.node.set_status("degraded", "; ".join(self.fallback))
-        if self.waiting_for.is_file() and self.loading is None:
+        if self.waiting_for.is_file() and self.loading is None and _mtime(self.waiting_for) != self._refused:
             self.checkpoint, self.waiting_for = self.waiting_for, None
             self.node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
             self._start_loading()
@@ -229,6 +230,8 @@ class PolicyService:
             if self.runner is None:
                 self.fallback.append(f"{problem}: serving the naive baseline")
                 self.node.set_status("degraded", "; ".join(self.fallback))
+                if self.checkpoint == Path(self.p.checkpoint):  # (one of other configs): a new one is trained
+                    self.waiting_for, self._refused = self.checkpoint, _mtime(self.checkpoint)
             return
         self.runner, self.served = runner, self.checkpoint
         naive = self._load_naive(self.checkpoint.parent / "demos")
@@ -335,3 +338,10 @@ class PolicyService:
         if self.runner is None or not self.runner.model.cfg.tactile:
             return np.zeros(0, np.float32)
         return np.asarray(self.runner.horizon_tactile, np.float32).ravel()
+
+
+def _mtime(path: Path) -> float | None:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return None

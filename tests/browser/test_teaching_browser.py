@@ -6,8 +6,8 @@ then trains on the library (a second Train is told a job runs, Cancel leaves no 
 budget leaves one in the model list), serves it, runs a neural simulation of it from the reviewed
 demonstration (the ghost drawn over the scene), arms the robot and stops it, against stand-ins
 for the policy and robot services (the stand-in's rollout is the policy's own simulation code on
-the trained checkpoint); last, a device gap, a service down and back and a dropped recording
-appear as toasts. Screenshots: .cache/teaching_*.png."""
+the trained checkpoint). Screenshots: .cache/teaching_*.png. The live overview's neural
+simulation against the real policy service and its alerts as toasts: test_overview_browser.py."""
 
 from __future__ import annotations
 
@@ -252,11 +252,10 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         wait_until(lambda: "the file is unchanged" in page_text(browser), WAIT, "the trim confirmed")
         learn_and_execute(browser, session, models_dir, requests, tmp_path)
         browser.screenshot(cache / "teaching_execute.png", PATIENCE_S)
-        alerts_as_toasts(browser, session, tmp_path)
         health = query_json(session, "xm/panel/main/@health")[0]
         assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error",
                                                                  "train_monitor_error", "execute_error",
-                                                                 "neural_sim_error", "toast_error"))}, \
+                                                                 "neural_sim_error"))}, \
             health["errors"]
     finally:
         stop.set()
@@ -374,46 +373,3 @@ def neural_simulation(browser: Chromium, session, requests: list, tmp_path: Path
     shot = wait_until(ghost_drawn, WAIT, "the ghost drawn in the 3D view", period=0.5)
     shutil.copy(shot, ROOT / ".cache" / "teaching_neural_sim.png")
 
-
-def alerts_as_toasts(browser: Chromium, session, tmp_path: Path) -> None:
-    """8. the live overview's alerts: a glove losing frames, a recording dropping messages, a service
-    that stops answering and comes back: each a toast in the page (stand-in @health replies)."""
-    glove = {"service": "glove", "instance": "left", "status": "ok", "decoder": {"frames_lost": 0},
-             "published_hz": {"xm/glove/left/tactile": 100.0}}
-    recorder = {"service": "recorder", "instance": "main", "status": "ok", "recording": True,
-                "dropped": {"queue_overflow": 0}}
-    answering = threading.Event()
-    answering.set()
-
-    def health(report: dict, query) -> None:
-        if answering.is_set() or report is recorder:
-            query.reply(f"xm/{report['service']}/{report['instance']}/@health", json.dumps(report))
-
-    queryables = [session.declare_queryable(f"xm/{r['service']}/{r['instance']}/@health",
-                                            lambda q, r=r: health(r, q)) for r in (glove, recorder)]
-
-    def panel_alerts() -> list[str]:
-        return [a["title"] for a in query_json(session, "xm/panel/main/@health")[0]["alerts"]]
-
-    try:
-        # the glove in the service table: the panel has had a round with it (its counters' baseline)
-        wait_until(lambda: "glove/left" in page_text(browser), WAIT,
-                   lambda: f"the glove in the service table; page: {page_text(browser)[-1500:]}")
-        glove["decoder"] = {"frames_lost": 9}
-        recorder["dropped"] = {"queue_overflow": 4}
-        wait_until(lambda: "glove/left: device gap" in page_text(browser), WAIT,
-                   lambda: f"the device gap toast; page: {page_text(browser)[-1500:]}")
-        assert "9 more frames lost (total 9)" in page_text(browser)
-        wait_until(lambda: "recording dropped messages" in page_text(browser), WAIT, "the dropped recording toast")
-        browser.screenshot(ROOT / ".cache" / "teaching_toasts.png", PATIENCE_S)
-        answering.clear()
-        wait_until(lambda: "glove/left down" in page_text(browser), WAIT,
-                   lambda: f"the service down toast; page: {page_text(browser)[-1500:]}")
-        answering.set()
-        wait_until(lambda: "glove/left back" in page_text(browser), WAIT, "the service back toast")
-        titles = panel_alerts()
-        assert {"glove/left: device gap", "recording dropped messages", "glove/left down",
-                "glove/left back"} <= set(titles), titles
-    finally:
-        for q in queryables:
-            q.undeclare()

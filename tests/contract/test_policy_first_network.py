@@ -1,10 +1,12 @@
-"""policy waiting for its first network (a fresh install): it holds, replays the demonstrations once
-the training job has written them, and serves the network once its checkpoint appears, saying so
-in @health all along."""
+"""policy waiting for its first network (a fresh install, or a checkpoint that does not load): it
+holds, replays the demonstrations once the training job has written them, and serves the network
+once its checkpoint appears, saying so in @health all along."""
 
 from __future__ import annotations
 
 import time
+
+import pytest
 
 from learning.ours import train
 from learning.presets import preset
@@ -17,10 +19,14 @@ from tests.contract.test_pipeline_services import _scene_msg, collect
 POLICY = "xm/policy/main"
 
 
-def test_policy_switches_from_fallback_to_the_first_network_when_it_appears(router, tmp_path):
+@pytest.mark.parametrize("start", ["missing", "unloadable"])
+def test_policy_switches_from_fallback_to_the_first_network_when_it_appears(router, tmp_path, start):
     endpoint, session = router
     demos = [generate_demo("assembly", s, index=i) for i, s in enumerate((11, 12))]
     first = tmp_path / "policy"  # where the dashboard's first-network job writes
+    if start == "unloadable":  # e.g. one of other configs: refused, then waited for again
+        first.mkdir()
+        (first / "policy.pt").write_bytes(b"not a checkpoint")
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"policy": {"main": {
         "method": "learned", "checkpoint": str(first / "policy.pt"), "rate_hz": 5.0}}})
     svc = ServiceProcess("policy", dep, "main", tmp_path / "policy.log")

@@ -10,6 +10,7 @@ import pytest
 
 from services.panel.execute import rejections_text
 from services.panel.jobs import JobBusyError, JobError, Trainer, check_library, models, models_table
+from services.panel.learn import checkpoint_problem
 from services.panel.library import DemoMeta, Library, write_meta
 from tests.conftest import wait_until
 from tests.unit.panel_recordings import write_demo
@@ -115,6 +116,10 @@ def test_the_first_network_is_trained_in_place_demonstrations_first(library, tmp
     assert checkpoint.is_file() and not job.partial.exists()
     assert len(list((checkpoint.parent / "demos").glob("*.npz"))) == 3
     assert job.progress.step == 3 and models(trainer.models) == []  # not one of the library's models
+    assert checkpoint_problem(checkpoint) == ""  # loads: a restarted panel trains nothing
+    assert "is missing" in checkpoint_problem(tmp_path / "none.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    assert "does not load" in checkpoint_problem(tmp_path / "junk.pt")
 
 
 def test_a_cancelled_first_network_leaves_no_checkpoint(library, tmp_path):
