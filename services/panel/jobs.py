@@ -5,7 +5,9 @@ learning/from_library.py) in its own process group, writing into a hidden ``.NAM
 directory of the models directory; its progress arrives as JSON lines in that directory
 (``--progress``). Only a job that exits successfully is renamed to ``NAME``: a cancelled, failed
 or interrupted job leaves no model behind, and its partial directory is removed (also any left by
-a panel that was killed mid-job). One job runs at a time: ``start`` refuses a second. The job
+a panel that was killed mid-job). ``start_first`` runs the first network of a fresh install instead
+(`xm train --teacher 0`, in place into the policy service's checkpoint directory; its log in a
+hidden ``.job.partial`` there). One job runs at a time: ``start`` refuses a second. The job
 dies with the thread that started it (``PR_SET_PDEATHSIG``), so call ``start`` from a thread that
 lives as long as the panel.
 """
