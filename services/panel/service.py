@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -354,7 +355,7 @@ class PanelService:
     async def _status_loop(self) -> None:
         """Health rounds also while nobody watches: the alerts a browser opened later lists stay true."""
         while True:
-            reports = await asyncio.to_thread(self._query_health)
+            reports = await in_daemon_thread(self._query_health)
             fresh = self.alerts.update(reports, time.monotonic())
             if fresh:
                 self.alerts_md.content = view.alerts_text(list(self.alerts.recent))
@@ -389,6 +390,30 @@ class PanelService:
         self.learn.close()
         self.teaching.close()
         self.server.stop()
+
+
+async def in_daemon_thread(fn: Callable[[], Any]) -> Any:
+    """``fn()`` on a daemon thread of its own: unlike ``asyncio.to_thread``, the process's shutdown
+    does not wait for it (a Zenoh query in flight when the session closes may never return)."""
+    loop = asyncio.get_running_loop()
+    future = loop.create_future()
+
+    def settle(value: Any, exc: BaseException | None) -> None:
+        if not future.done():
+            future.set_result(value) if exc is None else future.set_exception(exc)
+
+    def run() -> None:
+        try:
+            value, exc = fn(), None
+        except Exception as error:
+            value, exc = None, error
+        try:
+            loop.call_soon_threadsafe(settle, value, exc)
+        except RuntimeError:  # the loop has closed: nobody waits for the answer
+            pass
+
+    threading.Thread(target=run, name="panel-health", daemon=True).start()
+    return await future
 
 
 def recordings_directory(param: str, deployment: str) -> Path:

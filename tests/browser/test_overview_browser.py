@@ -80,6 +80,7 @@ def test_neural_simulation_and_alerts_in_headless_chromium(router, tmp_path):
             "learned"), 120, lambda: f"the network served: {policy.output()}")
         browser = Chromium(CHROMIUM, tmp_path / "profile", size=(1024, 800))
         browser.navigate(f"http://127.0.0.1:{port}")
+        wait_until(lambda: "Neural simulation" in page_text(browser), WAIT, "the page loaded")
         before = wait_until(lambda: (s := browser.screenshot(tmp_path / "a.png", PATIENCE_S)) and
                             viewport(s).std() > 5 and s, WAIT, "a drawn 3D view")
         before_px = viewport(before)
