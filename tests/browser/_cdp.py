@@ -47,8 +47,6 @@ class Chromium:
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         self._id = 0
         self._ws = None
-        self.listen: set[str] = set()  # event methods kept in ``events`` (e.g. Network.webSocketFrameReceived)
-        self.events: list[tuple[float, str]] = []  # (monotonic time read, method)
         try:
             port = self._devtools_port(profile / "DevToolsActivePort", timeout)
             with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=timeout) as resp:
@@ -81,22 +79,17 @@ class Chromium:
         deadline = time.time() + timeout
         while True:
             reply = json.loads(self._ws.recv(timeout=max(0.1, deadline - time.time())))
-            self._keep(reply)
             if reply.get("id") == self._id:  # everything else is an event we did not ask for
                 if "error" in reply:
                     raise CDPError(f"{method}: {reply['error']}")
                 return reply.get("result", {})
 
-    def _keep(self, message: dict) -> None:
-        if message.get("method") in self.listen:
-            self.events.append((time.monotonic(), message["method"]))
-
     def pump(self, seconds: float) -> None:
-        """Read the events that arrive for ``seconds`` (those in ``listen`` are kept)."""
+        """Wait ``seconds``, reading (and dropping) the events that arrive meanwhile."""
         deadline = time.monotonic() + seconds
         while (left := deadline - time.monotonic()) > 0:
             try:
-                self._keep(json.loads(self._ws.recv(timeout=left)))
+                self._ws.recv(timeout=left)
             except TimeoutError:
                 return
 
