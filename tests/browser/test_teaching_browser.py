@@ -355,12 +355,10 @@ def neural_simulation(browser: Chromium, session, requests: list, tmp_path: Path
     drawn as a ghost over the scene (the 3D view changes) and the page says what was simulated."""
     before = viewport(browser.screenshot(tmp_path / "n0.png", PATIENCE_S))
     choose(browser, "start from", "the reviewed demonstration (scrubber)")
-    type_into(browser, "seconds", "2")
-    wait_until(lambda: value_of(browser, "seconds") == "2", WAIT, "the simulated seconds")
     click_button(browser, "Simulate")
     wait_until(lambda: any(v == "simulate" for v, _ in requests), WAIT, "the simulate query")
     _, req = next((v, r) for v, r in requests if v == "simulate")
-    assert req["seconds"] == 2.0 and len(req["start"]["hands"]) == 2 * 21 * 3 and "checkpoint" not in req
+    assert req["seconds"] == 3.0 and len(req["start"]["hands"]) == 2 * 21 * 3 and "checkpoint" not in req
     wait_until(lambda: "from the reviewed demonstration (scrubber):" in page_text(browser), WAIT,
                lambda: f"the rollout described; page: {page_text(browser)[-1500:]}")
     shown = query_json(session, "xm/panel/main/@health")[0]["neural_sim"]
