@@ -16,6 +16,7 @@ from learning.from_library import library_data
 from learning.metrics import trajectory_scores
 from learning.ours import train
 from learning.presets import PRESETS, config_changes
+from learning.train import save_demos
 from services.policy.model import Policy, PolicyError
 from services.policy.runner import PolicyInputError, simulate
 from services.world.teacher import assembly_protocol, generate_demo
@@ -96,6 +97,8 @@ def train_main(argv: list[str] | None = None) -> int:
     select = args.select or ("final" if args.teacher is not None and not args.recordings else "validation")
     held_out = val_d if select == "validation" and val_d else None  # None: the final weights are kept
     progress = _progress_writer(args.progress) if args.progress else None
+    # the demonstrations first: a policy node waiting for this checkpoint replays them meanwhile
+    save_demos(Path(args.out) / "demos", train_d)
     res = train(cfg, train_d, held_out, args.out, on_progress=progress)
     if used:  # the library's recordings behind this checkpoint, for the model list
         info_path = Path(args.out) / "train.json"

@@ -12,6 +12,8 @@ Table 7.1 distance; the best checkpoint is kept. Without held-out demonstrations
 from __future__ import annotations
 
 import json
+import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -175,13 +177,24 @@ def fit_model(method, train_demos: list[Demo], val_demos: list[Demo] | None, pro
              "best_step": best["step"], "best_score_m": result.best_score, "seconds": seconds,
              "seconds_to_best": best["t"], "evals": evals}, indent=2, default=float))
         plot_losses(np.array(method.losses), evals, out_dir / "loss.png")
-        demos = out_dir / "demos"
-        demos.mkdir(exist_ok=True)
-        for old in demos.glob("*.npz"):  # the demonstrations of this training only
-            old.unlink()
-        for i, demo in enumerate(train_demos):
-            demo.save(demos / f"demo_{i:03d}.npz")
+        save_demos(out_dir / "demos", train_demos)
     return result
+
+
+def save_demos(folder: Path, demos: list[Demo]) -> None:
+    """The training demonstrations (what the policy node's naive fallback replays), replacing the
+    folder's in one rename: a reader sees the old set or the new one."""
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for i, demo in enumerate(demos):
+        demo.save(tmp / f"demo_{i:03d}.npz")
+    old = folder.with_name(folder.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if folder.exists():
+        os.replace(folder, old)
+    os.replace(tmp, folder)
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def plot_losses(losses: np.ndarray, evals: list[dict], path: Path) -> None:

@@ -219,6 +219,7 @@ def sim_workcell(tmp: Path, timeout: float = 90.0) -> Iterator[dict]:
     text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
     # The same cell whether or not this checkout has trained a policy: the naive fallback (the
     # learned service has its own contract test).
+    text = re.sub(r'first_network = "[^"]*"', 'first_network = ""', text)  # and no training job beside it
     text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
     text = re.sub(r"port = 8080", f"port = {free_port()}", text)
     text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)

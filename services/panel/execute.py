@@ -126,6 +126,8 @@ class Execute:
             text = f"policy: {policy.get('method', '?')}" + (f" from `{self.serving}`" if self.serving else "")
             if loading:
                 text += f"; loading `{loading}`"
+            if policy.get("waiting_for"):
+                text += f"; switches to `{policy['waiting_for']}` once it is trained"
             if policy.get("load_problem"):
                 text += f"; **not served**: {policy['load_problem']}"
         if self.serve_md.content != text:

@@ -5,7 +5,9 @@ learning/from_library.py) in its own process group, writing into a hidden ``.NAM
 directory of the models directory; its progress arrives as JSON lines in that directory
 (``--progress``). Only a job that exits successfully is renamed to ``NAME``: a cancelled, failed
 or interrupted job leaves no model behind, and its partial directory is removed (also any left by
-a panel that was killed mid-job). One job runs at a time: ``start`` refuses a second. The job
+a panel that was killed mid-job). ``start_first`` runs the first network of a fresh install instead
+(`xm train --teacher 0`, in place into the policy service's checkpoint directory; its log in a
+hidden ``.job.partial`` there). One job runs at a time: ``start`` refuses a second. The job
 dies with the thread that started it (``PR_SET_PDEATHSIG``), so call ``start`` from a thread that
 lives as long as the panel.
 """
@@ -22,6 +24,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -83,6 +86,7 @@ class Job:
     state: str = "running"  # running | done | failed | cancelled
     message: str = ""
     offset: int = 0  # bytes of the progress file read
+    first: bool = False  # the first network: written in place (`final`), ``partial`` only holds its log
 
 
 class Trainer:
@@ -111,10 +115,25 @@ class Trainer:
 
     def start(self, recordings: Path, preset: str, steps: int = 0) -> Job:
         """Start `xm train recordings`; JobBusyError while a job runs, JobError for a bad request."""
-        if preset not in PRESETS:
-            raise JobError(f"unknown preset {preset!r}; known: {', '.join(sorted(PRESETS))}")
         if steps < 0:
             raise JobError(f"steps must be >= 0 (0: the preset's), got {steps}")
+        return self._launch(preset, lambda partial: [str(recordings.resolve()), "--out", str(partial),
+                                                     *(["--steps", str(steps)] if steps else [])])
+
+    def start_first(self, checkpoint: Path, preset: str, teacher: int = 0) -> Job:
+        """The first network of a fresh install: `xm train --teacher SEED --out DIR` into the directory of
+        the checkpoint the policy service waits for. `xm train` writes the demonstrations there first
+        (the policy's naive fallback replays them meanwhile) and the checkpoint last, in one rename."""
+        out = checkpoint.parent
+        if checkpoint.name != "policy.pt":
+            raise JobError(f"first network: `xm train` writes policy.pt, the policy service waits for {checkpoint}")
+        return self._launch(preset, lambda _partial: ["--teacher", str(teacher), "--out", str(out)],
+                            final=out, name=f"first-network-{preset}")
+
+    def _launch(self, preset: str, args: Callable[[Path], list[str]], final: Path | None = None,
+                name: str = "") -> Job:
+        if preset not in PRESETS:
+            raise JobError(f"unknown preset {preset!r}; known: {', '.join(sorted(PRESETS))}")
         if not self._lock.acquire(blocking=False):
             raise JobBusyError("a training job is being started")
         try:
@@ -122,17 +141,21 @@ class Trainer:
                 job = self.job
                 raise JobBusyError(f"a training job is running: {job.name} (started "
                                    f"{time.strftime('%H:%M:%S', time.localtime(job.started))}); cancel it first")
-            name = f"{time.strftime('%Y%m%d-%H%M%S')}-{preset}"
-            final = self.models / name
-            n = 2
-            while final.exists():
-                final = self.models / f"{name}-{n}"
-                n += 1
-            partial = self.models / f".{final.name}{PARTIAL}"
+            first = final is not None
+            if final is None:
+                name = f"{time.strftime('%Y%m%d-%H%M%S')}-{preset}"
+                final = self.models / name
+                n = 2
+                while final.exists():
+                    final = self.models / f"{name}-{n}"
+                    n += 1
+                name = final.name
+            partial = (final / f".job{PARTIAL}") if first else self.models / f".{final.name}{PARTIAL}"
+            stop_orphan(partial)  # a first network a killed panel left running
+            shutil.rmtree(partial, ignore_errors=True)  # and its log
             partial.mkdir(parents=True)
-            cmd = [sys.executable, "-m", "shared.cli", "train", str(recordings.resolve()), "--preset", preset,
-                   "--threads", str(self.threads), "--out", str(partial), "--progress", str(partial / "progress.jsonl"),
-                   *(["--steps", str(steps)] if steps else []), *self.extra_args]
+            cmd = [sys.executable, "-m", "shared.cli", "train", *args(partial), "--preset", preset,
+                   "--threads", str(self.threads), "--progress", str(partial / "progress.jsonl"), *self.extra_args]
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (str(ROOT),
                                                                              os.environ.get("PYTHONPATH"))))}
             with (partial / "train.log").open("wb") as log:
@@ -140,7 +163,7 @@ class Trainer:
                                         start_new_session=True,  # its own group: cancel stops all of it
                                         preexec_fn=_die_with_parent)
             (partial / "job.pid").write_text(str(proc.pid))
-            self.job = Job(final.name, preset, time.time(), proc, partial, final)
+            self.job = Job(name, preset, time.time(), proc, partial, final, first=first)
             return self.job
         finally:
             self._lock.release()
@@ -156,7 +179,13 @@ class Trainer:
             if code is None:
                 return job
             self._read(job)
-            if code == 0 and (job.partial / "policy.pt").exists():
+            if job.first:  # in place: the checkpoint is whole (written by one rename) or absent
+                if code == 0 and (job.final / "policy.pt").exists():
+                    job.state, job.message = "done", f"wrote {job.final / 'policy.pt'}"
+                    shutil.rmtree(job.partial, ignore_errors=True)
+                else:  # its log stays for a look (`train.log`); the next start replaces it
+                    job.state, job.message = "failed", self._error(job, code)
+            elif code == 0 and (job.partial / "policy.pt").exists():
                 os.replace(job.partial, job.final)  # the model appears whole, or not at all
                 job.state, job.message = "done", f"wrote {job.final}"
             else:
@@ -176,7 +205,7 @@ class Trainer:
             except ProcessLookupError:
                 pass
             job.process.wait()
-            shutil.rmtree(job.partial, ignore_errors=True)
+            shutil.rmtree(job.partial, ignore_errors=True)  # (a first network's log; its checkpoint is not written)
             job.state, job.message = "cancelled", "cancelled; no model written"
             return True
 

@@ -87,6 +87,25 @@ class Learn:
         self.job_md.content = (f"training **{job.name}** on {n_train} train and {n_val} validation recordings: "
                                "starting...")
 
+    def start_first(self, checkpoint: Path, preset: str) -> None:
+        """The first network of a fresh install (the checkpoint the policy service waits for), trained
+        from the world's scripted teacher as the page's job when it is missing or does not load (one
+        of other configs); a failure is shown in the job line."""
+        def start() -> None:
+            problem = checkpoint_problem(checkpoint)
+            if not problem:
+                return
+            log.info("training the first network: %s", problem)
+            try:
+                job = self.trainer.start_first(checkpoint, preset)
+            except (JobError, OSError) as exc:
+                self.count("train_refused")
+                self.job_md.content = f"**first network not started**: {exc}"
+                return
+            self.job_md.content = (f"training the first network **{job.name}** into `{checkpoint}` from the "
+                                   "scripted teacher; the cell runs on the naive fallback meanwhile: starting...")
+        self._starter.submit(start)
+
     def _cancel(self) -> None:
         if self.trainer.cancel():
             self.job_md.content = f"{self.trainer.job.name}: {self.trainer.job.message}"
@@ -113,6 +132,9 @@ class Learn:
             line = f"training **{job.name}** ({job.preset}): step {p.step} / {p.steps or '?'}"
         else:
             line = f"**{job.name}** {job.state}: {job.message}"
+        if job.first:
+            line += ("; the policy service switches to it once it is written" if job.state == "running" else
+                     "; the policy service loads it now (Execute: policy)" if job.state == "done" else "")
         if p.loss:
             line += f", loss {p.loss[-1][1]:.4g}"
         if p.evals:
@@ -164,3 +186,15 @@ class Learn:
         self._stop.set()
         self.trainer.cancel()
         self._starter.shutdown(wait=False)
+
+
+def checkpoint_problem(path: Path) -> str:
+    """Why the policy service cannot serve ``path`` ("" when it loads)."""
+    if not path.exists():
+        return f"{path} is missing"
+    from services.policy.model import Policy  # torch: an optional heavy import, only when a checkpoint is there
+    try:
+        Policy.load(str(path))
+    except Exception as exc:  # torch raises unrelated types for files that are no checkpoint
+        return f"{path} does not load ({type(exc).__name__}: {str(exc)[:200]})"
+    return ""

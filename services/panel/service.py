@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,9 +23,11 @@ import trimesh
 import viser
 
 from services.panel import view
+from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
 from services.panel.learn import Learn
+from services.panel.neural import NeuralSim
 from services.panel.teaching import Teaching
 from shared import msgs
 from shared.config import ConfigError, load_deployment
@@ -57,6 +60,10 @@ class PanelService:
         models: str = "runs/models"  # where training jobs started from the page write their models
         train_threads: int = 2  # torch threads of a training job (the cell runs beside it)
         train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
+        # A fresh install's first network: trained as the page's job when this checkpoint (the policy
+        # service's) is missing, while the policy service runs the naive fallback ("": never).
+        first_network: str = ""
+        first_preset: str = "no_tactile"
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -80,6 +87,7 @@ class PanelService:
         self._logged: set[str] = set()
         self._mesh_seen: dict[str, float] = {}  # hand -> when its tactile mesh was last drawn
         self._mesh_view: tuple[np.ndarray, np.ndarray] | None = None  # camera facing the most pressed hand
+        self.alerts = Alerts(missing_after_s=3 * params.health_period_s)
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
@@ -93,6 +101,10 @@ class PanelService:
         self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
                            lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
         self.learn.on_models.append(self.execute.set_models)
+        self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)
+        self.learn.on_models.append(self.neural.set_models)
+        if params.first_network:
+            self.learn.start_first(Path(params.first_network), params.first_preset)
         for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
@@ -107,7 +119,8 @@ class PanelService:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
                 "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
-                **self.teaching.health(), **self.learn.health(), **self.execute.health()}
+                "alerts": [{"level": a.level, "title": a.title, "body": a.body} for a in self.alerts.recent],
+                **self.teaching.health(), **self.learn.health(), **self.execute.health(), **self.neural.health()}
 
     def _keeper(self, port: str, by_source: bool = False) -> Callable[[Any, str], None]:
         """Handler keeping the newest message of ``port``, per hand or camera (the key's third chunk)
@@ -168,6 +181,8 @@ class PanelService:
             self.camera_image = gui.add_image(np.zeros((120, 160, 3), np.uint8), label="view", format="jpeg")
         with gui.add_folder("Services"):
             self.status_md = gui.add_markdown("querying `xm/**/@health`...")
+        with gui.add_folder("Alerts"):  # also shown as toasts when they happen
+            self.alerts_md = gui.add_markdown("no alerts")
 
     def _look_at_glove(self, event: Any) -> None:
         """viser worker thread: moves the clicking browser's camera to the palm side of the hand
@@ -179,10 +194,15 @@ class PanelService:
     def _query_recorder(self, verb: str, request: dict) -> list[dict]:
         return self._query(f"{RECORDER}/{verb}", request)
 
-    def _query(self, key: str, request: dict) -> list[dict]:
-        """viser worker thread: a blocking query is fine here."""
+    def _query(self, key: str, request: dict, timeout: float = 5.0) -> list[dict]:
+        """viser worker thread (or a folder's own): a blocking query is fine here."""
         return [json.loads(r.ok.payload.to_bytes())
-                for r in self.node.session.get(key, payload=json.dumps(request), timeout=5.0) if r.ok is not None]
+                for r in self.node.session.get(key, payload=json.dumps(request), timeout=timeout) if r.ok is not None]
+
+    def _reviewed_scene(self) -> Any:
+        """The Scene message of the reviewed demonstration at the scrubber, or None."""
+        review = self.teaching.review
+        return None if review is None else review.timeline.frame(review.head.position).get("scene")
 
     # --- loops --------------------------------------------------------------------------
     async def run(self) -> None:
@@ -208,6 +228,7 @@ class PanelService:
     def _draw(self, now: float) -> None:
         """The live state, or while a demonstration is reviewed its replayed messages at the scrubber."""
         self.teaching.tick(now)
+        self.neural.tick(now)
         if self.teaching.reviewing:
             replayed = self.teaching.review_frame(now)
 
@@ -332,12 +353,27 @@ class PanelService:
                 handle.visible = fresh
 
     async def _status_loop(self) -> None:
+        """Health rounds also while nobody watches: the alerts a browser opened later lists stay true."""
         while True:
+            reports = await in_daemon_thread(self._query_health)
+            fresh = self.alerts.update(reports, time.monotonic())
+            if fresh:
+                self.alerts_md.content = view.alerts_text(list(self.alerts.recent))
             if self.server.get_clients():
-                reports = await asyncio.to_thread(self._query_health)
+                for alert in fresh:
+                    self._toast(alert)
                 self.status_md.content = view.health_table(reports)
                 self.execute.update(reports)
             await asyncio.sleep(self.p.health_period_s)
+
+    def _toast(self, alert: Alert) -> None:
+        for client in list(self.server.get_clients().values()):
+            try:
+                client.add_notification(alert.title, alert.body, color=alert.color,
+                                        auto_close_seconds=30.0 if alert.level == "error" else 10.0)
+            except Exception as exc:  # a browser that left meanwhile
+                self.node.stats.count("toast_error")
+                self.node.log.debug("toast: %r", exc)
 
     def _query_health(self) -> list[dict]:
         out = []
@@ -350,9 +386,34 @@ class PanelService:
         return out
 
     async def close(self) -> None:
+        self.neural.close()
         self.learn.close()
         self.teaching.close()
         self.server.stop()
+
+
+async def in_daemon_thread(fn: Callable[[], Any]) -> Any:
+    """``fn()`` on a daemon thread of its own: unlike ``asyncio.to_thread``, the process's shutdown
+    does not wait for it (a Zenoh query in flight when the session closes may never return)."""
+    loop = asyncio.get_running_loop()
+    future = loop.create_future()
+
+    def settle(value: Any, exc: BaseException | None) -> None:
+        if not future.done():
+            future.set_result(value) if exc is None else future.set_exception(exc)
+
+    def run() -> None:
+        try:
+            value, exc = fn(), None
+        except Exception as error:
+            value, exc = None, error
+        try:
+            loop.call_soon_threadsafe(settle, value, exc)
+        except RuntimeError:  # the loop has closed: nobody waits for the answer
+            pass
+
+    threading.Thread(target=run, name="panel-health", daemon=True).start()
+    return await future
 
 
 def recordings_directory(param: str, deployment: str) -> Path:

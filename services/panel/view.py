@@ -6,6 +6,7 @@ arrays, strings or small tuples, so the service only moves them into viser handl
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -290,3 +291,12 @@ def recorder_text(verb: str, replies: Sequence[dict]) -> str:
     if isinstance(reply.get("bytes"), (int, float)):
         extra += f", {reply['bytes'] / 1e6:.1f} MB"
     return f"saved `{path}`{extra}"
+
+
+def alerts_text(alerts: Sequence[Any]) -> str:
+    """The newest alerts first, one line each: time, title, body (services/panel/alerts.py)."""
+    if not alerts:
+        return "no alerts"
+    marks = {"error": "**error**", "warning": "warning", "info": "ok"}
+    return "\n\n".join(f"{time.strftime('%H:%M:%S', time.localtime(a.at))} {marks.get(a.level, a.level)} "
+                       f"**{a.title}**: {a.body}" for a in reversed(alerts))

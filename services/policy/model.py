@@ -10,6 +10,7 @@ change. Checkpoints (``save`` / ``load``) are a state_dict and JSON metadata, re
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import torch
@@ -167,7 +168,10 @@ class Policy:
         return {"meta": meta, "state_dict": {**self.net.state_dict(), **self.extra_tensors}}
 
     def save(self, path: str) -> None:
-        torch.save(self.state(), path)
+        """Written whole or not at all (one rename): the policy service loads a checkpoint as soon as it appears."""
+        tmp = f"{path}.tmp"
+        torch.save(self.state(), tmp)
+        os.replace(tmp, path)
 
     @classmethod
     def from_state(cls, ckpt: dict) -> Policy:

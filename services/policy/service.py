@@ -8,6 +8,9 @@ arrive; between scenes it runs on its own predictions, the interactive neural si
 `xm train` saves beside the checkpoint (``demos``: a folder of Demo .npz files). A missing or
 unloadable checkpoint falls back to naive and says so in @health; without demonstrations to replay
 the fallback holds: it publishes the observed hands standing still over the horizon, and says so.
+A missing checkpoint is watched for (``WATCH_S``): the dashboard trains the first network of a fresh
+install into that path (its demonstrations first, the checkpoint last in one rename), and the node
+replays the demonstrations once they appear and serves the network once it appears.
 A NaN output is counted and never published. Loading the network is off the start path, so a
 restarted policy plans again at once: the checkpoint and the compiled horizon load in a worker
 thread while the node serves the naive replay (or holds) with status "warming".
@@ -16,11 +19,16 @@ thread while the node serves the naive replay (or holds) with status "warming".
 way, in the worker thread, while the current method keeps planning; the node switches to it once
 it has loaded (its demonstrations become the naive fallback's). A checkpoint that does not load
 leaves the current method serving and the reply of a later ``@cmd/serve {}`` says why.
+
+``@cmd/simulate {"seconds": S, "checkpoint": PATH, "start": SCENE}`` (the dashboard's neural
+simulation) rolls a checkpoint (default: the served one) out from the latest observed scene or a
+given one, in a worker thread (simulation.py), and replies the predicted hands, objects and tactile.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,11 +40,13 @@ from services.policy.flat_state import HAND_DIMS, BaselineError
 from services.policy.model import PolicyError
 from services.policy.naive import NaiveReplay
 from services.policy.runner import PolicyInputError, PolicyRunner, SceneObs
+from services.policy.simulation import Simulator, scene_from_request
 from shared import msgs
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, Demo
 from shared.runtime import Node
 
 HAND_POINT_NAMES = [f"{h}/{k}" for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)]
+WATCH_S = 2.0  # how often a missing checkpoint (and its demonstrations) is looked for
 MAX_CATCH_UP = 25  # policy steps run for ticks the clock skipped (0.5 s at 50 Hz); a longer stall is not caught up
 
 
@@ -68,14 +78,19 @@ class PolicyService:
         self.fallback: list[str] = []  # why the node serves less than it was asked to (@health)
         self.checkpoint: Path | None = None  # set while a checkpoint is to be loaded
         self.served: Path | None = None  # the checkpoint of ``runner``
+        self.waiting_for: Path | None = None  # a checkpoint to serve once it appears
+        self._watched = 0.0  # monotonic time of the last look for it
+        self._refused: float | None = None  # mtime of the awaited file when it last failed to load
+        self.demos = Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos"
         if params.method == "learned":
             path = Path(params.checkpoint)
             if path.exists():
                 self.checkpoint = path
             else:
-                self.fallback.append(f"no policy checkpoint at {path}: serving the naive baseline; train one "
-                                     f"with `make policy`")
-        self.naive = self._load_naive(Path(params.demos) if params.demos else Path(params.checkpoint).parent / "demos")
+                self.waiting_for = path
+                self.fallback.append(f"no policy checkpoint at {path} yet: serving the naive baseline until it "
+                                     f"appears (the dashboard trains the first network; `make policy` does too)")
+        self.naive = self._load_naive(self.demos)
         if self.checkpoint is not None:
             node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
         elif self.fallback:
@@ -87,9 +102,12 @@ class PolicyService:
         self.load_problem = ""  # why the last requested checkpoint is not served
         self.pub = node.output("plan")
         node.queryable("serve", self.cmd_serve)
+        self.simulator = Simulator()
+        node.queryable("simulate", self.cmd_simulate)
         node.health_extra = lambda: {"method": self.method_name, "checkpoint": self.serving,
                                      "loading": None if self.loading is None else str(self.checkpoint),
-                                     "load_problem": self.load_problem}
+                                     "load_problem": self.load_problem,
+                                     "waiting_for": None if self.waiting_for is None else str(self.waiting_for)}
         node.input("scene", self.on_scene)
         node.input("session", self.on_session)
         node.clock.on_jump(self.on_clock_jump)
@@ -159,13 +177,49 @@ class PolicyService:
             raise ValueError(f"checkpoint {path!r} is not a file")
         if self.loading is not None:
             raise ValueError(f"still loading {self.checkpoint}; ask again once it serves")
-        self.checkpoint = Path(path)
+        self.checkpoint, self.waiting_for = Path(path), None  # the teacher's choice: no longer awaits the first
         self._start_loading()
         return {"ok": True, "loading": path, "method": self.method_name}
+
+    async def cmd_simulate(self, req: dict) -> dict:
+        """A neural simulation from the latest scene (or ``start``), off the event loop."""
+        path = req.get("checkpoint") or self.serving
+        if not isinstance(path, str) or not path:
+            raise ValueError("no checkpoint to simulate: the policy serves no network yet; name one (checkpoint)")
+        if req.get("start") is not None:
+            if not isinstance(req["start"], dict):
+                raise ValueError("start must be a scene object (hands, hand_mask, objects, object_mask)")
+            scene = scene_from_request(req["start"])
+        elif self.scene is not None:
+            scene = SceneObs.from_msg(self.scene)
+        else:
+            raise ValueError("no scene observed yet to start from; give one (start)")
+        seconds = req.get("seconds", 3.0)
+        if not isinstance(seconds, (int, float)) or isinstance(seconds, bool):
+            raise ValueError(f"seconds must be a number, got {seconds!r}")
+        return await asyncio.to_thread(self.simulator.rollout, Path(path), scene, float(seconds))
 
     def _start_loading(self) -> None:
         self.load_problem = ""
         self.loading = asyncio.ensure_future(asyncio.to_thread(self._load_runner, self.checkpoint))
+
+    def _watch(self) -> None:
+        """Look for the awaited checkpoint (start loading it) and, while nothing replays, for the
+        demonstrations the first network's training writes before it trains."""
+        now = time.monotonic()
+        if self.waiting_for is None or now - self._watched < WATCH_S:
+            return
+        self._watched = now
+        if self.naive is None and any(self.demos.glob("*.npz")):
+            self.fallback = [f for f in self.fallback if not f.startswith("no demonstrations")]
+            self.naive = self._load_naive(self.demos)
+            if self.naive is not None:
+                self.node.log.info("replaying the demonstrations in %s until the network is ready", self.demos)
+                self.node.set_status("degraded", "; ".join(self.fallback))
+        if self.waiting_for.is_file() and self.loading is None and _mtime(self.waiting_for) != self._refused:
+            self.checkpoint, self.waiting_for = self.waiting_for, None
+            self.node.set_status("warming", f"loading {self.checkpoint}; serving the naive baseline meanwhile")
+            self._start_loading()
 
     def _take_loaded(self) -> None:
         """The finished load: serve it, or keep serving what was served and say why."""
@@ -176,6 +230,8 @@ class PolicyService:
             if self.runner is None:
                 self.fallback.append(f"{problem}: serving the naive baseline")
                 self.node.set_status("degraded", "; ".join(self.fallback))
+                if self.checkpoint == Path(self.p.checkpoint):  # (one of other configs): a new one is trained
+                    self.waiting_for, self._refused = self.checkpoint, _mtime(self.checkpoint)
             return
         self.runner, self.served = runner, self.checkpoint
         naive = self._load_naive(self.checkpoint.parent / "demos")
@@ -198,6 +254,7 @@ class PolicyService:
     async def _run_naive(self) -> None:
         steps = int(round(self.p.horizon_s / self.p.plan_dt)) + 1
         async for t in self.node.clock.ticks(self.p.rate_hz):
+            self._watch()
             if self.loading is not None and self.loading.done():
                 return
             if self.scene is None:
@@ -281,3 +338,10 @@ class PolicyService:
         if self.runner is None or not self.runner.model.cfg.tactile:
             return np.zeros(0, np.float32)
         return np.asarray(self.runner.horizon_tactile, np.float32).ravel()
+
+
+def _mtime(path: Path) -> float | None:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return None

@@ -84,6 +84,15 @@ class Chromium:
                     raise CDPError(f"{method}: {reply['error']}")
                 return reply.get("result", {})
 
+    def pump(self, seconds: float) -> None:
+        """Wait ``seconds``, reading (and dropping) the events that arrive meanwhile."""
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                self._ws.recv(timeout=left)
+            except TimeoutError:
+                return
+
     def navigate(self, url: str) -> None:
         self.call("Page.enable")
         self.call("Page.navigate", url=url)

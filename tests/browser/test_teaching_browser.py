@@ -3,8 +3,11 @@ events dispatched in the page) starts a teaching session, records two demonstrat
 that writes real MCAP files, labels one for validation in the library, reviews a third with the
 scrubber (the rendered scene changes with its position), plays, pauses, steps it and trims its start;
 then trains on the library (a second Train is told a job runs, Cancel leaves no model, a tiny
-budget leaves one in the model list), serves it, arms the robot and stops it, against stand-ins
-for the policy and robot services. Screenshots: .cache/teaching_*.png."""
+budget leaves one in the model list), serves it, runs a neural simulation of it from the reviewed
+demonstration (the ghost drawn over the scene), arms the robot and stops it, against stand-ins
+for the policy and robot services (the stand-in's rollout is the policy's own simulation code on
+the trained checkpoint). Screenshots: .cache/teaching_*.png. The live overview's neural
+simulation against the real policy service and its alerts as toasts: test_overview_browser.py."""
 
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
+from services.policy.simulation import Simulator, scene_from_request
 from shared import msgs
 from tests.browser._cdp import Chromium, find_chromium
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
@@ -246,11 +250,12 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
                                                                           .exists()) else None, WAIT, "a stored trim")
         assert 1.0 < trimmed < 4.0
         wait_until(lambda: "the file is unchanged" in page_text(browser), WAIT, "the trim confirmed")
-        learn_and_execute(browser, session, models_dir, requests)
+        learn_and_execute(browser, session, models_dir, requests, tmp_path)
         browser.screenshot(cache / "teaching_execute.png", PATIENCE_S)
         health = query_json(session, "xm/panel/main/@health")[0]
         assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error",
-                                                                 "train_monitor_error", "execute_error"))}, \
+                                                                 "train_monitor_error", "execute_error",
+                                                                 "neural_sim_error"))}, \
             health["errors"]
     finally:
         stop.set()
@@ -264,9 +269,11 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
 
 def stand_in_robot_and_policy(session, requests: list) -> list:
     """Queryables standing in for the robot service's arm gate and the policy's @cmd/serve (the real
-    ones: tests/contract/test_robot_arm.py, test_policy_serve.py); each request is appended to
-    ``requests`` as (verb, request)."""
+    ones: tests/contract/test_robot_arm.py, test_policy_serve.py, test_policy_simulate.py); each
+    request is appended to ``requests`` as (verb, request). Its @cmd/simulate rolls the served
+    checkpoint out with the policy service's own code (services/policy/simulation.py)."""
     state = {"armed": False, "checkpoint": None}
+    simulator = Simulator()
 
     def answer(key: str, query) -> None:  # key: the queryable's own (the query's may hold wildcards)
         verb = key.rsplit("/", 1)[-1]
@@ -282,16 +289,23 @@ def stand_in_robot_and_policy(session, requests: list) -> list:
                 state["armed"] = state["armed"] and not req.get("disarm")
             elif verb == "serve":
                 state["checkpoint"] = req["checkpoint"]
-            reply = {"ok": True, "armed": state["armed"], "loading": req.get("checkpoint")}
+            if verb == "simulate":
+                try:
+                    reply = simulator.rollout(Path(req.get("checkpoint") or state["checkpoint"]),
+                                              scene_from_request(req["start"]), float(req["seconds"]))
+                except (ValueError, KeyError, TypeError) as exc:
+                    reply = {"ok": False, "error": str(exc)}
+            else:
+                reply = {"ok": True, "armed": state["armed"], "loading": req.get("checkpoint")}
         query.reply(key, json.dumps(reply))
 
     return [session.declare_queryable(k, lambda q, k=k: answer(k, q)) for k in (
         "xm/robot/workcell/@cmd/arm", "xm/robot/workcell/@cmd/hold", "xm/robot/workcell/@health",
-        "xm/policy/main/@cmd/serve", "xm/policy/main/@health")]
+        "xm/policy/main/@cmd/serve", "xm/policy/main/@cmd/simulate", "xm/policy/main/@health")]
 
 
-def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: list) -> None:
-    """6. train on the library from the page; 7. serve the model, arm, stop."""
+def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: list, tmp_path: Path) -> None:
+    """6. train on the library from the page; 7. serve the model, simulate it, arm, stop."""
     choose(browser, "preset", "single_state")
     type_into(browser, "steps", "100000")  # a long job, to be cancelled
     wait_until(lambda: value_of(browser, "steps") == "100000", WAIT, "the typed budget")
@@ -325,6 +339,7 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
                "the serve query")
     wait_until(lambda: f"from {(model / 'policy.pt').resolve()}" in page_text(browser), WAIT,
                lambda: f"the served checkpoint shown; page: {page_text(browser)[:800]}")
+    neural_simulation(browser, session, requests, tmp_path)
     click_button(browser, "arm")
     wait_until(lambda: ("arm", {"armed": True}) in requests, WAIT, "the arm query")
     wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT,
@@ -333,3 +348,26 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     wait_until(lambda: ("hold", {"disarm": True}) in requests, WAIT, "the stop query")
     wait_until(lambda: "robot: disarmed" in page_text(browser), WAIT,
                lambda: f"the disarmed state shown; page: {page_text(browser)[:600]}")
+
+
+def neural_simulation(browser: Chromium, session, requests: list, tmp_path: Path) -> None:
+    """The served network rolled out from the reviewed demonstration at the scrubber: the reply is
+    drawn as a ghost over the scene (the 3D view changes) and the page says what was simulated."""
+    before = viewport(browser.screenshot(tmp_path / "n0.png", PATIENCE_S))
+    choose(browser, "start from", "the reviewed demonstration (scrubber)")
+    click_button(browser, "Simulate")
+    wait_until(lambda: any(v == "simulate" for v, _ in requests), WAIT, "the simulate query")
+    _, req = next((v, r) for v, r in requests if v == "simulate")
+    assert req["seconds"] == 3.0 and len(req["start"]["hands"]) == 2 * 21 * 3 and "checkpoint" not in req
+    wait_until(lambda: "from the reviewed demonstration (scrubber):" in page_text(browser), WAIT,
+               lambda: f"the rollout described; page: {page_text(browser)[-1500:]}")
+    shown = query_json(session, "xm/panel/main/@health")[0]["neural_sim"]
+    assert shown["runs"] == 1 and shown["shown"]["policy"] == "single_state" and shown["shown"]["steps"] > 2
+
+    def ghost_drawn():
+        shot = browser.screenshot(tmp_path / "n1.png", PATIENCE_S)
+        return shot if np.abs(viewport(shot) - before).sum(axis=2).__gt__(60).mean() > 0.001 else None
+
+    shot = wait_until(ghost_drawn, WAIT, "the ghost drawn in the 3D view", period=0.5)
+    shutil.copy(shot, ROOT / ".cache" / "teaching_neural_sim.png")
+

@@ -10,6 +10,7 @@ import pytest
 
 from services.panel.execute import rejections_text
 from services.panel.jobs import JobBusyError, JobError, Trainer, check_library, models, models_table
+from services.panel.learn import checkpoint_problem
 from services.panel.library import DemoMeta, Library, write_meta
 from tests.conftest import wait_until
 from tests.unit.panel_recordings import write_demo
@@ -100,3 +101,31 @@ def test_a_job_dies_with_the_thread_that_started_it(library, tmp_path):
     starter.start()
     starter.join()
     wait_until(lambda: started[0].process.poll() is not None, 30, "the job to die with its starter")
+
+
+def test_the_first_network_is_trained_in_place_demonstrations_first(library, tmp_path):
+    trainer = Trainer(tmp_path / "models", "--set hidden=32,32 --set batch=8 --steps 3", threads=1)
+    checkpoint = tmp_path / "policy" / "policy.pt"
+    with pytest.raises(JobError, match="writes policy.pt"):
+        trainer.start_first(tmp_path / "policy" / "net.pt", "single_state")
+    job = trainer.start_first(checkpoint, "single_state")
+    with pytest.raises(JobBusyError, match="a training job is running"):  # the page's Train waits for it
+        trainer.start(library, "single_state", steps=3)
+    wait_until(lambda: trainer.poll().state != "running", 300, lambda: (job.partial / "train.log").read_text())
+    assert job.state == "done", job.message
+    assert checkpoint.is_file() and not job.partial.exists()
+    assert len(list((checkpoint.parent / "demos").glob("*.npz"))) == 3
+    assert job.progress.step == 3 and models(trainer.models) == []  # not one of the library's models
+    assert checkpoint_problem(checkpoint) == ""  # loads: a restarted panel trains nothing
+    assert "is missing" in checkpoint_problem(tmp_path / "none.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    assert "does not load" in checkpoint_problem(tmp_path / "junk.pt")
+
+
+def test_a_cancelled_first_network_leaves_no_checkpoint(library, tmp_path):
+    trainer = Trainer(tmp_path / "models", "--set hidden=32,32 --set batch=8 --steps 1000000", threads=1)
+    checkpoint = tmp_path / "policy" / "policy.pt"
+    job = trainer.start_first(checkpoint, "single_state")
+    wait_until(lambda: trainer.poll().progress.steps, 300, lambda: (job.partial / "train.log").read_text())
+    assert trainer.cancel() and job.state == "cancelled"
+    assert not checkpoint.exists() and not list(checkpoint.parent.glob("*.tmp"))
