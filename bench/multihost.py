@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -32,19 +31,6 @@ def start(ns: str, dep: Path, host: str | None, log: Path) -> subprocess.Popen:
     argv = [sys.executable, "-m", "shared.cli", "up", str(dep), "--quiet", "--no-standby"]
     return netns.run(ns, argv + (["--host", host] if host else []), cwd=ROOT, stdout=log.open("w"),
                      stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        try:
-            os.killpg(p.pid, signal.SIGINT)
-        except ProcessLookupError:
-            pass
-    for p in procs:
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
 
 
 def record(ns: str, seconds: float, path: Path) -> dict:
@@ -76,13 +62,13 @@ def main(argv: list[str] | None = None) -> int:
         try:
             result["one_host"] = record(names[0], args.seconds, tmp / "one.mcap")
         finally:
-            stop(procs)
+            netns.stop(procs)
         procs = [start(names[0], dep, "cameras", tmp / "cameras.log"),
                  start(names[1], dep, "learner", tmp / "learner.log")]
         try:
             result["two_hosts"] = record(names[1], args.seconds, tmp / "two.mcap")
         finally:
-            stop(procs)
+            netns.stop(procs)
     finally:
         netns.down(*names)
     one, two = result["one_host"]["rates_hz"], result["two_hosts"]["rates_hz"]

@@ -4,13 +4,14 @@ For trying a multi-host deployment without a second computer and for the tests: 
 has its own loopback (each host's router listens on the deployment's ``router`` endpoint there)
 and one address on the link (10.77.<n>.1 and .2); nothing else is reachable from it.
 ``python -m deploy.netns up A B`` creates them, ``down A B`` removes them; ``run(ns, argv)`` starts
-a process inside one.
+a process inside one, ``stop`` ends those.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -70,6 +71,21 @@ def down(*names: str) -> None:
 def run(ns: str, argv: list[str], **popen) -> subprocess.Popen:
     """``argv`` inside namespace ``ns``."""
     return subprocess.Popen(["ip", "netns", "exec", ns, *argv], **popen)
+
+
+def stop(procs: list[subprocess.Popen], timeout: float = 30.0) -> None:
+    """Ctrl-C to each process group started by ``run`` (``start_new_session=True``), then a kill
+    for any still running after ``timeout`` seconds."""
+    for p in procs:
+        try:
+            os.killpg(p.pid, signal.SIGINT)
+        except ProcessLookupError:
+            pass
+    for p in procs:
+        try:
+            p.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
 
 
 def main(argv: list[str] | None = None) -> int:

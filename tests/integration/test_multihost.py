@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -115,14 +114,5 @@ def test_two_hosts_record_across_tls_and_refuse_what_the_acl_forbids(tmp_path):
                       tmp_path / "certs" / "learner.key")
         assert valid["connected"], valid
     finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
-        for p in procs:
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+        netns.stop(procs)
         netns.down(*names)
