@@ -35,12 +35,14 @@ help:
 	@echo "make soak   - chaos soak: kill -9 a random service every minute for an hour (.bench/soak.json)"
 	@echo "make lint   - ruff"
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml tests/lerobot_check/requirements.txt
 	test -d $(VENV) || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	# torch first and pinned: the CPU wheel lies on disk; any other spec downloads gigabytes.
 	$(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e '.[dev,baselines]'
+	# LeRobot's dataset class for the export tests, beside the venv (it pins an older torch; docs/lerobot.md)
+	$(BIN)/pip install -q --target .cache/lerobot-site --no-deps --upgrade -r tests/lerobot_check/requirements.txt
 	# compile the policy's horizon loop once (numba caches it; about 20 s)
 	$(BIN)/python -c "from services.policy.compiled import warm; warm()"
 	touch $(STAMP)
