@@ -69,6 +69,7 @@ def live(seconds: float, startup_timeout: float = 240.0) -> dict:
         text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
         text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
         text = re.sub(r'checkpoint = "[^"]*"', f'checkpoint = "{tmp}/no-policy.pt"', text)
+        text = re.sub(r'first_network = "[^"]*"', 'first_network = ""', text)  # no training job in the measurement
         text = re.sub(r"port = 8080", f"port = {_free_port()}", text)
         text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
         deployment = Path(tmp) / "sim.toml"

@@ -109,13 +109,15 @@ def free_port() -> int:
 
 
 def private_deployment(src: Path, tmp: Path) -> tuple[Path, str]:
-    """The deployment with its own router port, run dir, panel port and recordings folder."""
+    """The deployment with its own router port, run dir, panel port and recordings folder, and no
+    first-network training job (the panel would start one when the checkpoint is missing)."""
     text = src.read_text()
     router = f"tcp/127.0.0.1:{free_port()}"
     text = re.sub(r'router = "[^"]*"', f'router = "{router}"', text)
     text = re.sub(r'run_dir = "[^"]*"', f'run_dir = "{tmp}/run"', text)
     text = re.sub(r"port = 8080", f"port = {free_port()}", text)
     text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
+    text = re.sub(r'first_network = "[^"]*"', 'first_network = ""', text)  # no training job in the measurement
     out = tmp / "soak.toml"
     out.write_text(text)
     return out, router
