@@ -135,6 +135,19 @@ def _layout(rec: Recording, demo: Demo, opts: ExportOptions) -> _Layout:
     return _Layout(list(demo.object_names), robot_key, joint_names, cameras)
 
 
+def _sampled(stream, times: np.ndarray, max_age: float, missing: str, first: str, gap: str) -> np.ndarray:
+    """Indices of ``stream``'s samples at ``times``; DatasetError when the stream is missing, starts
+    late or has a gap over ``max_age`` seconds (the messages name what is missing)."""
+    if stream is None:
+        raise DatasetError(f"no {missing}")
+    idx, age = stream.at(times)
+    if not np.isfinite(age):
+        raise DatasetError(f"no {first} at its start")
+    if age > max_age:
+        raise DatasetError(f"a gap of {age:.2f} s in {gap} (at most {max_age} s allowed)")
+    return idx
+
+
 def _episode(rec: Recording, demo: Demo, t0: float, layout: _Layout, dt: float) -> fmt.Episode:
     if list(demo.object_names) != layout.object_names:
         raise DatasetError(f"object keypoints {demo.object_names} differ from the dataset's {layout.object_names}")
@@ -142,14 +155,9 @@ def _episode(rec: Recording, demo: Demo, t0: float, layout: _Layout, dt: float) 
     ep = fmt.Episode(demo=demo, task=str(demo.meta.get("task") or "demonstration"))
     if layout.robot_key is not None:
         stream = rec.robots.get(layout.robot_key)
-        if stream is None:
-            raise DatasetError(f"no robot joint states ({layout.robot_key} missing from the recording)")
-        idx, age = stream.at(times)
-        if not np.isfinite(age):
-            raise DatasetError(f"no robot joint state on {layout.robot_key} at its start")
-        if age > MAX_ROBOT_AGE_S:
-            raise DatasetError(f"a gap of {age:.2f} s in the robot joint states on {layout.robot_key} "
-                               f"(at most {MAX_ROBOT_AGE_S} s allowed)")
+        idx = _sampled(stream, times, MAX_ROBOT_AGE_S, f"robot joint states ({layout.robot_key} missing from the "
+                       "recording)", f"robot joint state on {layout.robot_key}",
+                       f"the robot joint states on {layout.robot_key}")
         n = len(layout.joint_names)
         if any(stream.values[i][0] != layout.joint_names for i in set(idx.tolist())):
             raise DatasetError(f"joint names on {layout.robot_key} differ from {layout.joint_names}")
@@ -160,14 +168,8 @@ def _episode(rec: Recording, demo: Demo, t0: float, layout: _Layout, dt: float) 
             raise DatasetError(f"non-finite joint positions on {layout.robot_key}")
     for cam, size in layout.cameras.items():
         stream = rec.images.get(cam)
-        if stream is None:
-            raise DatasetError(f"no frames of camera {cam!r} (xm/camhub/{cam}/image missing from the recording)")
-        idx, age = stream.at(times)
-        if not np.isfinite(age):
-            raise DatasetError(f"no frame of camera {cam!r} at its start")
-        if age > MAX_IMAGE_AGE_S:
-            raise DatasetError(f"a gap of {age:.2f} s in the frames of camera {cam!r} (at most {MAX_IMAGE_AGE_S} s "
-                               f"allowed)")
+        idx = _sampled(stream, times, MAX_IMAGE_AGE_S, f"frames of camera {cam!r} (xm/camhub/{cam}/image missing "
+                       "from the recording)", f"frame of camera {cam!r}", f"the frames of camera {cam!r}")
         infos = rec.infos.get(cam, {})
         decoded: dict[int, np.ndarray] = {}
         frames = []
