@@ -152,6 +152,9 @@ def summarize(report: dict) -> dict:
         "host_stalls_over_8ms": (report.get("host_stalls") or {}).get("count"),
         "host_stalls_with_hypervisor_steal": (report.get("host_stalls") or {}).get("with_steal"),
         "board_brakes_expected": report["brakes"]["board_brakes_expected"],
+        # gaps over 10 ms in the robot's command stream that its plans carried the board through
+        "host_gaps_bridged_by_plans": sum(v[0] for v in report["brakes"].get("gaps_bridged_by_pid", {}).values()),
+        "host_gap_max_ms": max((v[1] for v in report["brakes"].get("gaps_bridged_by_pid", {}).values()), default=None),
         "targets": {"recovered_p100_s": RECOVERY_TARGET_S, "stuck": 0, "recording_gap_s": GAP_TARGET_S,
                     "rss_growth": RSS_GROWTH_TARGET, "spurious_brakes": 0},
     }

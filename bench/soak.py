@@ -283,6 +283,10 @@ def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: d
         if h:
             state = h[0].get("watchdog", "unknown")
             result["samples"] += 1
+            # host gaps over 10 ms that a plan carried the board through, per robot process
+            stream = h[0].get("command_stream", {})
+            result["gaps_bridged_by_pid"][str(h[0].get("pid"))] = [stream.get("gaps_bridged", 0),
+                                                                   stream.get("max_gap_ms", 0.0)]
             if state == "braking" and commanded and not quiet:
                 result["braking_samples_while_commanded"] += 1
                 if prev_state != "braking":
@@ -370,6 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         brakes = {"t0": t0, "samples": 0, "braking_samples_while_commanded": 0, "braking_seen_while_commanded": 0,
                   "spurious_brakes": 0, "spurious_by_cause": {"after_host_gap": 0, "board_starved": 0},
+                  "gaps_bridged_by_pid": {},
                   "board_brakes_expected": 0, "events": [], "recovering": False, "recovered_at": -np.inf}
         stop = threading.Event()
         sampler = threading.Thread(target=brake_sampler, args=(monitor, robot, stop, brakes), daemon=True)

@@ -13,15 +13,17 @@ from tests.conftest import wait_until
 
 def board_feedback(dev, svc, commands: list, q: np.ndarray) -> Callable:
     """``board(until, timeout, what)``: feedback every 4 ms (the robot standing at ``q``), every
-    command frame the service sends collected into ``commands``, until ``until()`` holds; on a
-    timeout the failure names ``what`` and shows the service's output."""
+    command the service sends (of a plan, the command in force at once) collected into
+    ``commands``, until ``until()`` holds; on a timeout the failure names ``what`` and shows the
+    service's output."""
     decoder = rb.StreamDecoder()
     sequence = itertools.count()
     zeros = np.zeros(len(q))
 
     def board(until: Callable, timeout: float, what: str):
         def tick():
-            commands.extend(m for m in decoder.feed(dev.read()) if isinstance(m, rb.CommandFrame))
+            commands.extend(m.command if isinstance(m, rb.PlanFrame) else m for m in decoder.feed(dev.read())
+                            if isinstance(m, rb.CommandFrame | rb.PlanFrame))
             seq = next(sequence)
             dev.write(rb.encode_feedback(rb.FeedbackFrame(seq, seq * 4000, 0, q, zeros, zeros)))
             return until()

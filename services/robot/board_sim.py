@@ -4,7 +4,11 @@ the 10 ms watchdog. Pure logic, no I/O: the world decodes bytes from the pty, ha
 efforts for MuJoCo and, at the feedback rate, a FeedbackFrame to encode onto the pty.
 
 On the real board the same behaviour lives in the FPGA (hdl/motor/: encoder readout, PID,
-commutation, PWM, watchdog). When no command arrived for the watchdog timeout the board brakes:
+commutation, PWM, watchdog). A plan frame is a command plus the setpoints of the next tens of
+milliseconds: the board moves through them (linear interpolation, the last one held) and its
+watchdog counts from the plan's last knot, so a host that is a few tens of milliseconds late keeps
+the robot on its planned path instead of braking it. When no command arrived for the watchdog
+timeout (after a plan: for the timeout after its last knot) the board brakes:
 damping only (shorted windings), so the Z axes, which carry the arm's weight, sink slowly (about
 5 mm/s here) instead of dropping, as on the real robot (thesis 6.3). With position limits installed
 (power-up limits, or the host's config frame) setpoints are clamped into them and a joint whose
@@ -52,6 +56,7 @@ from shared.protocols.robot_board import (
     ConfigFrame,
     FeedbackFrame,
     Mode,
+    PlanFrame,
 )
 from shared.robots.registry import joints_with
 
@@ -131,6 +136,8 @@ class BoardSim:
         self.limits_active = limits is not None
         self.watchdog = Watchdog(WATCHDOG_TIMEOUT_S)
         self.command: CommandFrame | None = None  # the last accepted frame, as received
+        self.plan: PlanFrame | None = None  # the last accepted frame when it was a plan
+        self.plan_end: float | None = None  # board time of that plan's last knot
         self.last_safe: np.ndarray | None = None
         self.integral = np.zeros(n)
         self.feedback_period_s = feedback_period_s
@@ -148,7 +155,7 @@ class BoardSim:
         self.f_ext = np.zeros(n)  # observed external joint load (gravity, contacts), N or N m
         self._qd_prev: np.ndarray | None = None
         self._u_prev = np.zeros(n)
-        self.counters = {"commands": 0, "commands_rejected": 0, "configs": 0, "configs_rejected": 0,
+        self.counters = {"commands": 0, "plans": 0, "commands_rejected": 0, "configs": 0, "configs_rejected": 0,
                          "brake_events": 0, "clamp_events": 0, "limit_brakes": 0}
         self.last_reasons: list[str] = []
         self.last_brake: dict | None = None  # board times of the latest watchdog brake and the command before it
@@ -175,14 +182,17 @@ class BoardSim:
 
     def receive(self, msg, t: float) -> None:
         """A decoded message from the host, arriving at board time ``t`` (s)."""
-        if isinstance(msg, CommandFrame):
+        if isinstance(msg, CommandFrame | PlanFrame):
             if msg.n != len(self.joint_names):
                 self.counters["commands_rejected"] += 1
                 self.sticky_flags |= COMMAND_REJECTED  # a frame for another robot: keep the old command
                 return
             self.sticky_flags &= ~COMMAND_REJECTED
-            self.command = msg
-            self.watchdog.kick(t)
+            self.plan = msg if isinstance(msg, PlanFrame) else None
+            self.command = msg.command if self.plan is not None else msg
+            self.plan_end = t + self.plan.span_s if self.plan is not None else None
+            self.counters["plans"] += self.plan is not None
+            self.watchdog.kick(t if self.plan is None else self.plan_end)
             self.last_command_t = t
             self.last_command_sequence = msg.sequence
             self.counters["commands"] += 1
@@ -211,6 +221,7 @@ class BoardSim:
         self.watchdog.last_kick = None
         self.watchdog.state = "waiting"
         self.last_command_t = None
+        self.plan = self.plan_end = None
 
     def step(self, t: float, q: np.ndarray, qd: np.ndarray,
              dt: float | None = None) -> tuple[np.ndarray, FeedbackFrame | None]:
@@ -227,7 +238,8 @@ class BoardSim:
         if expired and not self._braking:
             self.counters["brake_events"] += 1
             self.last_brake = {"at": t, "last_command_at": self.last_command_t,
-                               "last_command_sequence": self.last_command_sequence}
+                               "last_command_sequence": self.last_command_sequence,
+                               "plan_end": self.plan_end}
             self.brakes_after = (self.brakes_after + [self.last_command_sequence])[-BRAKES_KEPT:]
             self._next_feedback = t  # report the brake at once, not at the next feedback period
         self._braking = expired
@@ -239,9 +251,10 @@ class BoardSim:
             joint_flags[:] = JOINT_BRAKING
             self.last_safe = None  # on resume, rate limits start from where the axes are
         else:
+            command = self.command if self.plan is None else self.plan.at(t - self.last_command_t)
             try:
                 safe, self.last_reasons, joint_flags = enforce_with_flags(
-                    self.command, SafetyState(q, qd, self.last_safe), self.limits, dt)
+                    command, SafetyState(q, qd, self.last_safe), self.limits, dt)
             except CommandRejectedError:  # cannot happen for accepted frames; brake if it ever does
                 safe, joint_flags = CommandFrame.brake(0, n), np.full(n, JOINT_BRAKING, np.uint8)
             if self.last_reasons:

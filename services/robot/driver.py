@@ -50,6 +50,16 @@ class BoardDriver:
         self.sequence += 1
         return self.link.write(rb.encode_command(frame))
 
+    def send_plan(self, mode: np.ndarray, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray,
+                  spacing_s: float) -> bool:
+        """A plan frame: ``position`` and ``velocity`` (knots, n), the first row the command in force
+        now, the others ``spacing_s`` apart."""
+        zeros = np.zeros(len(self.joint_names))
+        command = rb.CommandFrame(self.sequence, mode.astype(np.uint8), position[0], velocity[0], effort, zeros, zeros)
+        plan = rb.PlanFrame(command, position[1:], velocity[1:], int(round(spacing_s * 1e6)))
+        self.sequence += 1
+        return self.link.write(rb.encode_plan(plan))
+
     def configure(self, limits: Limits) -> bool:
         """Install ``limits`` (and the 10 ms watchdog) on the board."""
         self.config_sequence += 1

@@ -2,10 +2,15 @@
 enforcing joint, velocity and effort limits whatever arrives, and publish the measured state.
 
 Commands go out from a thread of their own (real-time priority where the OS allows,
-shared/realtime.py) on wall time, so that the board's 10 ms watchdog stays fed while the event
-loop or the host is busy. The host clamps into soft limits (the URDF limits less a margin) and
-installs the board's limits (half that margin) by config frame, where the board brakes a joint
-that would otherwise coast past them (services/robot/board_sim.py).
+shared/realtime.py) on wall time, each as a plan: the setpoint in force now and those of the next
+``lookahead_s`` of the trajectory, which the board plays if the next frame is late. Its 10 ms
+watchdog counts from the plan's last knot, so a host paused for less than the look-ahead (a busy
+machine, a virtual machine descheduled) leaves the robot on its path instead of braking it, and a
+host that stops for good brakes it 10 ms after the path it sent runs out.
+
+The host clamps into soft limits (the URDF limits less a margin) and installs the board's limits
+(half that margin) by config frame, where the board brakes a joint that would otherwise coast past
+them (services/robot/board_sim.py).
 
 The arm gate: a trajectory moves the robot only while it is armed (``@cmd/arm {"armed": true}``;
 ``start_armed`` sets the state at start). Disarming, or ``@cmd/hold {"disarm": true}`` (the
@@ -42,9 +47,9 @@ from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 GAPS_KEPT = 100
-# A gap this long may brake a board that hears commands up to 1 ms late (USB; the simulated board's
-# arrival stamps, services/world/arrival_stamper.py).
-GAP_NEAR_WATCHDOG_S = WATCHDOG_TIMEOUT_S - 0.001
+# A gap within this of the board's braking point may brake a board that hears commands up to 1 ms
+# late (USB; the simulated board's arrival stamps, services/world/arrival_stamper.py).
+GAP_MARGIN_S = 0.001
 VELOCITY_SLACK = 1.1  # trajectory time runs at most this much faster than wall time (CommandClock)
 
 
@@ -71,7 +76,12 @@ class RobotService:
         port: str = ""
         baudrate: int = 3_000_000
         robot: str = DEFAULT_ROBOT
-        command_rate_hz: float = 250.0
+        command_rate_hz: float = 125.0
+        # Each frame carries the trajectory's setpoints for this long ahead, knot_spacing_s apart (at
+        # most 15 knots); 0: single commands, and the board brakes 10 ms after the host's last one.
+        # 7 knots at 125 Hz: 707-byte frames, 88 kB/s of the 3 Mbaud link.
+        lookahead_s: float = 0.048
+        knot_spacing_s: float = 0.008
         state_rate_hz: float = 100.0
         # "pneumatic": joints with a muscle pair (the hand-arm's fingers) follow the trajectory in the
         # board's PNEUMATIC mode (two-stage pressure PID, thesis 7.3.2) instead of POSITION.
@@ -111,9 +121,15 @@ class RobotService:
         self._last_config = -np.inf
         self.gaps_after: list[int] = []  # the last command's sequence before each recent gap near the watchdog's
         self.gap_parts: list[dict] = []  # where the time of each of those gaps went (_count_gap)
+        self.knots = int(round(params.lookahead_s / params.knot_spacing_s)) if params.lookahead_s > 0 else 0
+        if not 0 <= self.knots < 16 or (self.knots and params.knot_spacing_s * 1e6 > 0xFFFF):
+            raise ValueError(f"robot: lookahead_s {params.lookahead_s} at knot_spacing_s {params.knot_spacing_s} "
+                             "needs 0 to 15 knots at most 65 ms apart")
+        # A gap between two frames longer than this brakes the board (the plan ran out 10 ms before).
+        self.brake_gap_s = WATCHDOG_TIMEOUT_S + self.knots * params.knot_spacing_s
         self.stream = {"priority": "not started", "ticks": 0, "late_ticks": 0, "max_gap_ms": 0.0,
-                       "gaps_over_watchdog": 0, "configs": 0, "memory_locked": False,
-                       "errors": 0}
+                       "gaps_over_watchdog": 0, "gaps_bridged": 0, "configs": 0, "memory_locked": False,
+                       "errors": 0, "brake_gap_ms": round(self.brake_gap_s * 1e3, 1)}
         node.input("trajectory", self.on_trajectory)
         node.queryable("hold", self.cmd_hold)
         node.queryable("arm", self.cmd_arm)
@@ -212,12 +228,14 @@ class RobotService:
                 last_sent = None  # no feedback, no commands: the board brakes, as it should
 
     def _count_gap(self, gap: float, before: int, parts: dict | None = None) -> None:
-        """A gap between two commands written: over the watchdog timeout it is counted, near it the
-        sequence of the command before it is kept (bench/robot.py tells the board's brakes apart),
-        with where the time went (``parts``: the wake-up's lateness, the tick's own time, which holds
-        the GIL wait and the write, and the time the thread waited for a CPU since the last write)."""
-        self.stream["gaps_over_watchdog"] += gap > WATCHDOG_TIMEOUT_S
-        if gap > GAP_NEAR_WATCHDOG_S:
+        """A gap between two frames written: one that brakes the board is counted (one over the
+        watchdog timeout that a plan bridged, separately), near it the sequence of the frame before
+        it is kept (bench/robot.py tells the board's brakes apart), with where the time went
+        (``parts``: the wake-up's lateness, the tick's own time, which holds the GIL wait and the
+        write, and the time the thread waited for a CPU since the last write)."""
+        self.stream["gaps_over_watchdog"] += gap > self.brake_gap_s
+        self.stream["gaps_bridged"] += WATCHDOG_TIMEOUT_S < gap <= self.brake_gap_s
+        if gap > self.brake_gap_s - GAP_MARGIN_S:
             self.gaps_after = (self.gaps_after + [before])[-GAPS_KEPT:]
             self.gap_parts = (self.gap_parts + [{"after": before, "gap_ms": round(gap * 1e3, 2),
                                                  "at_unix": round(time.time(), 3), **(parts or {})}])[-GAPS_KEPT:]
@@ -251,7 +269,26 @@ class RobotService:
         for r in reasons:
             self.node.stats.count(f"clamped_{r}")
         velocity = np.clip(velocity, -self.limits.velocity, self.limits.velocity)
-        self.driver.send(self.modes, self.target, velocity, np.zeros(len(self.target)))
+        effort = np.zeros(len(self.target))
+        if not self.knots:
+            self.driver.send(self.modes, self.target, velocity, effort)
+            return
+        positions, velocities = self._plan(t, velocity)
+        self.driver.send_plan(self.modes, positions, velocities, effort, self.p.knot_spacing_s)
+
+    def _plan(self, t: float, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The command in force now and the trajectory's next knots, each within the limits of the
+        one before it (disarmed, or no trajectory: holding the target)."""
+        dt = self.p.knot_spacing_s
+        positions, velocities = [self.target], [velocity]
+        for i in range(1, self.knots + 1):
+            sample = self.follower.sample(t + i * dt) if self.armed else None
+            goal, v = sample if sample is not None else (positions[-1], np.zeros(len(self.target)))
+            if not (np.isfinite(goal).all() and np.isfinite(v).all()):  # tick 0 has counted it
+                goal, v = positions[-1], np.zeros(len(self.target))
+            positions.append(limit_step(goal, positions[-1], self.limits, dt)[0])
+            velocities.append(np.clip(v, -self.limits.velocity, self.limits.velocity))
+        return np.array(positions), np.array(velocities)
 
     async def _publish_state(self) -> None:
         async for t in self.node.clock.ticks(self.p.state_rate_hz):

@@ -308,7 +308,8 @@ class BoardDevice:
         modes = {} if cmd is None else {m.name.lower(): int((cmd.mode == m).sum()) for m in robot_board.Mode
                                         if (cmd.mode == m).any()}
         return {"feedback_frames": self.feedback_frames, "dropped_bytes": self.pty.dropped_bytes,
-                "command_modes": modes, "watchdog_brakes": self.board.counters["brake_events"],
+                "command_modes": modes, "plans": self.board.counters["plans"],
+                "watchdog_brakes": self.board.counters["brake_events"],
                 "limit_brakes": self.board.counters["limit_brakes"], "last_brake": self.board.last_brake,
                 "brakes_after": self.board.brakes_after,
                 "waits_for_wire": self.waits,

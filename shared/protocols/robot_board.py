@@ -1,6 +1,8 @@
-"""The robot control-board protocol, version 2 (host <-> board). Spec: docs/protocols/robot_board.md.
+"""The robot control-board protocol, version 3 (host <-> board). Spec: docs/protocols/robot_board.md.
 
-Host -> board: a command frame per control tick (mode and setpoints per joint) and a config frame
+Host -> board: a command frame per control tick (mode and setpoints per joint), or a plan frame (the
+same command plus the setpoints of the next few tens of milliseconds, which the board plays while
+the host is late), and a config frame
 (watchdog timeout, per-joint limits) at start-up and then about once a second as a heartbeat.
 Board -> host: feedback frames (positions, velocities, motor currents, watchdog state, board time).
 Framing (sync, type, length, CRC-32) is shared/protocols/framing.py; every payload of this protocol
@@ -21,11 +23,13 @@ import numpy as np
 from shared.protocols.framing import FrameDecoder, frame
 from shared.robots.registry import DEFAULT_ROBOT, describe
 
-VERSION = 2
+VERSION = 3
 TYPE_COMMAND = 0x20
 TYPE_FEEDBACK = 0x21
 TYPE_CONFIG = 0x22
+TYPE_PLAN = 0x23
 MAX_JOINTS = 32
+MAX_KNOTS = 16  # a plan's setpoints, the command's own included
 DEFAULT_WATCHDOG_US = 10_000
 
 # The default robot's joints in board-channel order (shared/robots): the test vectors' layout.
@@ -64,7 +68,9 @@ FB_HEAD = struct.Struct("<IQQIIHB")
 FB_JOINT = np.dtype([("position", "<f4"), ("velocity", "<f4"), ("current", "<f4"), ("flags", "u1")])  # 13 B
 CFG_HEAD = struct.Struct("<IIB")  # sequence, watchdog timeout us, joint count (0: no limits)
 CFG_JOINT = np.dtype([("lower", "<f4"), ("upper", "<f4"), ("velocity", "<f4"), ("effort", "<f4")])  # 16 B
-MAX_PAYLOAD = max(CMD_HEAD.size + MAX_JOINTS * CMD_JOINT.itemsize,
+PLAN_HEAD = struct.Struct("<IBBH")  # sequence, joint count, knot count, knot spacing us
+PLAN_KNOT = np.dtype([("position", "<f4"), ("velocity", "<f4")])  # 8 B per joint and later knot
+MAX_PAYLOAD = max(PLAN_HEAD.size + MAX_JOINTS * CMD_JOINT.itemsize + (MAX_KNOTS - 1) * MAX_JOINTS * PLAN_KNOT.itemsize,
                   FB_HEAD.size + MAX_JOINTS * FB_JOINT.itemsize,
                   CFG_HEAD.size + MAX_JOINTS * CFG_JOINT.itemsize)
 
@@ -126,6 +132,54 @@ class CommandFrame:
 
 
 @dataclass
+class PlanFrame:
+    """A command (knot 0, in force from the frame's arrival) and the positions and velocities of the
+    next ``knots - 1`` setpoints, ``spacing_us`` apart; modes, efforts and gains hold for all of them.
+    The board moves through the knots by linear interpolation and holds the last one; its watchdog
+    counts from the last knot's time (docs/protocols/robot_board.md, "Plans")."""
+
+    command: CommandFrame
+    position: np.ndarray  # (knots - 1, n): the later knots
+    velocity: np.ndarray
+    spacing_us: int
+
+    @property
+    def sequence(self) -> int:
+        return self.command.sequence
+
+    @property
+    def n(self) -> int:
+        return self.command.n
+
+    @property
+    def knots(self) -> int:
+        return 1 + len(self.position)
+
+    @property
+    def span_s(self) -> float:
+        """From the first knot to the last."""
+        return (self.knots - 1) * self.spacing_us * 1e-6
+
+    def at(self, dt: float) -> CommandFrame:
+        """The command ``dt`` seconds after knot 0: positions and velocities interpolated between the
+        knots around it, the last knot's after the end (the frame's own command before knot 0)."""
+        if dt <= 0 or not len(self.position):
+            return self.command
+        x = dt / (self.spacing_us * 1e-6)
+        k = int(x)
+        if k >= len(self.position):
+            p, v = self.position[-1], self.velocity[-1]
+        else:
+            p0 = self.command.position if k == 0 else self.position[k - 1]
+            v0 = self.command.velocity if k == 0 else self.velocity[k - 1]
+            s = x - k
+            p = p0 + s * (self.position[k] - p0)
+            v = v0 + s * (self.velocity[k] - v0)
+        c = self.command
+        return CommandFrame(c.sequence, c.mode, p, v, c.effort, c.stiffness, c.damping)
+
+
+@dataclass
 class FeedbackFrame:
     sequence: int
     timestamp_us: int  # board clock at the sample
@@ -159,7 +213,7 @@ class ConfigFrame:
         return self.lower is not None
 
 
-Message = CommandFrame | FeedbackFrame | ConfigFrame
+Message = CommandFrame | PlanFrame | FeedbackFrame | ConfigFrame
 
 
 def _rows(dtype: np.dtype, n: int, **cols) -> bytes:
@@ -182,6 +236,24 @@ def encode_command(c: CommandFrame) -> bytes:
     _check_count(n)
     body = _rows(CMD_JOINT, n, **{f: getattr(c, f) for f in CMD_JOINT.names})
     return frame(TYPE_COMMAND, CMD_HEAD.pack(c.sequence & 0xFFFFFFFF, n) + body)
+
+
+def encode_plan(p: PlanFrame) -> bytes:
+    c = p.command
+    n = len(c.mode)
+    _check_count(n)
+    if not 1 <= p.knots <= MAX_KNOTS:
+        raise FrameError(f"{p.knots} knots, 1 to {MAX_KNOTS}")
+    if np.shape(p.position) != (p.knots - 1, n) or np.shape(p.velocity) != (p.knots - 1, n):
+        raise FrameError(f"plan knots have shapes {np.shape(p.position)} and {np.shape(p.velocity)}, "
+                         f"expected ({p.knots - 1}, {n})")
+    if not 1 <= p.spacing_us <= 0xFFFF:
+        raise FrameError(f"knot spacing {p.spacing_us} us outside 1 .. 65535")
+    body = _rows(CMD_JOINT, n, **{f: getattr(c, f) for f in CMD_JOINT.names})
+    knots = np.zeros((p.knots - 1, n), PLAN_KNOT)
+    knots["position"], knots["velocity"] = p.position, p.velocity
+    head = PLAN_HEAD.pack(c.sequence & 0xFFFFFFFF, n, p.knots, p.spacing_us)
+    return frame(TYPE_PLAN, head + body + knots.tobytes())
 
 
 def encode_feedback(f: FeedbackFrame) -> bytes:
@@ -209,6 +281,8 @@ def encode_config(c: ConfigFrame) -> bytes:
 def encode(msg: Message) -> bytes:
     if isinstance(msg, CommandFrame):
         return encode_command(msg)
+    if isinstance(msg, PlanFrame):
+        return encode_plan(msg)
     if isinstance(msg, FeedbackFrame):
         return encode_feedback(msg)
     if isinstance(msg, ConfigFrame):
@@ -232,6 +306,8 @@ def decode_payload(kind: int, p: bytes) -> Message:
         seq, n = CMD_HEAD.unpack_from(p)
         t = _table(p, CMD_HEAD, n, CMD_JOINT, "command")
         return CommandFrame(seq, t["mode"].copy(), *(t[f].astype(float) for f in CMD_JOINT.names[1:]))
+    if kind == TYPE_PLAN:
+        return _decode_plan(p)
     if kind == TYPE_FEEDBACK:
         if len(p) < FB_HEAD.size:
             raise FrameError(f"feedback: {len(p)} payload bytes, shorter than its header")
@@ -247,6 +323,22 @@ def decode_payload(kind: int, p: bytes) -> Message:
         lim = [t[f].astype(float) for f in CFG_JOINT.names] if n else [None] * 4
         return ConfigFrame(timeout, *lim, sequence=seq)
     raise FrameError(f"unknown frame type 0x{kind:02x}")
+
+
+def _decode_plan(p: bytes) -> PlanFrame:
+    if len(p) < PLAN_HEAD.size:
+        raise FrameError(f"plan: {len(p)} payload bytes, shorter than its header")
+    seq, n, knots, spacing = PLAN_HEAD.unpack_from(p)
+    _check_count(n)
+    if not 1 <= knots <= MAX_KNOTS or spacing == 0:
+        raise FrameError(f"plan: {knots} knots {spacing} us apart (1 to {MAX_KNOTS} knots, spacing > 0)")
+    want = PLAN_HEAD.size + n * CMD_JOINT.itemsize + (knots - 1) * n * PLAN_KNOT.itemsize
+    if len(p) != want:
+        raise FrameError(f"plan: {len(p)} payload bytes, {want} expected for {n} joints and {knots} knots")
+    t = np.frombuffer(p, CMD_JOINT, n, PLAN_HEAD.size)
+    later = np.frombuffer(p, PLAN_KNOT, (knots - 1) * n, PLAN_HEAD.size + n * CMD_JOINT.itemsize).reshape(knots - 1, n)
+    command = CommandFrame(seq, t["mode"].copy(), *(t[f].astype(float) for f in CMD_JOINT.names[1:]))
+    return PlanFrame(command, later["position"].astype(float), later["velocity"].astype(float), spacing)
 
 
 def decode(data: bytes) -> Message:
@@ -267,7 +359,7 @@ class StreamDecoder:
     """
 
     def __init__(self) -> None:
-        self.frames = FrameDecoder(MAX_PAYLOAD, {TYPE_COMMAND, TYPE_FEEDBACK, TYPE_CONFIG})
+        self.frames = FrameDecoder(MAX_PAYLOAD, {TYPE_COMMAND, TYPE_PLAN, TYPE_FEEDBACK, TYPE_CONFIG})
         self.stats = self.frames.stats
         self.stats.update({"sequence_gaps": 0, "frames_lost": 0, "malformed": 0})
         self.last_error = ""
@@ -283,6 +375,7 @@ class StreamDecoder:
                 self.stats["malformed"] += 1
                 self.last_error = str(exc)
                 continue
+            kind = TYPE_COMMAND if kind == TYPE_PLAN else kind  # commands and plans share one sequence
             last = self._last.get(kind)
             if last is not None and msg.sequence != (last + 1) & 0xFFFFFFFF:
                 self.stats["sequence_gaps"] += 1
@@ -314,6 +407,12 @@ def vector_cases() -> list[dict]:
         fields = {f: getattr(c, f).tolist() for f in CMD_JOINT.names}
         cases.append({"command": {"sequence": c.sequence, **fields},
                       "bytes": encode_command(c).hex()})
+    later = np.array(_f32(np.linspace(0.0, 0.05, 2 * n))).reshape(2, n)
+    plan = PlanFrame(cmd, later, -later, 8000)
+    cases.append({"plan": {"sequence": plan.sequence, "spacing_us": plan.spacing_us,
+                           "command": {f: getattr(cmd, f).tolist() for f in CMD_JOINT.names},
+                           "position": later.tolist(), "velocity": (-later).tolist()},
+                  "bytes": encode_plan(plan).hex()})
     fbs = [FeedbackFrame(7, 1_000_000, WATCHDOG_EXPIRED, np.array(_f32(np.linspace(0, 0.3, n))),
                          np.full(n, -0.25), np.full(n, 1.5), 989_000, 41, 0),
            FeedbackFrame(123_456, 2 ** 40 + 5, WATCHDOG_EXPIRED | LIMITS_ACTIVE | CLAMPED,

@@ -198,9 +198,9 @@ def test_world_board_brakes_after_10ms_of_silence_on_every_trial(router, tmp_pat
 
 def test_robot_service_suspended_mid_stream_the_world_board_brakes_in_time(router, tmp_path):
     """The robot service commands the world's board; the test suspends the service's process
-    (SIGSTOP: its command stream stops mid-stream). The board brakes after the last command it got,
-    more than 10 ms and at most 10 ms plus one physics step after it in board time; resumed, the
-    service feeds the watchdog again."""
+    (SIGSTOP: its command stream stops mid-stream). The board plays the last plan it got to its end
+    and brakes more than 10 ms and at most 10 ms plus one physics step after that end in board time;
+    resumed, the service feeds the watchdog again."""
     endpoint, session = router
     port = str(tmp_path / "run" / "board")
     dep = write_deployment(tmp_path / "d.toml", endpoint, {"world": {"sim": {"robot_port": port}},
@@ -221,7 +221,8 @@ def test_robot_service_suspended_mid_stream_the_world_board_brakes_in_time(route
         finally:
             os.killpg(robot.proc.pid, signal.SIGCONT)
         brake = dev["last_brake"]
-        after = brake["at"] - brake["last_command_at"]
+        assert dev["plans"] > 0 and brake["plan_end"] > brake["last_command_at"], dev
+        after = brake["at"] - brake["plan_end"]
         assert WATCHDOG_TIMEOUT_S < after <= WATCHDOG_TIMEOUT_S + PHYSICS_DT + 1e-6, f"{after * 1e3:.2f} ms after"
         wait_until(lambda: health().get("watchdog") == "ok", 30, "commands again after SIGCONT")
     finally:

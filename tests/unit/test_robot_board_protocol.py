@@ -26,14 +26,17 @@ def test_vectors_decode_field_by_field_and_re_encode_byte_exact():
         msg = rb.decode(data)
         kind, fields = next((k, v) for k, v in case.items() if k != "bytes")
         kinds.add(kind)
-        for name, want in fields.items():
-            got = getattr(msg, name)
-            if isinstance(got, np.ndarray):
-                assert got.tolist() == want, f"{kind}.{name}"
-            else:
-                assert got == want, f"{kind}.{name}"
+        fields = dict(fields)
+        parts = [(msg, fields)] + ([(msg.command, fields.pop("command"))] if kind == "plan" else [])
+        for obj, want_fields in parts:
+            for name, want in want_fields.items():
+                got = getattr(obj, name)
+                if isinstance(got, np.ndarray):
+                    assert got.tolist() == want, f"{kind}.{name}"
+                else:
+                    assert got == want, f"{kind}.{name}"
         assert rb.encode(msg) == data
-    assert kinds == {"command", "feedback", "config"}
+    assert kinds == {"command", "plan", "feedback", "config"}
     assert rb.vector_cases() == VECTORS  # the committed file is what the code produces
 
 
@@ -43,6 +46,42 @@ def test_sizes_match_the_spec():
     fb = rb.FeedbackFrame(0, 0, 0, np.zeros(n), np.zeros(n), np.zeros(n))
     assert len(rb.encode_feedback(fb)) == 9 + 31 + 13 * n
     assert len(rb.encode_config(rb.ConfigFrame())) == 9 + 9
+    plan = rb.PlanFrame(rb.CommandFrame.brake(0, n), np.zeros((6, n)), np.zeros((6, n)), 8000)
+    assert len(rb.encode_plan(plan)) == 9 + 8 + 21 * n + 6 * 8 * n
+
+
+def test_a_plan_interpolates_between_its_knots_and_holds_the_last():
+    cmd = rb.CommandFrame.hold(4, np.array([0.0, 1.0]))
+    cmd.velocity[:] = [1.0, 0.0]
+    plan = rb.decode(rb.encode(rb.PlanFrame(cmd, np.array([[0.008, 1.0], [0.016, 0.5]]),
+                                            np.array([[1.0, 0.0], [1.0, -50.0]]), 8000)))
+    assert isinstance(plan, rb.PlanFrame) and plan.knots == 3 and plan.span_s == pytest.approx(0.016)
+    assert plan.at(-0.001) is plan.command and plan.at(0.0).position.tolist() == [0.0, 1.0]
+    mid = plan.at(0.012)
+    assert mid.position == pytest.approx([0.012, 0.75]) and mid.velocity == pytest.approx([1.0, -25.0])
+    assert plan.at(0.5).position == pytest.approx([0.016, 0.5]) and plan.at(0.5).velocity[1] == pytest.approx(-50.0)
+    assert mid.sequence == 4 and (mid.mode == cmd.mode).all()
+
+
+def test_a_plan_with_inconsistent_knots_is_refused_or_counted():
+    n = 3
+    with pytest.raises(rb.FrameError, match="knots have shapes"):
+        rb.encode_plan(rb.PlanFrame(rb.CommandFrame.brake(0, n), np.zeros((2, n)), np.zeros((1, n)), 8000))
+    with pytest.raises(rb.FrameError, match="knots, 1 to"):
+        rb.encode_plan(rb.PlanFrame(rb.CommandFrame.brake(0, n), np.zeros((rb.MAX_KNOTS, n)),
+                                    np.zeros((rb.MAX_KNOTS, n)), 8000))
+    d = rb.StreamDecoder()
+    short = frame(rb.TYPE_PLAN, rb.PLAN_HEAD.pack(1, n, 3, 8000) + bytes(21 * n + 8 * n))  # one knot short
+    zero_spacing = frame(rb.TYPE_PLAN, rb.PLAN_HEAD.pack(2, n, 1, 0) + bytes(21 * n))
+    assert d.feed(short + zero_spacing) == [] and d.stats["malformed"] == 2
+
+
+def test_plans_and_commands_share_one_sequence():
+    d = rb.StreamDecoder()
+    n = 2
+    plan = rb.PlanFrame(rb.CommandFrame.brake(8, n), np.zeros((1, n)), np.zeros((1, n)), 4000)
+    d.feed(rb.encode(rb.CommandFrame.brake(7, n)) + rb.encode(plan) + rb.encode(rb.CommandFrame.brake(9, n)))
+    assert d.stats["frames"] == 3 and d.stats["sequence_gaps"] == 0
 
 
 def test_joint_commands_round_trip_through_a_frame():

@@ -207,6 +207,59 @@ def test_board_watchdog_brakes_within_one_tick_after_10_ms_of_silence():
         assert board.brake_events == 1
 
 
+def ramp_plan(sequence: int, start: float, knots: int = 7, spacing_us: int = 8000, speed: float = 0.1) -> rb.PlanFrame:
+    """Every joint from ``start`` at ``speed`` per second, for ``knots`` knots."""
+    times = np.arange(knots) * spacing_us * 1e-6
+    pos = start + speed * times[:, None] * np.ones(N)
+    vel = np.full((knots, N), speed)
+    cmd = CommandFrame.hold(sequence, pos[0])
+    cmd.velocity[:] = vel[0]
+    return rb.PlanFrame(cmd, pos[1:], vel[1:], spacing_us)
+
+
+def test_a_plan_carries_the_board_through_a_host_pause_shorter_than_its_span():
+    """Plans every 8 ms, then a 45 ms pause: the board follows the plan's knots through the pause and
+    never brakes; a plain command stream with the same pause brakes."""
+    dt = 0.001
+    for kind in ("plan", "command"):
+        board = BoardSim(JOINTS, feedback_period_s=dt)
+        t, sent, setpoints = 0.0, 0, []
+        while t < 0.2:
+            pause = 0.08 <= t < 0.125
+            if not pause and round(t / dt) % 8 == 0:
+                start = 0.1 * t
+                frame = ramp_plan(sent, start) if kind == "plan" else CommandFrame.hold(sent, np.full(N, start))
+                board.receive(frame, t)
+                sent += 1
+            board.step(t, inside(), np.zeros(N), dt)
+            if pause and kind == "plan":
+                setpoints.append((t, board.last_safe[0]))
+            t = round(t + dt, 9)
+        if kind == "plan":
+            assert board.brake_events == 0 and board.counters["plans"] == sent
+            t_p, q_p = np.array(setpoints).T
+            assert np.allclose(q_p, 0.1 * np.minimum(t_p, 0.072 + 0.048), atol=1e-6)  # on the ramp, then held
+        else:
+            assert board.brake_events == 1
+
+
+def test_a_plan_brakes_10_ms_after_its_last_knot_when_the_host_stops():
+    dt = 0.001
+    board = BoardSim(JOINTS, feedback_period_s=dt)
+    t, braked_at = 0.0, None
+    while t < 0.15:
+        if t <= 0.04 and round(t / dt) % 8 == 0:
+            board.receive(ramp_plan(int(t * 1e3), 0.1 * t), t)
+            last = t
+        _, fb = board.step(t, inside(), np.zeros(N), dt)
+        if fb is not None and fb.watchdog_expired and braked_at is None and t > 0:
+            braked_at = t
+        t = round(t + dt, 9)
+    end = last + 0.048
+    assert board.last_brake["plan_end"] == pytest.approx(end)
+    assert 0.010 < braked_at - end <= 0.010 + dt + 1e-9, f"{(braked_at - end) * 1e3:.2f} ms after the plan's end"
+
+
 def fall(board: BoardSim, mass: float, weight: float, seconds: float, dt: float = 0.002) -> list[float]:
     """A Z axis (mass, weight pulling +q = down) braked by the board; returns the velocity per step."""
     q = qd = 0.0
