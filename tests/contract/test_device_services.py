@@ -294,6 +294,10 @@ def test_robot_service_drives_the_worlds_hand_arm_and_publishes_its_state_key(ro
             assert list(states[-1].name) == names
             state_time = lambda: msgs.stamp_seconds(states[-1].header.stamp)  # noqa: E731
 
+            # the hold starts with the commands: until they flow the board brakes and the fingers sag
+            wait_until(lambda: (query_json(session, "xm/robot/hand_arm/@health") or [{}])[0].get("watchdog") == "ok",
+                       30, lambda: f"the robot's commands: {robot.output()}")
+            world_time_passes(state_time, 0.2)
             if finger_mode == "pneumatic":
                 world_time_passes(state_time, 1.0)  # the vented muscles fill to their bias (a sag)
             held = np.asarray(states[-1].position)
