@@ -28,7 +28,7 @@ from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
 
 from shared import msgs  # noqa: E402
-from shared.runtime import Node, fifo, latest, open_client, open_router  # noqa: E402
+from shared.runtime import Node, fifo, latest, open_client, open_router, shm  # noqa: E402
 
 N_PING = 2000
 N_WARM = 200
@@ -67,7 +67,10 @@ def raw_pingpong(endpoint: str) -> np.ndarray:
     return np.array(rtts)
 
 
-def raw_throughput(endpoint: str, size: int) -> float:
+def raw_throughput(endpoint: str, size: int, from_pool: bool = False) -> float:
+    """Raw puts of ``size`` bytes. ``from_pool``: each payload copied into a buffer of a
+    shared-memory pool of the typed runtime's size and put from there (as bytes when the pool is
+    full), zenoh-python's own way for a large payload to a process on the same host."""
     a, b = open_client(endpoint), open_client(endpoint)
     count = [0]
     done = threading.Event()
@@ -80,15 +83,28 @@ def raw_throughput(endpoint: str, size: int) -> float:
 
     b.declare_subscriber("bench/raw/bulk", on)
     pub = a.declare_publisher("bench/raw/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
+    provider = ShmProvider.default_backend(shm.POOL_BYTES) if from_pool else None
     time.sleep(0.5)
     payload = b"y" * size
+    copied = 0
     t0 = time.perf_counter()
     for _ in range(n):
-        pub.put(payload)
+        if provider is None:
+            pub.put(payload)
+            continue
+        try:
+            buf = provider.alloc(size, policy=GarbageCollect())
+        except zenoh.ZError:
+            pub.put(payload)
+            copied += 1
+            continue
+        buf[0:size] = payload
+        pub.put(buf)
     elapsed = wait_counted(count, done.is_set, t0)
     a.close()
     b.close()
-    print(f"raw throughput {size} B: {count[0]}/{n} received")
+    print(f"raw throughput {size} B{' from a shared-memory pool' if from_pool else ''}: {count[0]}/{n} received"
+          + (f", {copied} copied (pool full)" if from_pool else ""))
     return count[0] / elapsed
 
 
