@@ -43,13 +43,13 @@ def _after(g: int, n: int) -> int:
     return g if n == 0 else min(g, n & -n)
 
 
-def _string_de(buf: memoryview, pos: int) -> tuple[str, int]:
+def _string_de(buf: bytes, pos: int) -> tuple[str, int]:
     pos = (pos + 3) & -4
     (length,) = _U32.unpack_from(buf, pos)
     end = pos + 4 + length
     if length < 1 or end > len(buf) or buf[end - 1] != 0:
-        raise ValueError(f"string of {length} bytes at {pos} does not fit a {len(buf)}-byte body")
-    return bytes(buf[pos + 4:end - 1]).decode(), end
+        raise ValueError(f"string of {length} bytes at {pos} does not fit a {len(buf)}-byte payload")
+    return str(buf[pos + 4:end - 1], "utf-8"), end
 
 
 def _string_se(text: str, out: list, pos: int) -> int:
@@ -160,7 +160,9 @@ class _Body:
 
 class _Reader(_Body):
     def align_code(self, size: int, indent: str) -> None:
-        self.emit(f"{indent}pos = (pos + {size - 1}) & -{size}")
+        # pos counts from the start of the payload, alignment from the body 4 bytes further
+        self.emit(f"{indent}pos = (pos + {size - 1}) & -{size}" if size <= 4 else
+                  f"{indent}pos = ((pos + {size - 5}) & -{size}) + 4")
 
     def flush_run(self, packer: str, exprs: list[str]) -> None:
         self.emit(f"{', '.join(exprs)}, = {packer}.unpack_from(buf, pos)")
@@ -310,12 +312,13 @@ class _Writer(_Body):
         return self.src.helpers[key]
 
 
-def reader(store: Any, msgtype: str) -> Callable[[memoryview], tuple[Any, int]]:
-    """``read(body) -> (message, end)`` for a little-endian CDR body (the payload after its header).
-    Raises UnsupportedTypeError for a type with fields it does not handle."""
+def reader(store: Any, msgtype: str) -> Callable[[bytes], tuple[Any, int]]:
+    """``read(payload) -> (message, end)`` for a little-endian CDR payload (any bytes-like object,
+    its header already checked); ``end``: where the message ended in it. Raises
+    UnsupportedTypeError for a type with fields it does not handle."""
     src = _Source(store)
     body = _Reader(src, "def read(buf):", 8)
-    body.emit("pos = 0")
+    body.emit("pos = 4")
     obj = body.message(msgtype)
     body.flush()
     body.emit(f"return {obj}, pos")

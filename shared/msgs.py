@@ -114,21 +114,43 @@ def serialize(msg: Any, msgtype: str | None = None) -> bytes:
 def deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
     """The message in a CDR payload (either byte order); MessageError if it is not one of ``msgtype``."""
     fast = _reader(msgtype)
-    view = memoryview(data)
     try:
-        if len(view) < CDR_HEADER or view[0] != 0 or view[1] > 1:
+        if len(data) < CDR_HEADER or data[0] != 0 or data[1] > 1:
             raise ValueError("invalid or unsupported CDR encapsulation")
-        if view[1] and fast is not None:
-            msg, end = fast(view[CDR_HEADER:])
+        if data[1] and fast is not None:
+            msg, end = fast(data)
         else:
             d = _msgdef(msgtype)
-            read = d.deserialize_cdr_le if view[1] else d.deserialize_cdr_be
-            msg, end = read(view[CDR_HEADER:], 0, d.cls, typestore())
-        if end + CDR_HEADER + CDR_PADDING_MAX < len(view):
-            raise ValueError(f"{len(view) - end - CDR_HEADER} bytes beyond the message")
+            read = d.deserialize_cdr_le if data[1] else d.deserialize_cdr_be
+            msg, end = read(memoryview(data)[CDR_HEADER:], 0, d.cls, typestore())
+            end += CDR_HEADER
+        if end + CDR_PADDING_MAX < len(data):
+            raise ValueError(f"{len(data) - end} bytes beyond the message")
     except Exception as exc:  # the generated code raises several types on truncated or garbage input
-        raise MessageError(f"payload of {len(view)} bytes is not a valid {msgtype}: {exc}") from exc
+        raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
     return msg
+
+
+@cache
+def decoder(msgtype: str) -> Any:
+    """``deserialize`` for one type, looked up once (a subscription's per-key decoder): the
+    generated reader called straight for a little-endian payload."""
+    read = _reader(msgtype)
+    if read is None:
+        return lambda data: deserialize(data, msgtype)
+
+    def decode(data: bytes) -> Any:
+        if data[:2] != b"\x00\x01":
+            return deserialize(data, msgtype)  # big endian or garbage: the slow path says which
+        try:
+            msg, end = read(data)
+        except Exception as exc:  # the generated code raises several types on truncated or garbage input
+            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
+        if end + CDR_PADDING_MAX < len(data):
+            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: "
+                               f"{len(data) - end} bytes beyond the message")
+        return msg
+    return decode
 
 
 def schema_text(msgtype: str) -> str:

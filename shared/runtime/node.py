@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import inspect
 import json
 import logging
@@ -103,6 +104,7 @@ class Subscription:
             maxlen=policy.depth if policy.kind == "latest" else None)
         self._lock = threading.Lock()
         self._scheduled = False
+        self._whole_batches = policy.kind == "fifo" or policy.depth == 1
         self._loop = node.loop
         # Plain functions run straight from the loop callback (one hop); coroutines get a task.
         self._is_async = inspect.iscoroutinefunction(handler)
@@ -113,7 +115,7 @@ class Subscription:
         self.dropped: collections.Counter[str] = collections.Counter()
         # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
         self.refused: dict[str, dict[str, str]] = {}
-        self._keys: dict[str, tuple[RateMeter, str, int]] = {}  # key -> (received meter, type, size limit)
+        self._keys: dict[str, tuple] = {}  # key -> what decoding needs (_key)
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
@@ -168,8 +170,8 @@ class Subscription:
             with self._lock:
                 self.arrived[key] += 1
             return
-        queue = self._queue
         with self._lock:
+            queue = self._queue
             self.arrived[key] += 1
             if len(queue) >= self.policy.depth:
                 if self.policy.kind == "fifo":
@@ -187,37 +189,47 @@ class Subscription:
             pass
 
     def _drain(self) -> None:
-        lock, queue, handler, wants_key = self._lock, self._queue, self._handler, self._wants_key
+        lock, handler, wants_key = self._lock, self._handler, self._wants_key
         while True:
             with lock:
-                if not queue:
+                if not self._queue:
                     self._scheduled = False
                     return
-                key, payload = queue.popleft()
-            msg = self._decode(key, payload)
-            if msg is not None:
-                try:
-                    handler(msg, key) if wants_key else handler(msg)
-                except Exception as exc:  # a handler bug must not kill the subscription
-                    self._node.handler_failed(key, exc)
+                if self._whole_batches:  # what is queued now, at once: nothing in it could still give way
+                    batch, self._queue = self._queue, collections.deque(maxlen=self._queue.maxlen)
+                else:  # keep-latest(n > 1): one at a time, newer samples push out older ones meanwhile
+                    batch = (self._queue.popleft(),)
+            for key, payload in batch:
+                msg = self._decode(key, payload)
+                if msg is not None:
+                    try:
+                        handler(msg, key) if wants_key else handler(msg)
+                    except Exception as exc:  # a handler bug must not kill the subscription
+                        self._node.handler_failed(key, exc)
 
-    def _key(self, key: str) -> tuple[RateMeter, str, int]:
-        """What decoding a sample on ``key`` needs, looked up on its first sample."""
+    def _key(self, key: str) -> tuple:
+        """What decoding a sample on ``key`` needs, looked up on its first sample: its received
+        meter, type, size limit, decoder and whether it has a header stamp to check."""
         msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
-        self._keys[key] = (self._node.stats.received_meter(key), msgtype, validate.max_payload(msgtype))
+        try:
+            decode, stamped = msgs.decoder(msgtype), "header" in msgs.msg_class(msgtype).__dataclass_fields__
+        except msgs.MessageError:  # an unknown type: every sample is rejected, as malformed
+            decode, stamped = functools.partial(msgs.deserialize, msgtype=msgtype), False
+        self._keys[key] = (self._node.stats.received_meter(key), msgtype, validate.max_payload(msgtype), decode,
+                           stamped)
         return self._keys[key]
 
     def _decode(self, key: str, payload: bytes) -> Any:
-        meter, msgtype, limit = self._keys.get(key) or self._key(key)
+        meter, msgtype, limit, decode, stamped = self._keys.get(key) or self._key(key)
         meter.tick(time.monotonic())
         if msgtype == "raw":
             return payload
-        clock = self._node.clock
         try:
             if len(payload) > limit:
                 validate.check_size(len(payload), msgtype)
-            msg = msgs.deserialize(payload, msgtype)
-            validate.check(msg, msgtype, clock.now() if clock.started else None)
+            msg = decode(payload)
+            clock = self._node.clock
+            validate.check(msg, msgtype, clock.now() if stamped and clock.started else None)
         except msgs.MessageError as exc:
             self._node.reject(key, "malformed", str(exc))
             return None
