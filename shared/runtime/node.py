@@ -1,9 +1,10 @@
 """The node: one service instance's window onto Zenoh, bridged into asyncio.
 
 Zenoh callbacks run on Zenoh threads; they only copy the payload and hand it to the event loop
-with ``call_soon_threadsafe``. Each subscription owns a bounded queue with an explicit policy:
-``latest(n)`` keeps the newest n samples (control loops), ``fifo(n)`` keeps all up to n (the
-recorder); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
+with ``call_soon_threadsafe``, once per batch: samples that arrive while one is pending join it.
+Each subscription owns a bounded queue with an explicit policy: ``latest(n)`` keeps the newest n
+samples (control loops), ``fifo(n)`` keeps all up to n waiting (the recorder; a batch being handled
+has left the queue); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
 validation (shared/runtime/validate.py) and handlers run on the loop, so a slow handler never
 blocks Zenoh, and a payload that is malformed or unfit is counted per key and reason
 ("rejected") and never reaches the handler. Warnings about bad input are rate-limited per kind.
