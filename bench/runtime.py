@@ -1,18 +1,26 @@
 """P1: the typed runtime against raw zenoh-python in the same run.
 
 Ping-pong latency (64 B payload, p50/p99) and one-way throughput of 4 kB and 300 kB messages
-(a camera frame), through a router on loopback as in a deployment. Throughput publishers block
-when the transport is congested (raw and typed alike), so both count delivered capacity rather
-than what a flood left after drops. The typed runtime is measured
-both ways a subscription can run: handlers on the event loop (the default) and ``inline`` on
-Zenoh's threads (shared/runtime/node.py). Writes .bench/runtime.json; targets: latency <= 1.15x
-raw, throughput >= 0.8x raw.
+(a camera frame), through a router on loopback as in a deployment, every session opened alike
+(shared/runtime/zsession.py). Throughput publishers block when the transport is congested (raw
+and typed alike), so both count delivered capacity rather than what a flood left after drops.
+The typed runtime is measured both ways a subscription can run: handlers on the event loop (the
+default) and ``inline`` on Zenoh's threads (shared/runtime/node.py). At 300 kB the typed
+publisher puts from its shared-memory pool (shared/runtime/shm.py); the raw baseline is measured
+both as plain bytes and copying each payload into a pool buffer of the same size first
+(zenoh-python's own way), and the ratio is taken against the faster. Throughput runs ``--repeat``
+times interleaved; medians of rates and of per-round ratios are reported, with the process's CPU
+time per message and the host's load. ``--rss-seconds`` adds a long run in separate processes
+(router, publisher of 300 kB images, subscriber) sampling each one's RSS, then restarts the
+publisher to measure what each restart leaves mapped. Writes .bench/runtime.json; targets:
+latency <= 1.15x raw, throughput >= 0.8x raw.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import socket
@@ -23,12 +31,13 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-from zenoh.shm import BlockOn, GarbageCollect, ShmProvider
+from zenoh.shm import GarbageCollect, ShmProvider
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # runnable as a script from anywhere
 
+from bench import _shm_rss as shm_rss  # noqa: E402
 from shared import msgs  # noqa: E402
-from shared.runtime import Node, fifo, latest, open_client, open_router  # noqa: E402
+from shared.runtime import Node, fifo, latest, open_client, open_router, shm  # noqa: E402
 
 N_PING = 2000
 N_WARM = 200
@@ -59,7 +68,7 @@ def raw_pingpong(endpoint: str) -> np.ndarray:
         got.clear()
         t0 = time.perf_counter()
         ping.put(payload)
-        got.wait(2.0)
+        got.wait(10.0)
         if i >= N_WARM:
             rtts.append(time.perf_counter() - t0)
     a.close()
@@ -67,7 +76,10 @@ def raw_pingpong(endpoint: str) -> np.ndarray:
     return np.array(rtts)
 
 
-def raw_throughput(endpoint: str, size: int) -> float:
+def raw_throughput(endpoint: str, size: int, from_pool: bool = False) -> tuple[float, float]:
+    """Raw puts of ``size`` bytes. ``from_pool``: each payload copied into a buffer of a
+    shared-memory pool of the typed runtime's size and put from there (as bytes when the pool is
+    full), zenoh-python's own way for a large payload to a process on the same host."""
     a, b = open_client(endpoint), open_client(endpoint)
     count = [0]
     done = threading.Event()
@@ -80,58 +92,30 @@ def raw_throughput(endpoint: str, size: int) -> float:
 
     b.declare_subscriber("bench/raw/bulk", on)
     pub = a.declare_publisher("bench/raw/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
+    provider = ShmProvider.default_backend(shm.POOL_BYTES) if from_pool else None
     time.sleep(0.5)
     payload = b"y" * size
-    t0 = time.perf_counter()
+    copied = 0
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for _ in range(n):
-        pub.put(payload)
+        if provider is None:
+            pub.put(payload)
+            continue
+        try:
+            buf = provider.alloc(size, policy=GarbageCollect())
+        except zenoh.ZError:
+            pub.put(payload)
+            copied += 1
+            continue
+        buf[0:size] = payload
+        pub.put(buf)
     elapsed = wait_counted(count, done.is_set, t0)
+    cpu = time.process_time() - cpu0
     a.close()
     b.close()
-    print(f"raw throughput {size} B: {count[0]}/{n} received")
-    return count[0] / elapsed
-
-
-def shm_throughput(size: int) -> dict[str, float]:
-    """Raw zenoh-python at ``size`` through a router with Zenoh's shared-memory transport on: each
-    message put from a buffer of the publisher's SHM pool, against plain bytes through the same
-    router. The deployment keeps SHM off (shared/runtime/zsession.py): this is the measurement."""
-    def config(mode: str, **endpoints: list[str]) -> zenoh.Config:
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps(mode))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("transport/shared_memory/enabled", "true")
-        for k, v in endpoints.items():
-            conf.insert_json5(f"{k}/endpoints", json.dumps(v))
-        return conf
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = zenoh.open(config("router", listen=[endpoint]))
-    a, b = zenoh.open(config("client", connect=[endpoint])), zenoh.open(config("client", connect=[endpoint]))
-    count, shm_seen = [0], [0]
-
-    def on(sample: zenoh.Sample) -> None:
-        count[0] += 1
-        shm_seen[0] += sample.payload.as_shm() is not None
-
-    b.declare_subscriber("bench/shm/bulk", on)
-    pub = a.declare_publisher("bench/shm/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
-    provider = ShmProvider.default_backend(64 * 1024 * 1024)
-    time.sleep(0.5)
-    n, payload, out = n_for(size), b"y" * size, {}
-    for label in ("shm", "bytes"):
-        count[0] = shm_seen[0] = 0
-        t0 = time.perf_counter()
-        for _ in range(n):
-            if label == "shm":
-                pub.put(provider.alloc(size, policy=BlockOn(GarbageCollect())))
-            else:
-                pub.put(payload)
-        out[label] = count[0] / wait_counted(count, lambda: count[0] >= n, t0)
-        out[f"{label}_delivered_as_shm"] = shm_seen[0]
-    for s in (a, b, router):
-        s.close()
-    return out
+    print(f"raw throughput {size} B{' from a shared-memory pool' if from_pool else ''}: {count[0]}/{n} received"
+          + (f", {copied} copied (pool full)" if from_pool else ""))
+    return count[0] / elapsed, cpu / max(count[0], 1) * 1e6
 
 
 def n_for(size: int) -> int:
@@ -168,7 +152,7 @@ async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
             got.clear()
             t0 = time.perf_counter()
             ping.put(msg)
-            got.wait(2.0)
+            got.wait(10.0)
             if i >= N_WARM:
                 out.append(time.perf_counter() - t0)
         return out
@@ -181,7 +165,8 @@ async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
             waiter[:] = [loop.create_future()]
             t0 = time.perf_counter()
             ping.put(msg)
-            await asyncio.wait_for(waiter[0], 2.0)
+            with contextlib.suppress(asyncio.TimeoutError):  # a stalled round counts at 10 s, as raw's does
+                await asyncio.wait_for(waiter[0], 10.0)
             if i >= N_WARM:
                 rtts.append(time.perf_counter() - t0)
     for node in (a, b):
@@ -190,7 +175,7 @@ async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
     return np.array(rtts)
 
 
-async def typed_throughput(endpoint: str, size: int, inline: bool) -> float:
+async def typed_throughput(endpoint: str, size: int, inline: bool) -> tuple[float, float]:
     a = Node("bench", "src", open_client(endpoint))
     b = Node("bench", "dst", open_client(endpoint))
     count = [0]
@@ -206,7 +191,7 @@ async def typed_throughput(endpoint: str, size: int, inline: bool) -> float:
     await asyncio.sleep(0.5)
     layout = msgs.make("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
     msg = msgs.make(BULK_TYPE, layout=layout, data=np.full(size - 16, 7, np.uint8))  # size bytes on the wire
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for i in range(n):
         pub.put(msg)
         if i % 500 == 0:
@@ -216,52 +201,91 @@ async def typed_throughput(endpoint: str, size: int, inline: bool) -> float:
         last, t_last = count[0], time.perf_counter()
         await asyncio.sleep(0.2)
     elapsed = (time.perf_counter() if count[0] >= n else t_last) - t0
-    print(f"typed{' inline' if inline else ''} throughput {size} B: {count[0]}/{n} received, "
-          f"errors {dict(b.stats.errors)}")
+    cpu = time.process_time() - cpu0
+    print(f"typed{' inline' if inline else ''} throughput {size} B: {count[0]}/{n} received, {pub.shm_sent} from "
+          f"the shared-memory pool, errors {dict(a.stats.errors) | dict(b.stats.errors)}")
     for node in (a, b):
         await node.close()
         node.session.close()
-    return count[0] / elapsed
+    return count[0] / elapsed, cpu / max(count[0], 1) * 1e6
 
 
 def percentiles(lat: np.ndarray) -> dict:
     return {"p50_us": float(np.percentile(lat, 50) * 1e6), "p99_us": float(np.percentile(lat, 99) * 1e6)}
 
 
+def throughput_rounds(endpoint: str, repeat: int) -> dict:
+    """Every path at every size, ``repeat`` rounds interleaved: per size and path the rates and CPU
+    per message of each round, their medians, and the medians of each round's typed/raw ratios."""
+    rounds: dict[str, dict[str, list]] = {str(size): {} for size in SIZES}
+    for _ in range(repeat):
+        for size in SIZES:
+            runs = {"raw": raw_throughput(endpoint, size)}
+            if size >= shm.MIN_BYTES:
+                runs["raw_pool"] = raw_throughput(endpoint, size, from_pool=True)
+            runs["loop"] = asyncio.run(typed_throughput(endpoint, size, False))
+            runs["inline"] = asyncio.run(typed_throughput(endpoint, size, True))
+            for path, (rate, cpu) in runs.items():
+                rounds[str(size)].setdefault(path, []).append({"msg_s": rate, "cpu_us_per_msg": cpu})
+    out: dict = {}
+    for size, paths in rounds.items():
+        base = [max(r["msg_s"], p["msg_s"]) for r, p in zip(paths["raw"], paths.get("raw_pool", paths["raw"]),
+                                                              strict=True)]
+        out[size] = {
+            "rounds": paths,
+            "median_msg_s": {k: float(np.median([r["msg_s"] for r in v])) for k, v in paths.items()},
+            "median_cpu_us_per_msg": {k: float(np.median([r["cpu_us_per_msg"] for r in v])) for k, v in paths.items()},
+            "median_ratio": {k: float(np.median([r["msg_s"] / b for r, b in zip(paths[k], base, strict=True)]))
+                             for k in ("loop", "inline")},
+            "baseline": "raw_pool" if "raw_pool" in paths else "raw",
+        }
+    return out
+
+
 def main() -> None:
-    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeat", type=int, default=5, help="throughput rounds (default %(default)s)")
+    parser.add_argument("--rss-seconds", type=float, default=0.0,
+                        help="also stream 300 kB images between processes this long, sampling RSS (default: no)")
+    parser.add_argument("--restarts", type=int, default=5,
+                        help="publisher restarts after the RSS run (default %(default)s)")
+    args = parser.parse_args()
+    load_before = os.getloadavg()[0]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = open_router(endpoint)
     raw = [raw_pingpong(endpoint)]
     lat = {"loop": asyncio.run(typed_pingpong(endpoint, False)), "inline": asyncio.run(typed_pingpong(endpoint, True))}
     raw.append(raw_pingpong(endpoint))  # again, so drift of the machine shows up
     lat["raw"] = np.concatenate(raw)
-    tp: dict[str, dict[str, float]] = {}
-    for size in SIZES:
-        tp[str(size)] = {"raw": raw_throughput(endpoint, size),
-                         "loop": asyncio.run(typed_throughput(endpoint, size, False)),
-                         "inline": asyncio.run(typed_throughput(endpoint, size, True))}
+    tp = throughput_rounds(endpoint, args.repeat)
     router.close()
-    shm = shm_throughput(SIZES[-1])
-    res: dict = {"latency_us": {k: percentiles(v) for k, v in lat.items()}, "throughput_msg_s": tp,
-                 "shared_memory_raw_msg_s": shm, "loadavg_1m": os.getloadavg()[0]}
+    res: dict = {"latency_us": {k: percentiles(v) for k, v in lat.items()}, "throughput": tp,
+                 "loadavg_1m": {"start": load_before, "end": os.getloadavg()[0]}, "cpus": os.cpu_count()}
     res["ratios"] = {path: {
         "latency_p50": res["latency_us"][path]["p50_us"] / res["latency_us"]["raw"]["p50_us"],
         "latency_p99": res["latency_us"][path]["p99_us"] / res["latency_us"]["raw"]["p99_us"],
-        **{f"throughput_{size}": tp[str(size)][path] / tp[str(size)]["raw"] for size in SIZES}}
+        **{f"throughput_{size}": tp[str(size)]["median_ratio"][path] for size in SIZES}}
         for path in ("loop", "inline")}
     res["targets"] = {"latency_ratio_max": 1.15, "throughput_ratio_min": 0.8}
+    if args.rss_seconds > 0:
+        res["shm_rss"] = shm_rss.measure(args.rss_seconds, args.restarts)
     Path(".bench").mkdir(exist_ok=True)
     Path(".bench/runtime.json").write_text(json.dumps(res, indent=2))
-    print(f"{'':>8}{'p50 us':>10}{'p99 us':>10}" + "".join(f"{f'{s} B msg/s':>16}" for s in SIZES))
+    print(f"{'':>8}{'p50 us':>10}{'p99 us':>10}")
     for path in ("raw", "loop", "inline"):
-        print(f"{path:>8}{res['latency_us'][path]['p50_us']:>10.0f}{res['latency_us'][path]['p99_us']:>10.0f}"
-              + "".join(f"{tp[str(s)][path]:>16.0f}" for s in SIZES))
-    print(f"raw {SIZES[-1]} B with the shared-memory transport: {shm['shm']:.0f} msg/s from SHM buffers, "
-          f"{shm['bytes']:.0f} msg/s from bytes ({shm['shm_delivered_as_shm']} delivered as SHM)")
+        print(f"{path:>8}{res['latency_us'][path]['p50_us']:>10.0f}{res['latency_us'][path]['p99_us']:>10.0f}")
+    for size in SIZES:
+        t = tp[str(size)]
+        cpu = t["median_cpu_us_per_msg"]
+        print(f"{size} B, median of {args.repeat}: " + ", ".join(
+            f"{k} {v:.0f} msg/s ({cpu[k]:.1f} us CPU/msg)" for k, v in t["median_msg_s"].items()))
     for path, r in res["ratios"].items():
         print(f"{path} / raw: " + ", ".join(f"{k} {v:.2f}x" for k, v in r.items())
               + " (targets: latency <= 1.15x, throughput >= 0.8x)")
+    print(f"load average {load_before:.1f} at the start, {res['loadavg_1m']['end']:.1f} at the end, "
+          f"{os.cpu_count()} CPUs")
+    if "shm_rss" in res:
+        shm_rss.report(res["shm_rss"])
 
 
 if __name__ == "__main__":

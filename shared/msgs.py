@@ -1,9 +1,10 @@
 """Message types: standard ROS 2 definitions plus ``xm_msgs`` from ``shared/msg``, encoded as CDR.
 
 One rosbags typestore serves every service, the recorder and the tests, so the bytes on the
-wire are the bytes in the MCAP file. ``serialize`` and ``deserialize`` call the typestore's
-code generated per type directly: no per-message lookups, no copy of the payload (arrays of a
-decoded message are read-only views into it).
+wire are the bytes in the MCAP file. ``serialize`` and ``deserialize`` run a codec generated once
+per type (shared/cdr.py; the typestore's own for a big-endian payload or host, or a type the
+generator does not handle): no per-message lookups, no copy of the payload (arrays of a decoded
+message are read-only views into it).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from struct import pack_into
 from typing import Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from shared import cdr
 
 MSG_DIR = Path(__file__).parent / "msg"
 PACKAGE = "xm_msgs"
@@ -54,8 +57,48 @@ def _msgdef(msgtype: str) -> Any:
         raise MessageError(f"unknown message type {msgtype!r}") from None
 
 
+@cache
+def _writer(msgtype: str) -> Any:
+    """The generated writer of ``msgtype`` (None: use the typestore's)."""
+    _msgdef(msgtype)  # an unknown type raises MessageError
+    if not LITTLE_ENDIAN:
+        return None
+    try:
+        return cdr.writer(typestore(), msgtype)
+    except cdr.UnsupportedTypeError:
+        return None
+
+
+@cache
+def _reader(msgtype: str) -> Any:
+    _msgdef(msgtype)
+    if not LITTLE_ENDIAN:
+        return None
+    try:
+        return cdr.reader(typestore(), msgtype)
+    except cdr.UnsupportedTypeError:
+        return None
+
+
+@cache
+def pieces_writer(msgtype: str) -> Any:
+    """``write(msg) -> (pieces, size)``: the CDR payload of a ``msgtype`` message as bytes-like
+    pieces to join or copy in order, and its size in bytes (a publisher looks this up once)."""
+    write = _writer(msgtype)
+    if write is not None:
+        return write
+
+    def whole(msg: Any) -> tuple[list, int]:
+        data = serialize(msg, msgtype)
+        return [data], len(data)
+    return whole
+
+
 def serialize(msg: Any, msgtype: str | None = None) -> bytes:
     """CDR bytes of ``msg`` in the host's byte order, as ``typestore().serialize_cdr`` writes them."""
+    write = _writer(msgtype or msg.__msgtype__)
+    if write is not None:
+        return b"".join(write(msg)[0])
     d = _msgdef(msgtype or msg.__msgtype__)
     size = CDR_HEADER + d.getsize_cdr(0, msg, typestore())
     out = bytearray(size)
@@ -70,18 +113,44 @@ def serialize(msg: Any, msgtype: str | None = None) -> bytes:
 
 def deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
     """The message in a CDR payload (either byte order); MessageError if it is not one of ``msgtype``."""
-    d = _msgdef(msgtype)
-    view = memoryview(data)
+    fast = _reader(msgtype)
     try:
-        if len(view) < CDR_HEADER or view[0] != 0 or view[1] > 1:
+        if len(data) < CDR_HEADER or data[0] != 0 or data[1] > 1:
             raise ValueError("invalid or unsupported CDR encapsulation")
-        read = d.deserialize_cdr_le if view[1] else d.deserialize_cdr_be
-        msg, end = read(view[CDR_HEADER:], 0, d.cls, typestore())
-        if end + CDR_HEADER + CDR_PADDING_MAX < len(view):
-            raise ValueError(f"{len(view) - end - CDR_HEADER} bytes beyond the message")
+        if data[1] and fast is not None:
+            msg, end = fast(data)
+        else:
+            d = _msgdef(msgtype)
+            read = d.deserialize_cdr_le if data[1] else d.deserialize_cdr_be
+            msg, end = read(memoryview(data)[CDR_HEADER:], 0, d.cls, typestore())
+            end += CDR_HEADER
+        if end + CDR_PADDING_MAX < len(data):
+            raise ValueError(f"{len(data) - end} bytes beyond the message")
     except Exception as exc:  # the generated code raises several types on truncated or garbage input
-        raise MessageError(f"payload of {len(view)} bytes is not a valid {msgtype}: {exc}") from exc
+        raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
     return msg
+
+
+@cache
+def decoder(msgtype: str) -> Any:
+    """``deserialize`` for one type, looked up once (a subscription's per-key decoder): the
+    generated reader called straight for a little-endian payload."""
+    read = _reader(msgtype)
+    if read is None:
+        return lambda data: deserialize(data, msgtype)
+
+    def decode(data: bytes) -> Any:
+        if data[:2] != b"\x00\x01":
+            return deserialize(data, msgtype)  # big endian or garbage: the slow path says which
+        try:
+            msg, end = read(data)
+        except Exception as exc:  # the generated code raises several types on truncated or garbage input
+            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
+        if end + CDR_PADDING_MAX < len(data):
+            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: "
+                               f"{len(data) - end} bytes beyond the message")
+        return msg
+    return decode
 
 
 def schema_text(msgtype: str) -> str:

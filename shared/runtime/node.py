@@ -1,9 +1,10 @@
 """The node: one service instance's window onto Zenoh, bridged into asyncio.
 
 Zenoh callbacks run on Zenoh threads; they only copy the payload and hand it to the event loop
-with ``call_soon_threadsafe``. Each subscription owns a bounded queue with an explicit policy:
-``latest(n)`` keeps the newest n samples (control loops), ``fifo(n)`` keeps all up to n (the
-recorder); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
+with ``call_soon_threadsafe``, once per batch: samples that arrive while one is pending join it.
+Each subscription owns a bounded queue with an explicit policy: ``latest(n)`` keeps the newest n
+samples (control loops), ``fifo(n)`` keeps all up to n waiting (the recorder; a batch being handled
+has left the queue); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
 validation (shared/runtime/validate.py) and handlers run on the loop, so a slow handler never
 blocks Zenoh, and a payload that is malformed or unfit is counted per key and reason
 ("rejected") and never reaches the handler. Warnings about bad input are rate-limited per kind.
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import inspect
 import json
 import logging
@@ -34,7 +36,7 @@ import zenoh
 from shared import keys as keyreg
 from shared import msgs
 from shared.ports import QueuePolicy, fifo, latest
-from shared.runtime import schemas, validate
+from shared.runtime import schemas, shm, validate
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
 from shared.runtime.stats import RateMeter, Stats
@@ -47,7 +49,9 @@ LOG_SUMMARY_S = 10.0  # a recurring warning is summarised at most this often
 
 class Publisher:
     """Typed puts on one key. ``block``: when the transport is congested, ``put`` waits instead of
-    dropping (for bulk transfers that must arrive whole; a control loop wants the default, drop)."""
+    dropping (for bulk transfers that must arrive whole; a control loop wants the default, drop).
+    A payload of ``shm.MIN_BYTES`` or more goes out from the process's shared-memory pool
+    (shared/runtime/shm.py), as bytes when the pool is unavailable or full (counted)."""
 
     def __init__(self, node: Node, key: str, msgtype: str, block: bool = False) -> None:
         self.key = key
@@ -56,14 +60,33 @@ class Publisher:
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._pub = node.session.declare_publisher(key, congestion_control=congestion)
         self._type_token = node.session.liveliness().declare_token(schemas.token_key(key, msgtype))
+        self._write = msgs.pieces_writer(msgtype)
         self.meter = node.stats.published.setdefault(key, RateMeter())
+        self.shm_sent = 0  # payloads put from the shared-memory pool
 
     def put(self, msg: Any) -> None:
-        self.put_bytes(msgs.serialize(msg, self.msgtype))
+        pieces, size = self._write(msg)
+        if size >= shm.MIN_BYTES:
+            self._put_large(pieces, size)
+        else:
+            self._pub.put(b"".join(pieces))
+        self.meter.tick(time.monotonic())
 
     def put_bytes(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        if len(payload) >= shm.MIN_BYTES:
+            self._put_large([payload], len(payload))
+        else:
+            self._pub.put(payload)
         self.meter.tick(time.monotonic())
+
+    def _put_large(self, pieces: list, size: int) -> None:
+        buf, why = shm.POOL.buffer(pieces, size)
+        if buf is None:
+            self._node.stats.count(why, self.key)
+            self._pub.put(b"".join(pieces))
+        else:
+            self._pub.put(buf)
+            self.shm_sent += 1
 
 
 class Subscription:
@@ -82,6 +105,7 @@ class Subscription:
             maxlen=policy.depth if policy.kind == "latest" else None)
         self._lock = threading.Lock()
         self._scheduled = False
+        self._whole_batches = policy.kind == "fifo" or policy.depth == 1
         self._loop = node.loop
         # Plain functions run straight from the loop callback (one hop); coroutines get a task.
         self._is_async = inspect.iscoroutinefunction(handler)
@@ -92,6 +116,7 @@ class Subscription:
         self.dropped: collections.Counter[str] = collections.Counter()
         # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
         self.refused: dict[str, dict[str, str]] = {}
+        self._keys: dict[str, tuple] = {}  # key -> what decoding needs (_key)
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
@@ -131,7 +156,7 @@ class Subscription:
             self.arrived[key] += 1
         if self.refused and self._refuse(key):
             return
-        msg = self._decode(key, sample.payload.to_bytes(), time.monotonic())
+        msg = self._decode(key, sample.payload.to_bytes())
         if msg is not None:
             try:
                 self._handler(msg, key) if self._wants_key else self._handler(msg)
@@ -140,20 +165,22 @@ class Subscription:
 
     # Zenoh thread: copy and hand over, nothing else.
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
-        if self.refused and self._refuse(item[0]):
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
+        if self.refused and self._refuse(key):
             with self._lock:
-                self.arrived[item[0]] += 1
+                self.arrived[key] += 1
             return
         with self._lock:
-            self.arrived[item[0]] += 1
-            if len(self._queue) >= self.policy.depth:
+            queue = self._queue
+            self.arrived[key] += 1
+            if len(queue) >= self.policy.depth:
                 if self.policy.kind == "fifo":
-                    self.dropped[item[0]] += 1  # the newest is refused
+                    self.dropped[key] += 1  # the newest is refused
                     self._node.stats.count("queue_overflow")  # the recorder reports this total
                     return
-                self.dropped[self._queue[0][0]] += 1  # keep-latest: the oldest gives way
-            self._queue.append(item)
+                self.dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
+            queue.append((key, payload))
             if self._scheduled:
                 return
             self._scheduled = True
@@ -162,33 +189,48 @@ class Subscription:
         except RuntimeError:  # loop closed during shutdown
             pass
 
-    def _next(self) -> tuple | None:
-        with self._lock:
-            if not self._queue:
-                self._scheduled = False
-                return None
-            return self._queue.popleft()
-
     def _drain(self) -> None:
-        while (item := self._next()) is not None:
-            msg = self._decode(*item)
-            if msg is not None:
-                try:
-                    self._handler(msg, item[0]) if self._wants_key else self._handler(msg)
-                except Exception as exc:  # a handler bug must not kill the subscription
-                    self._node.handler_failed(item[0], exc)
+        lock, handler, wants_key = self._lock, self._handler, self._wants_key
+        while True:
+            with lock:
+                if not self._queue:
+                    self._scheduled = False
+                    return
+                if self._whole_batches:  # what is queued now, at once: nothing in it could still give way
+                    batch, self._queue = self._queue, collections.deque(maxlen=self._queue.maxlen)
+                else:  # keep-latest(n > 1): one at a time, newer samples push out older ones meanwhile
+                    batch = (self._queue.popleft(),)
+            for key, payload in batch:
+                msg = self._decode(key, payload)
+                if msg is not None:
+                    try:
+                        handler(msg, key) if wants_key else handler(msg)
+                    except Exception as exc:  # a handler bug must not kill the subscription
+                        self._node.handler_failed(key, exc)
 
-    def _decode(self, key: str, payload: bytes, t_recv: float) -> Any:
-        stats = self._node.stats
-        meter = stats.received.get(key) or stats.received_meter(key)
-        meter.tick(t_recv)
-        msgtype = self.msgtype or keyreg.msgtype_of(key)
+    def _key(self, key: str) -> tuple:
+        """What decoding a sample on ``key`` needs, looked up on its first sample: its received
+        meter, type, size limit, decoder and whether it has a header stamp to check."""
+        msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
+        try:
+            decode, stamped = msgs.decoder(msgtype), "header" in msgs.msg_class(msgtype).__dataclass_fields__
+        except msgs.MessageError:  # an unknown type: every sample is rejected, as malformed
+            decode, stamped = functools.partial(msgs.deserialize, msgtype=msgtype), False
+        self._keys[key] = (self._node.stats.received_meter(key), msgtype, validate.max_payload(msgtype), decode,
+                           stamped)
+        return self._keys[key]
+
+    def _decode(self, key: str, payload: bytes) -> Any:
+        meter, msgtype, limit, decode, stamped = self._keys.get(key) or self._key(key)
+        meter.tick(time.monotonic())
         if msgtype == "raw":
             return payload
         try:
-            validate.check_size(len(payload), msgtype or "")
-            msg = msgs.deserialize(payload, msgtype or "")
-            validate.check(msg, msgtype or "", self._node.clock.now() if self._node.clock.started else None)
+            if len(payload) > limit:
+                validate.check_size(len(payload), msgtype)
+            msg = decode(payload)
+            clock = self._node.clock
+            validate.check(msg, msgtype, clock.now() if stamped and clock.started else None)
         except msgs.MessageError as exc:
             self._node.reject(key, "malformed", str(exc))
             return None
@@ -207,11 +249,11 @@ class Subscription:
                 with self._lock:
                     if not self._queue:
                         break
-                    key, payload, t_recv = self._queue.popleft()
-                await self._deliver(key, payload, t_recv)
+                    key, payload = self._queue.popleft()
+                await self._deliver(key, payload)
 
-    async def _deliver(self, key: str, payload: bytes, t_recv: float) -> None:
-        msg = self._decode(key, payload, t_recv)
+    async def _deliver(self, key: str, payload: bytes) -> None:
+        msg = self._decode(key, payload)
         if msg is None:
             return
         try:

@@ -19,13 +19,18 @@ class RateMeter:
         self.count = 0
         self._n = int(RATE_WINDOW_S * self.BUCKETS_PER_S)
         self._counts = [0] * self._n
-        self._bucket = 0  # index of the newest bucket, in quarter seconds since the clock's epoch
+        self._bucket = -1  # index of the newest bucket, in quarter seconds since the clock's epoch
+        self._slot = 0  # its place in _counts
         self._first = 0.0  # time of the first tick: a young meter's window is shorter
         self._lock = threading.Lock()
 
     def tick(self, now: float) -> None:
         b = int(now * self.BUCKETS_PER_S)
         with self._lock:
+            if b == self._bucket:  # most ticks: the bucket of the one before
+                self.count += 1
+                self._counts[self._slot] += 1
+                return
             if b > self._bucket:
                 self._roll(b)
             if not self.count:
@@ -38,6 +43,7 @@ class RateMeter:
         for i in range(max(self._bucket + 1, b - self._n + 1), b + 1):  # buckets passed since: empty
             self._counts[i % self._n] = 0
         self._bucket = b
+        self._slot = b % self._n
 
     def rate(self, now: float) -> float:
         with self._lock:

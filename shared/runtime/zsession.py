@@ -18,10 +18,12 @@ def _config(mode: str, listen: list[str] | None = None, connect: list[str] | Non
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false" if mode == "client" else "true")
-    # Zenoh's shared-memory transport gives every session a 16 MB pool in /dev/shm that each
-    # subscriber maps: a restarted publisher left its dead pool mapped in every subscriber (+16-20 MB
-    # RSS per restart) and in /dev/shm after a kill -9. Messages here are small (images ~15 kB).
-    conf.insert_json5("transport/shared_memory/enabled", "false")
+    # Shared memory between the processes of one host, for the payloads a typed publisher puts from
+    # its pool (shared/runtime/shm.py). Zenoh's implicit pool (every session copying each message
+    # over 3 kB into a 16 MB pool of its own) stays off: a receiver keeps every pool it read from
+    # mapped, also after its publisher restarted, so only large-payload publishers get a pool.
+    conf.insert_json5("transport/shared_memory/enabled", "true")
+    conf.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))
     conf.insert_json5("connect/endpoints", json.dumps(connect or []))
     for path, value in (extra or {}).items():  # e.g. a host's TLS links and access control (deploy/hosts.py)

@@ -1,0 +1,69 @@
+"""Large payloads through Zenoh's shared memory between the processes of one host.
+
+A typed publisher puts a payload of ``MIN_BYTES`` or more (camera frames, raw tactile) from a
+buffer of the process's one pool, created on the first such put; a subscriber on the same host
+reads it from the pool without the payload passing through the router's sockets. Sessions
+negotiate shared memory per link (shared/runtime/zsession.py), so a subscriber on another host
+gets the same payload copied over the network, with nothing to do here. When the pool cannot be
+created or is full, the payload goes out as bytes, counted per key as ``shm_unavailable`` or
+``shm_exhausted``.
+
+Zenoh keeps a pool mapped in every process that received from it, and in the router, for their
+lifetime, also after its publisher exits (eclipse-zenoh/zenoh#2787): each restart of a publisher
+that used its pool adds ``POOL_BYTES`` plus Zenoh's 1.25 MB of metadata to those processes'
+memory. So only processes that put large payloads have a pool, and it is small: a few dozen
+frames in flight.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import zenoh
+from zenoh.shm import GarbageCollect, ShmProvider, ZShmMut
+
+MIN_BYTES = 64 * 1024  # below this a copy through the router costs about what the pool's bookkeeping does
+POOL_BYTES = 8 << 20  # the pool per process: ~27 camera frames of 300 kB in flight
+
+log = logging.getLogger("xm")
+
+
+class Pool:
+    """The process's shared-memory pool, opened on first use; ``None`` from ``buffer``: send bytes."""
+
+    def __init__(self, size: int = POOL_BYTES) -> None:
+        self.size = size
+        self._provider: ShmProvider | None = None
+        self._failed = ""
+        self._lock = threading.Lock()
+
+    @property
+    def failed(self) -> str:
+        """Why the pool could not be opened ("" when it could or was not tried)."""
+        return self._failed
+
+    def _open(self) -> ShmProvider | None:
+        with self._lock:
+            if self._provider is None and not self._failed:
+                try:
+                    self._provider = ShmProvider.default_backend(self.size)
+                except zenoh.ZError as exc:  # no /dev/shm, or too small for the pool
+                    self._failed = str(exc) or "unavailable"
+                    log.warning("shared memory unavailable, large payloads are copied: %s", exc)
+            return self._provider
+
+    def buffer(self, pieces: list, size: int) -> tuple[ZShmMut | None, str]:
+        """A pool buffer holding the concatenated ``pieces`` (``size`` bytes), or (None, why not)."""
+        provider = self._provider or self._open()
+        if provider is None:
+            return None, "shm_unavailable"
+        try:
+            buf = provider.alloc(size, policy=GarbageCollect())
+        except zenoh.ZError:  # every buffer still held by subscribers: copies until they let go
+            return None, "shm_exhausted"
+        buf[0:size] = pieces[0] if len(pieces) == 1 else b"".join(pieces)
+        return buf, ""
+
+
+POOL = Pool()
