@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -125,19 +126,17 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--weights", default="")
     parser.add_argument("--out", default=".bench/recon_objects.json")
-    parser.add_argument("--zoom", type=float, default=0.0, help="prototype: first stage again on object crops")
+    parser.add_argument("--keep", default="", help="also pickle the sessions (detections, truth) here")
     args = parser.parse_args()
     det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR)
-    if args.zoom:
-        sys.path.insert(0, "/tmp")
-        from zoom_det import ZoomDetector
-        det = ZoomDetector(args.weights or DEFAULT_WEIGHTS_DIR)
-        det.zoom = args.zoom
     times = {k: [] for k in ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect",
                              "cpu_reconstruct")}
     t0 = time.perf_counter()
     seeds = [7301, 7303, 7305, 7307][:args.sessions]
     sessions = images.run_sessions(det, seeds, "assembly", args.frames, 5.0, 256, 192, times, occlusion=True)
+    if args.keep:
+        with open(args.keep, "wb") as f:
+            pickle.dump(sessions, f)
     P = np.stack([projection(c.K, c.world_T_cam) for c in camera_specs(256, 192)])
     names = task_keypoint_names("assembly")
     out = {"sessions": seeds, "frames": args.frames, "weights": args.weights or "models/detector",

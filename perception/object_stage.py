@@ -105,6 +105,21 @@ def crop_sampler(frames: list[Frame], images: list[np.ndarray], task: str, size:
     return one
 
 
+def first_stage_init(folder: Path, n_obj: int) -> dict[str, torch.Tensor] | None:
+    """The first stage's weights (its ONNX graph's initializers, named as the U-Net's parameters)
+    as a start for the object stage: the same layers, the head cut to the object channels (the
+    last ``n_obj``). None when the folder has no graph."""
+    path = Path(folder) / "model.onnx"
+    if not path.exists():
+        return None
+    import onnx  # the exported graph's format: only to read a start from it
+    from onnx import numpy_helper
+
+    state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
+    state["head.weight"], state["head.bias"] = state["head.weight"][-n_obj:], state["head.bias"][-n_obj:]
+    return state
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="xm detector train-objects", description=__doc__.splitlines()[0])
     p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
@@ -115,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--init", default="models/detector",
+                   help="start from the first stage's weights in this folder (model.onnx; '' for random)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     torch.set_flush_denormal(True)  # denormal weights late in training slow CPU convolutions many times
@@ -128,15 +145,17 @@ def main(argv: list[str] | None = None) -> int:
     sampler = crop_sampler(frames, images, task, OBJECT_INPUT, AugmentParams())
     print(f"{len(object_crops(frames, table))} object crops in {len(frames)} labelled images, "
           f"input {OBJECT_INPUT}x{OBJECT_INPUT}")
+    init = first_stage_init(Path(a.init), n_obj) if a.init else None
+    print("start:", f"the first stage's weights in {a.init}" if init is not None else "random")
     net, losses, seconds = train(frames, images, n_obj, (OBJECT_INPUT, OBJECT_INPUT), a.iters, a.minutes,
-                                 a.batch, a.lr, a.seed, sampler=sampler)
+                                 a.batch, a.lr, a.seed, sampler=sampler, init=init)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.save(net.state_dict(), out / "objects.pt")
     meta = {"task": task, "keypoints": task_keypoint_names(task), "input_size": OBJECT_INPUT,
             "half_size_m": HALF_SIZE_M, "sigma": SIGMA, "iterations": len(losses), "train_seconds": round(seconds, 1),
             "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(folder),
-            "batch": a.batch, "lr": a.lr, "threads": a.threads, "seed": a.seed,
+            "batch": a.batch, "lr": a.lr, "threads": a.threads, "seed": a.seed, "init": a.init or "random",
             "objects": [name for name, _ in object_slices(task_keypoint_names(task), 0)]}
     (out / "objects.json").write_text(json.dumps(meta, indent=1))
     plot_losses(losses, out / "objects_loss.png")
