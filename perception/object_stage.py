@@ -2,13 +2,15 @@
 
 Training pairs are crops of the labelled window images around one object (services/recon/
 object_crops.py makes the same crops at run time from the first stage's peaks): the crop's centre
-is the median of the object's labelled keypoints displaced as far as the run-time centres are off,
-its side spans the object crop's metric size at the scale the labels show (the largest ratio of a
-labelled pixel distance to the model's metric distance between two of the object's keypoints, the
-least foreshortened pair), and the targets are every object keypoint in the crop (the channel
-of the cropped object is what recon reads). Colour, blur, noise, rotation and occluders as for the
-first stage; no mirroring (the board's corners differ only by their handedness). Writes
-objects.pt, objects.json, objects_loss.png and objects.onnx beside the first stage's files.
+is the median of the object's labelled keypoints displaced by a normal error of 0.15 half sides
+per axis (a guess at the run-time centres' error, not measured), its side spans the object crop's
+metric size at the scale the labels show (the largest ratio of a labelled pixel distance to the
+model's metric distance between two of the object's keypoints, the least foreshortened pair), and
+the targets are every object keypoint in the crop (the channel of the cropped object is what
+recon reads). Colour, blur, noise, rotation and occluders as for the first stage; no mirroring
+(the board's corners differ only by their handedness). Training starts from the first stage's
+weights (``--init``). Writes objects.pt, objects.json, objects_loss.png and objects.onnx beside
+the first stage's files.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 FIRST = len(HAND_NAMES) * KEYPOINTS_PER_HAND  # object keypoints follow both hands' in the labels
 MIN_LABELLED = 2  # labelled keypoints an object needs in a window to be cropped for training
 MIN_PAIR_M = 0.01  # keypoint pairs closer than this on the model say little about the scale
-# The run-time centre's error over the half side (per axis) and its half side over the labels'
-# scale estimate (foreshortening makes the estimate low, never high).
+# The centre's displacement over the half side (per axis; assumed, not measured at run time) and
+# the half side over the labels' scale estimate (foreshortening makes the estimate low, never high).
 CENTRE_JITTER = 0.15
 HALF_RATIO = (0.9, 1.4)
 
