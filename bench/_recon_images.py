@@ -15,22 +15,26 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from perception.occlusion import OBJECT_CLEARANCE_M, hidden_by_capsules, hidden_by_geoms
 from services.camhub.camera_info import encode_jpeg
 from services.camhub.roi import CameraGeometry, RoiParams, missing_hand, rig_windows, tracked_points
 from services.recon.cli import Frames, reconstruct
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel, SimulatedDetector, View
 from services.recon.hand_model import CHAINS
+from services.recon.objects import task_keypoint_names
 from services.recon.offline import OfflineConfig
 from services.recon.pipeline import Reconstruction, Reconstructor
 from services.recon.service import decode_window
 from services.recon.triangulation import project
+from services.world.appearance import session_look, teacher_capsules
 from services.world.render import SceneRenderer, snapshot
 from services.world.sim import WorldSim
-from shared.demo import KEYPOINTS_PER_HAND
+from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 from shared.geometry import projection
 
 ROOT = Path(__file__).resolve().parents[1]
 ANIPOSE_PYTHON = ROOT / ".cache" / "anipose-venv" / "bin" / "python"
+TASK = "assembly"  # the held-out sessions' task (the shipped network's objects)
 THRESHOLD = 0.3  # confidence below which a 2-D detection counts as none (xm detector eval's)
 BONES = [(0, int(c[0])) for c in CHAINS] + [(int(a), int(b)) for c in CHAINS
                                              for a, b in zip(c[:-1], c[1:], strict=True)]
@@ -49,6 +53,8 @@ class Session:
     sim_live: list = field(default_factory=list)  # Reconstruction, simulated detector on the same windows
     sim_uv: list = field(default_factory=list)
     sim_seen: list = field(default_factory=list)
+    rois: list = field(default_factory=list)  # (C,4) readout windows
+    hidden: list = field(default_factory=list)  # (C,K) object keypoints occluded per view (occlusion=True)
 
 
 def ray_deviation(P: np.ndarray, points: np.ndarray, uv: np.ndarray, used: np.ndarray) -> list[float]:
@@ -68,10 +74,11 @@ def ray_deviation(P: np.ndarray, points: np.ndarray, uv: np.ndarray, used: np.nd
 
 
 def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rate_hz: float, width: int,
-                 height: int, times: dict) -> list[Session]:
+                 height: int, times: dict, occlusion: bool = False) -> list[Session]:
     """Renders each session's frame sets with camhub's windows (around recon's last scene, full
     frames every tenth trigger), encodes them as camhub does, then decodes, detects and
-    reconstructs them as recon does; stage times go into ``times``."""
+    reconstructs them as recon does; stage times go into ``times``. ``occlusion``: also record which
+    object keypoints each view's line of sight finds hidden (perception/occlusion.py)."""
     renderer = SceneRenderer(task, width, height)
     geoms = [CameraGeometry(c.name, width, height, c.K, np.zeros(5), c.world_T_cam) for c in renderer.cameras]
     P = np.stack([projection(c.K, c.world_T_cam) for c in renderer.cameras])
@@ -106,6 +113,8 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
                 uv, conf = detector.detect(views)
                 t2 = time.perf_counter()
                 times["cpu_detect"].append(time.process_time() - c1)
+                for k, v in getattr(detector, "times", {}).items():  # the detector's own stages
+                    times.setdefault(f"detect_{k}", []).append(v)
                 c0 = time.process_time()
                 r = rec.step(P, uv, conf, np.array(rois, float))
                 times["cpu_reconstruct"].append(time.process_time() - c0)
@@ -122,6 +131,10 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
                 s.uv.append(uv)
                 s.conf.append(conf)
                 s.live.append(r)
+                s.rois.append(np.array(rois, float))
+                if occlusion:
+                    capsules = teacher_capsules(hands, HAND_NAMES, snap.glove_hand, session_look(seed, snap.demo))
+                    s.hidden.append(_objects_hidden(renderer, P, objects, capsules))
                 last = r
             out.append(s)
     finally:
@@ -129,24 +142,39 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
     return out
 
 
+def _objects_hidden(renderer: SceneRenderer, P: np.ndarray, objects: np.ndarray, capsules: list) -> np.ndarray:
+    """(C,K) object keypoints whose line of sight from each camera passes through a hand or hits a
+    geom short of them (the renderer's data holds the frame set just drawn)."""
+    m = renderer.model
+    skip = {m.body(f"{h}_kp{k}").id for h in HAND_NAMES for k in range(KEYPOINTS_PER_HAND)}
+    clearance = np.full(len(objects), OBJECT_CLEARANCE_M)
+    out = []
+    for c in range(len(P)):
+        eye = -np.linalg.solve(P[c][:, :3], P[c][:, 3])
+        out.append(hidden_by_capsules(eye, objects, clearance, capsules)
+                   | hidden_by_geoms(m, renderer.data, eye, objects, clearance, skip))
+    return np.array(out)
+
+
 def first_frames(s: Session, n: int) -> Session:
     """The session's first ``n`` frame sets."""
     return Session(s.seed, s.truth[:n], s.present[:n], s.uv[:n], s.conf[:n], s.live[:n], s.sim_live[:n],
-                   s.sim_uv[:n], s.sim_seen[:n])
+                   s.sim_uv[:n], s.sim_seen[:n], s.rois[:n], s.hidden[:n])
 
 
 def errors(recs: list[Reconstruction], s: Session) -> dict:
     """Per keypoint errors (m) of what recon reported, and the shares reported."""
-    hand, obj, cover_h, cover_o = [], [], [], []
+    hand, obj, obj_k, cover_h, cover_o = [], [], [], [], []
     for r, truth, present in zip(recs, s.truth, s.present, strict=True):
         nh = r.hands.size // 3
         hm = r.hand_mask.ravel().astype(bool) & present[:nh]
         om = r.object_mask.astype(bool)
         hand += list(np.linalg.norm(r.hands.reshape(-1, 3) - truth[:nh], axis=1)[hm])
         obj += list(np.linalg.norm(r.objects - truth[nh:], axis=1)[om])
+        obj_k += list(np.flatnonzero(om))
         cover_h.append(hm.sum() / max(present[:nh].sum(), 1))
         cover_o.append(om.mean())
-    return {"hand": hand, "obj": obj, "cover_h": cover_h, "cover_o": cover_o}
+    return {"hand": hand, "obj": obj, "obj_k": obj_k, "cover_h": cover_h, "cover_o": cover_o}
 
 
 def geometry(recs: list[Reconstruction], uvs: list, P: np.ndarray) -> tuple[list, list]:
@@ -227,11 +255,22 @@ def mm(values: list) -> float | None:
     return round(1000 * float(np.mean(values)), 2) if len(values) else None
 
 
+def per_keypoint(err: dict) -> dict | None:
+    """Mean error (mm) per object keypoint, named as the task names them."""
+    if not err.get("obj_k"):
+        return None
+    k, e = np.asarray(err["obj_k"]), np.asarray(err["obj"])
+    names = task_keypoint_names(TASK)
+    return {names[i]: round(1000 * float(e[k == i].mean()), 2) for i in np.unique(k)}
+
+
 def summary(err: dict, reproj: list, rays: list) -> dict:
     return {"hand_mean_error_mm": mm(err["hand"]),
             "hand_median_error_mm": round(1000 * float(np.median(err["hand"])), 2) if err["hand"] else None,
             "hand_p95_error_mm": round(1000 * float(np.percentile(err["hand"], 95)), 2) if err["hand"] else None,
             "object_mean_error_mm": mm(err["obj"]),
+            "object_median_error_mm": round(1000 * float(np.median(err["obj"])), 2) if err["obj"] else None,
+            "object_mean_error_mm_per_keypoint": per_keypoint(err),
             "reprojection_px": round(float(np.mean(reproj)), 2) if reproj else None,
             "ray_deviation_mm": mm(rays),
             "coverage": {"hands": round(float(np.mean(err["cover_h"])), 3),

@@ -166,7 +166,7 @@ def run_images(args: argparse.Namespace) -> dict:
     P = np.stack([projection(c.K, c.world_T_cam) for c in camera_specs(256, 192)])
 
     def pooled(select, which: str) -> dict:
-        err = {k: [] for k in ("hand", "obj", "cover_h", "cover_o")}
+        err = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
         reproj, rays = [], []
         for s in sessions[:select]:
             recs = getattr(s, which)
@@ -186,7 +186,7 @@ def run_images(args: argparse.Namespace) -> dict:
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}
     total = np.sum([times[k] for k in ("decode", "detect", "triangulate", "fit_hands", "fit_objects")], axis=0)
     cpu = np.sum([times[k] for k in ("decode", "cpu_detect", "cpu_reconstruct")], axis=0)  # decode: 1 thread
-    out["p6"] = {"stage_ms_median": {k: round(1000 * float(np.median(times[k])), 2) for k in stage_keys},
+    out["p6"] = {"stage_ms_median": {k: round(1000 * float(np.median(v)), 2) for k, v in times.items()},
                  "frame_set_ms_median": round(1000 * float(np.median(total)), 2),
                  "frame_set_ms_p90": round(1000 * float(np.percentile(total, 90)), 2),
                  "frame_set_cpu_ms_median": round(1000 * float(np.median(cpu)), 2),
@@ -196,7 +196,7 @@ def run_images(args: argparse.Namespace) -> dict:
     print("simulated, live:", images.dump(out["simulated_live"]))
     n_off = min(args.offline_sessions, len(sessions))
     if n_off:
-        errs = {k: [] for k in ("hand", "obj", "cover_h", "cover_o")}
+        errs = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
         live_same = {k: [] for k in errs}
         seconds = 0.0
         for s in sessions[:n_off]:
@@ -229,7 +229,7 @@ def run_images(args: argparse.Namespace) -> dict:
                 row[f"{name}_coverage"] = round(float(np.mean(cover)), 3)
                 row[f"{name}_seconds"] = round(float(sum(res[f"seconds_{i}"][0 if name == "ransac" else 1]
                                                          for i in range(n_an))), 1)
-            ours = {k: [] for k in ("hand", "obj", "cover_h", "cover_o")}
+            ours = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
             for s in cut:
                 for k, v in images.errors(s.live, s).items():
                     ours[k] += v

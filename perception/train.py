@@ -64,13 +64,17 @@ def batch(sampler: Sampler, n: int, rng: np.random.Generator) -> tuple[torch.Ten
 def train(frames: list[Frame], images: list[np.ndarray], n_keypoints: int, size: tuple[int, int] = INPUT_SIZE,
           iters: int = 100_000, minutes: float = 10.0, batch_size: int = 8, lr: float = 2e-3, seed: int = 0,
           aug: AugmentParams | None = None, progress: bool = True, device: str = "cpu",
-          sampler: Sampler | None = None) -> tuple[UNet, list[float], float]:
+          sampler: Sampler | None = None, init: dict | None = None) -> tuple[UNet, list[float], float]:
     """Trains until ``iters`` iterations or ``minutes`` of wall time; returns the net, the loss per
-    iteration and the seconds spent. ``sampler`` draws the training pairs (default: whole windows)."""
+    iteration and the seconds spent. ``sampler`` draws the training pairs (default: whole windows);
+    ``init``: a state dict to start from (default: random)."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     sampler = sampler or window_sampler(frames, images, size, aug or AugmentParams())
-    net = UNet(n_keypoints).to(device)
+    net = UNet(n_keypoints)
+    if init is not None:
+        net.load_state_dict(init)
+    net = net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     losses: list[float] = []
     start = time.monotonic()

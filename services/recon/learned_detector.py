@@ -6,8 +6,10 @@ network's fixed input (scaled to fit, padded bottom/right), the peaks are mapped
 letterbox and the window offset to full-image pixels, so recon triangulates with the full-image
 projection matrices. A second stage, when trained (hands.json beside the graph), crops each hand
 around its centre triangulated from the first stage's peaks and re-detects its 21 keypoints there
-(services/recon/hand_crops.py). Weights come from ``xm detector train`` and ``xm detector
-train-hands`` (perception/); inference runs through
+(services/recon/hand_crops.py); an object stage, when trained (objects.json), does the same per
+object at the window's own resolution (services/recon/object_crops.py). Weights come from ``xm
+detector train``, ``xm detector train-hands`` and ``xm detector train-objects`` (perception/);
+inference runs through
 ONNX Runtime when the trained graph was exported (the fastest CPU runtime measured by
 bench/detector.py), otherwise through torch. The default weights are the ones shipped in
 models/detector/ (the ONNX graph and its meta.json).
@@ -16,6 +18,7 @@ models/detector/ (the ONNX graph and its meta.json).
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from services.recon import hand_crops
+from services.recon import hand_crops, object_crops
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
@@ -33,6 +36,7 @@ DEFAULT_WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "models" / "detector
 TRAINING_DIR = Path("runs/detector")
 INPUT_SIZE = (64, 48)  # network input (width, height): fits the P6 budget on 2 cores (bench/detector.py)
 HAND_INPUT = 32  # the second stage's square input per hand crop (services/recon/hand_crops.py)
+OBJECT_INPUT = 32  # the object stage's square input per object crop (services/recon/object_crops.py)
 TRAIN_HINT = "regenerate them with `make detector` (xm detector label && xm detector train)"
 
 
@@ -171,6 +175,21 @@ class LearnedDetector:
             self.hand_size = int(self.hand_meta["input_size"])
         self.hand_slices = [slice(i, i + hand_crops.KEYPOINTS) for i in range(0, 2 * hand_crops.KEYPOINTS,
                                                                                  hand_crops.KEYPOINTS)]
+        # The object stage (one object per crop), when trained: objects.json beside its graph or weights.
+        first = 2 * hand_crops.KEYPOINTS
+        self.object_meta = json.loads((folder / "objects.json").read_text()) \
+            if (folder / "objects.json").exists() else None
+        self._run_object = None
+        self.object_slices = [sl for _, sl in object_crops.object_slices(self.names, first)]
+        if self.object_meta is not None:
+            if list(self.object_meta["keypoints"]) != self.names[first:]:
+                raise ValueError(f"object stage in {folder}: keypoints {self.object_meta['keypoints']} are not the "
+                                 f"first stage's {self.names[first:]}; {TRAIN_HINT}")
+            self._run_object = _network(folder / "objects.onnx", folder / "objects.pt", len(self.names) - first,
+                                        runtime, threads)
+            self.object_size = int(self.object_meta["input_size"])
+            self.object_half_m = float(self.object_meta.get("half_size_m", object_crops.HALF_SIZE_M))
+        self.times: dict[str, float] = {}  # seconds of the last detect(), per stage
 
     def heatmaps(self, batch: np.ndarray) -> np.ndarray:
         return self._run(batch)
@@ -189,23 +208,34 @@ class LearnedDetector:
             images.append(img)
         if not images:
             return np.zeros((0, len(self.names), 2)), np.zeros((0, len(self.names)))
+        t0 = time.perf_counter()
         batch, scales = to_input(images, self.size)
         uv_net, conf = peaks(self.heatmaps(batch))
         uv = np.stack([net_to_full(uv_net[i], scales[i], v.model.roi) for i, v in enumerate(views)])
         conf = np.clip(conf, 0.0, 1.0)
-        if self._run_hand is not None and len(views) >= 2:
-            self._refine_hands(views, images, uv, conf)
+        t1 = time.perf_counter()
+        self.times = {"first_stage": t1 - t0}
+        geometry = _geometry(views) if self._run_hand is not None or self._run_object is not None else None
+        if geometry is not None:  # else no geometry to find hands and objects with: the first stage stands
+            first = (uv.copy(), conf.copy())  # both stages start from the first stage's peaks
+            if self._run_hand is not None:
+                self._refine_hands(views, images, uv, conf, geometry)
+            t2 = time.perf_counter()
+            self.times["hand_stage"] = t2 - t1
+            if self._run_object is not None:
+                self._refine_objects(views, images, first, uv, conf, geometry)
+                self.times["object_stage"] = time.perf_counter() - t2
         return uv, conf
 
-    def _refine_hands(self, views: list[View], images: list[np.ndarray], uv: np.ndarray, conf: np.ndarray) -> None:
+    def _refine_hands(self, views: list[View], images: list[np.ndarray], uv: np.ndarray, conf: np.ndarray,
+                      geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
         """The second stage, in place: every hand found in two views or more is cropped in every
         view around its triangulated centre, and the crop network's 21 peaks replace the first
         stage's for that hand and view (confidence 0 where the crop misses the view's window)."""
-        P = np.stack([np.asarray(v.model.P, float) for v in views])
-        calibrated = np.array([np.linalg.matrix_rank(p[:, :3]) == 3 for p in P])
-        if calibrated.sum() < 2:
-            return  # no geometry to find the hands with: the first stage's peaks stand
-        focal = np.array([hand_crops.focal_px(p) if ok else 1.0 for p, ok in zip(P, calibrated, strict=True)])
+        geometry = geometry or _geometry(views)
+        if geometry is None:
+            return
+        P, calibrated, focal = geometry
         centres, found = hand_crops.hand_centres(P, uv, conf * calibrated[:, None], self.hand_slices)
         centre, half, ok = hand_crops.hand_boxes(P, centres, found, focal)
         ok &= calibrated[:, None]
@@ -236,6 +266,63 @@ class LearnedDetector:
             inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
             uv[c, sl] = local + offset
             conf[c, sl] = np.where(inside, np.clip(k, 0.0, 1.0), 0.0)  # a crop reaches past its window: no view
+
+    def _refine_objects(self, views: list[View], images: list[np.ndarray], first: tuple[np.ndarray, np.ndarray],
+                        uv: np.ndarray, conf: np.ndarray,
+                        geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+        """The object stage, in place: every object found in two views or more (from the first
+        stage's peaks, ``first``) is cropped in every view around its triangulated centre at the
+        window's own resolution, and the crop network's peaks of that object's keypoints replace
+        the first stage's (confidence 0 where the crop misses the view's window)."""
+        geometry = geometry or _geometry(views)
+        if geometry is None:
+            return
+        P, calibrated, focal = geometry
+        uv0, conf0 = first
+        centres, found = object_crops.object_centres(P, uv0, conf0 * calibrated[:, None], self.object_slices)
+        centre, half, ok = hand_crops.hand_boxes(P, centres, found, focal, half_m=self.object_half_m)
+        ok &= calibrated[:, None]
+        size, base = self.object_size, self.object_slices[0].start
+        crops, where = [], []
+        for c, v in enumerate(views):
+            x0, y0, w, h = v.model.roi or (0, 0, v.model.width, v.model.height)
+            img = None
+            for o, sl in enumerate(self.object_slices):
+                if not ok[c, o]:
+                    continue
+                local = centre[c, o] - (x0, y0)
+                if np.any(local < -half[c, o]) or np.any(local > np.array([w, h]) + half[c, o]):
+                    conf[c, sl] = 0.0  # the object's crop shows none of this window: the view does not see it
+                    continue
+                if img is None:
+                    img = images[c].astype(np.float32) / 255.0
+                M = hand_crops.crop_matrix(local, half[c, o], size, mirror=False)
+                crops.append(cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR,
+                                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
+                where.append((c, sl, M, (x0, y0)))
+        if not crops:
+            return
+        uv_crop, conf_crop = peaks(self._run_object(np.ascontiguousarray(np.stack(crops))))
+        for (c, sl, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
+            rows = slice(sl.start - base, sl.stop - base)  # the cropped object's channels
+            local = hand_crops.to_image(u[rows], M)
+            h, w = images[c].shape[:2]
+            inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
+            uv[c, sl] = local + offset
+            conf[c, sl] = np.where(inside, np.clip(k[rows], 0.0, 1.0), 0.0)
+
+
+def _geometry(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The views' projection matrices (C,3,4), which are calibrated (C,) and their focal lengths in
+    pixels (C,); None with fewer than two calibrated views (no crop can be placed)."""
+    if len(views) < 2:
+        return None
+    P = np.stack([np.asarray(v.model.P, float) for v in views])
+    calibrated = np.array([np.linalg.matrix_rank(p[:, :3]) == 3 for p in P])
+    if calibrated.sum() < 2:
+        return None
+    focal = np.array([hand_crops.focal_px(p) if ok else 1.0 for p, ok in zip(P, calibrated, strict=True)])
+    return P, calibrated, focal
 
 
 def _network(onnx_path: Path, weights: Path, keypoints: int, runtime: str, threads: int):

@@ -158,7 +158,8 @@ class ReconService:
 
     def _health(self) -> dict:
         t = list(self.times)
-        stages = {k: round(1000 * float(np.median([x[k] for x in t])), 2) for k in (t[0] if t else {})}
+        keys = dict.fromkeys(k for x in t for k in x)  # a stage may run in some frame sets only
+        stages = {k: round(1000 * float(np.median([x[k] for x in t if k in x])), 2) for k in keys}
         out = {"detector": self.params.detector, "frame_sets": self.frame_sets, "stage_ms_median": stages,
                "layout": self.layout.summary() if self.layout is not None else {"error": self.layout_error}}
         if self.recon is not None:
@@ -246,7 +247,9 @@ class ReconService:
             self.node.set_status("error", f"detector returned {uv.shape}, expected "
                                           f"({len(views)}, {self.recon.n_points}, 2) for task {self.params.task}")
             return
-        self._reconstruct(stamp, [v.camera for v in views], uv, confidence, {"decode": t1 - t0, "detect": t2 - t1})
+        stages = {f"detect_{k}": v for k, v in getattr(self.learned, "times", {}).items()}  # the detector's own stages
+        self._reconstruct(stamp, [v.camera for v in views], uv, confidence,
+                          {"decode": t1 - t0, "detect": t2 - t1, **stages})
 
     # --- the 3-D stages and the scene ---------------------------------------------------------
     def _reconstruct(self, stamp: float, cameras: list[str], uv: np.ndarray, confidence: np.ndarray,
