@@ -8,11 +8,15 @@ from dataclasses import dataclass, field
 import torch
 from tqdm import tqdm
 
+from contactopt.losses3d import loss_breakdown3d, make_policy, residual_fn3d, sdf_object
 from contactopt.objective import Objective, flat_params, loss_breakdown, residual_fn
 from contactopt.optim import FirstOrder, GaussNewton
 from contactopt.policy import Policy
+from contactopt.replay import replay3d, replay_planar
 from contactopt.sim import World, object_sdf, rollout
+from contactopt.sim3d import scene
 from contactopt.tasks import Task, batch_positions, success, turn_velocity
+from contactopt.tasks3d import Task3D, success3d, task_metric
 
 EVAL_SEED = 10_000  # evaluation batches come from a seed no training run uses
 OPTIMIZERS = ("gn", "sgd", "adam")
@@ -42,9 +46,9 @@ def make_optimizer(name: str, lr: float | None) -> GaussNewton | FirstOrder:
 
 
 def evaluate(policy: Policy, task: Task, batch: int = 32) -> dict[str, float]:
-    """Mean turn velocity under the predicted contacts, the losses, and the turn velocity when the
-    policy's joint commands are replayed with the simulator's own hard and softplus contacts
-    (plausibility)."""
+    """Mean turn velocity under the predicted contacts, the losses, the turn velocity when the
+    policy's joint commands are replayed with the simulator's own hard and softplus contacts,
+    and the MuJoCo replay of the predicted forces (plausibility)."""
     pos = batch_positions(task, batch, EVAL_SEED, 0)
     obj = Objective(task)
     out = loss_breakdown(policy, obj, pos)
@@ -58,17 +62,37 @@ def evaluate(policy: Policy, task: Task, batch: int = 32) -> dict[str, float]:
         for model, key in (("hard", "replay_turn_velocity"), ("softplus", "replay_softplus_turn_velocity")):
             rh = rollout(policy, task, pos, model)
             out[key] = float(turn_velocity(rh.theta0, rh.theta[:, -1], task).mean())
+        b, t = ro.theta.shape[0], ro.theta.shape[1] - 1
+        out.update(replay_planar(task, ro.pos, ro.theta, s.force.reshape(b, t, 2, 2),
+                                 (0.5 * (s.p_a + s.p_b)).reshape(b, t, 2, 2), World().table_mu))
+    out.update(metric=out["turn_velocity"], goal=task.omega_goal, drift=0.0)
     return out
 
 
-def train(task: Task, optimizer: str = "gn", lr: float | None = None, budget_s: float = 600.0,
+def evaluate3d(policy: Policy, task: Task3D, batch: int = 32) -> dict[str, float]:
+    """The success metric under the predicted contacts, the losses, the fingertip-object gap
+    where the predicted forces act, and the MuJoCo replay of the predicted fingertip forces."""
+    out, ro = loss_breakdown3d(policy, task, batch_positions(task, batch, EVAL_SEED, 0))
+    out.update(task_metric(task, ro.pos, ro.omega))
+    s = ro.steps
+    n_tips = len(scene(task.robot).chain.sphere_names)
+    d_tip, _ = sdf_object(s.anchor_a[:, :n_tips], s.pos, s.rot, task)
+    gap = d_tip - scene(task.robot).chain.sphere_radius
+    weight = s.force[:, :n_tips].norm(dim=-1)
+    out["force_weighted_gap_mm"] = float(1000 * (gap * weight).sum() / weight.sum())
+    out.update(replay3d(task, ro, n_tips))
+    return out
+
+
+def train(task: Task | Task3D, optimizer: str = "gn", lr: float | None = None, budget_s: float = 600.0,
           batch: int = 16, seed: int = 0, max_iterations: int | None = None,
           progress: bool = True) -> tuple[Policy, Result]:
     """Optimize a fresh contact-based policy (seeded) on batch k = batch_positions(seed, k) at
     iteration k until the wall-clock budget (training time only) or max_iterations is spent."""
     torch.manual_seed(seed)
-    policy = Policy()
-    obj = Objective(task)
+    three_d = isinstance(task, Task3D)
+    policy = make_policy(task) if three_d else Policy()
+    obj = None if three_d else Objective(task)
     w, unflatten = flat_params(policy)
     opt = make_optimizer(optimizer, lr)
     result = Result(task.name, optimizer, lr)
@@ -76,7 +100,8 @@ def train(task: Task, optimizer: str = "gn", lr: float | None = None, budget_s: 
     start = time.perf_counter()
     k = 0
     while time.perf_counter() - start < budget_s and (max_iterations is None or k < max_iterations):
-        fn = residual_fn(policy, obj, batch_positions(task, batch, seed, k))
+        xy = batch_positions(task, batch, seed, k)
+        fn = residual_fn3d(policy, task, xy, unflatten) if obj is None else residual_fn(policy, obj, xy)
         w, loss = opt.step(fn, w)
         k += 1
         elapsed = time.perf_counter() - start
@@ -90,8 +115,12 @@ def train(task: Task, optimizer: str = "gn", lr: float | None = None, budget_s: 
     with torch.no_grad():
         for p, v in zip(policy.parameters(), unflatten(w).values(), strict=True):
             p.copy_(v)
-    result.evaluation = evaluate(policy, task)
-    result.success = success(result.evaluation["turn_velocity"], task) and result.evaluation["distance"] < 1.0
+    if three_d:
+        result.evaluation = evaluate3d(policy, task)
+        result.success = success3d(task, result.evaluation) and result.evaluation["distance"] < 1.0
+    else:
+        result.evaluation = evaluate(policy, task)
+        result.success = success(result.evaluation["turn_velocity"], task) and result.evaluation["distance"] < 1.0
     return policy, result
 
 
