@@ -51,7 +51,8 @@ def train_main(argv: list[str]) -> int:
     print(f"{task.name} {args.optimizer}: {result.iterations} iterations in {result.seconds:.0f} s, "
           f"metric {ev['metric']:.3g} (goal {ev['goal']:.3g}), in the MuJoCo replay {ev['replay_metric']:.3g} "
           f"(final position error {ev['replay_position_error_mm']:.1f} mm, rotation "
-          f"{ev['replay_rotation_error_deg']:.1f} deg), success {result.success}; {stem}.png")
+          f"{ev['replay_rotation_error_deg']:.1f} deg), success {result.success} (in MuJoCo "
+          f"{result.replay_success}); {stem}.png")
     return 0
 
 
@@ -59,12 +60,16 @@ def fmt(ev: dict, key: str, spec: str = ".3g") -> str:
     return "-" if key not in ev else format(ev[key], spec)
 
 
+def yes_no(flag: bool | None) -> str:
+    return "-" if flag is None else ("yes" if flag else "no")
+
+
 def table(results: list[dict]) -> str:
     """The comparison table from result dicts (as stored in .bench/contactopt.json)."""
     rows = ["| task | optimizer | lr | iterations | final batch loss | metric (goal) | distance loss | "
             "gap at the forces [mm] | MuJoCo replay: metric / position error [mm] / rotation error [deg] | "
-            "success |",
-            "|---|---|---|---|---|---|---|---|---|---|"]
+            "success | criterion met in MuJoCo |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         ev = r["evaluation"]
         last = r["curve"][-1][1] if r["curve"] else float("nan")
@@ -74,7 +79,8 @@ def table(results: list[dict]) -> str:
         rows.append(f"| {r['task']} | {r['optimizer']} | {lr} | {r['iterations']} | {last:.3g} | "
                     f"{metric:.3g} ({goal:.3g}) | {ev['distance']:.3g} | {ev['force_weighted_gap_mm']:.3g} | "
                     f"{fmt(ev, 'replay_metric')} / {fmt(ev, 'replay_position_error_mm', '.1f')} / "
-                    f"{fmt(ev, 'replay_rotation_error_deg', '.1f')} | {'yes' if r['success'] else 'no'} |")
+                    f"{fmt(ev, 'replay_rotation_error_deg', '.1f')} | {'yes' if r['success'] else 'no'} | "
+                    f"{yes_no(r.get('replay_success'))} |")
     return "\n".join(rows)
 
 

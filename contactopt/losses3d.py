@@ -14,7 +14,7 @@ import torch
 
 from contactopt.losses import LOSSES, Scales
 from contactopt.policy import FORCE_SCALE, POS_SCALE, Policy
-from contactopt.sim3d import F64, GRAVITY, MASS, Rollout3D, Scene, Step3D, policy_fn, rollout3d, scene
+from contactopt.sim3d import BOTTOM, F64, GRAVITY, MASS, Rollout3D, Scene, Step3D, policy_fn, rollout3d, scene
 from contactopt.tasks3d import Task3D, joint_load_residual, task_residual3d
 
 FRICTION_MU = 0.8
@@ -97,7 +97,7 @@ def residuals3d(s: Step3D, task: Task3D, sc: Scene, scales: Scales) -> list[torc
     d_tip, n_tip = sdf_object(tips, s.pos, s.rot, task)
     n = n_tip
     if not task.fixed:
-        down = torch.tensor((0.0, 0.0, -1.0), dtype=F64).expand(n.shape[0], 1, 3)
+        down = torch.tensor((0.0, 0.0, -1.0), dtype=F64).expand(n.shape[0], s.force.shape[1] - n_tips, 3)
         n = torch.cat([n_tip, down], 1)
     helper = torch.where((n[..., 2:3].abs() > 0.9), torch.tensor((1.0, 0.0, 0.0), dtype=F64),
                          torch.tensor((0.0, 0.0, 1.0), dtype=F64))
@@ -109,11 +109,14 @@ def residuals3d(s: Step3D, task: Task3D, sc: Scene, scales: Scales) -> list[torc
     angles = torch.arange(CONE_PLANES, dtype=F64) * (2 * math.pi / CONE_PLANES)
     friction = torch.relu(f1[..., None] * torch.cos(angles) + f2[..., None] * torch.sin(angles)
                           - FRICTION_MU * fn[..., None])
-    # slippage (2.12): force times the tangential relative velocity at the response point
+    # slippage (2.12): force times the tangential relative velocity at the response point,
+    # elementwise as printed plus the product of the norms: elementwise alone, a normal force
+    # (the table's, along Z) times a sliding velocity (in X, Y) costs nothing, and the object
+    # then slides and spins on the table without friction
     arm = 0.5 * (s.p_a + s.p_b) - s.pos[:, None]
     v_rel = s.vel_a - (s.vel[:, None] + torch.linalg.cross(s.omega[:, None].expand_as(arm), arm))
     vt = v_rel - n * (n * v_rel).sum(-1, keepdim=True)
-    slippage = s.force * vt
+    slippage = torch.cat([s.force * vt, (norm(s.force) * norm(vt))[..., None]], -1)
     # intersection (2.13): fingertip penetration; the object's support points below the table
     inter = torch.relu(radius - d_tip)
     if not task.fixed:
@@ -140,15 +143,17 @@ def residual_parts3d(ro: Rollout3D, task: Task3D, scales: Scales = SCALES) -> li
 
 
 def make_policy(task: Task3D) -> Policy:
-    """A fresh policy; with a free object its table pair starts out carrying the object's weight
-    (force m g up at the object's bottom center), so the first rollouts start at rest."""
+    """A fresh policy; with a free object its table pairs start out carrying the object's weight
+    (m g / 4 up at each bottom corner), so the first rollouts start at rest."""
     sc = scene(task.robot)
     policy = Policy(n_in=sc.n_in(), n_out=sc.n_out(task))
     if not task.fixed:
-        table = sc.chain.n_dof + 9 * (sc.n_pairs(task) - 1)  # the last pair's outputs
+        first = sc.chain.n_dof + 9 * len(sc.chain.sphere_names)  # the table pairs' outputs follow
         with torch.no_grad():
-            policy.net[2].bias[table + 5] = -task.half[2] / POS_SCALE
-            policy.net[2].bias[table + 8] = MASS * GRAVITY / FORCE_SCALE
+            for k, corner in enumerate(BOTTOM * torch.tensor(task.half, dtype=F64)):
+                at = first + 9 * k
+                policy.net[2].bias[at + 3:at + 6] = corner / POS_SCALE
+                policy.net[2].bias[at + 8] = MASS * GRAVITY / len(BOTTOM) / FORCE_SCALE
     return policy
 
 

@@ -4,8 +4,9 @@ revolute joint (cylinder, task 8), driven by gravity and the contact forces the 
 (thesis Eq. 2.2-2.4), semi-implicit Euler.
 
 Shape pairs: each fingertip sphere with the object and, for a free object, the table with the
-object. The policy predicts every pair's two contact-point candidates and force, the table's
-included, so nothing in the dynamics is computed from the geometry: the consistency losses
+object at each of the object's four bottom corners. The policy predicts every pair's two
+contact-point candidates and force, the table's included, so nothing in the dynamics is
+computed from the geometry: the consistency losses
 (`losses3d`) make the predictions physical. The object is a uniform 0.1 kg cube (isotropic
 inertia, so no gyroscopic term) or cylinder turning about Z only.
 """
@@ -34,6 +35,10 @@ Q0 = {"WRJ2": 0.076, "WRJ1": 0.054, "THJ5": 1.495, "LFJ5": 0.035, "RFJ4": 0.065,
       "FFJ4": -0.25, "FFJ3": 1.194, "FFJ2": 0.308, "MFJ3": 1.244, "MFJ2": 0.325, "RFJ3": 1.222,
       "RFJ2": 0.317, "LFJ4": 0.005, "LFJ3": 1.173, "LFJ2": 0.279, "THJ4": 0.302, "THJ3": 0.543,
       "THJ2": -0.12, "THJ1": 0.116}
+# the table-object shape pairs: one per bottom corner of the cube (in units of its half extents).
+# One pair's single response point could sit on the vertical axis the object turns about, where
+# nothing slips: the cube would spin on the table with no torsional friction
+BOTTOM = torch.tensor([[-1.0, -1.0, -1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, -1.0]], dtype=F64)
 # (object position (B, 3), rotation (B, 3, 3), joint positions (B, n)) -> (dof commands, P_A, P_B, F_C)
 PolicyFn3 = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], tuple]
 
@@ -46,7 +51,7 @@ class Scene:
     cmd_scale: torch.Tensor  # (n_dof,) units of a command
 
     def n_pairs(self, task: Task3D) -> int:
-        return len(self.chain.sphere_names) + (0 if task.fixed else 1)
+        return len(self.chain.sphere_names) + (0 if task.fixed else len(BOTTOM))
 
     def n_in(self) -> int:
         return 9 + self.chain.n_joints
@@ -111,7 +116,7 @@ def inertia(task: Task3D) -> float:
 @dataclass
 class Step3D:
     """What the consistency losses read, every step stacked and flattened to (B * T, ...)."""
-    anchor_a: torch.Tensor  # (N, P, 3) fingertip centers; the table pair: the point below the object
+    anchor_a: torch.Tensor  # (N, P, 3) fingertip centers; table pairs: the table below a bottom corner
     vel_a: torch.Tensor     # (N, P, 3) their velocities (zero for the table)
     pos: torch.Tensor       # (N, 3) object center
     rot: torch.Tensor       # (N, 3, 3)
@@ -151,8 +156,9 @@ def rollout3d(policy: PolicyFn3, task: Task3D, xy0: torch.Tensor) -> Rollout3D:
         tips_next = sc.chain.sphere_centers(q_next, sc.base)
         tip_vel = (tips_next - tips) / dt
         anchor, vel_a = tips, tip_vel
-        if not task.fixed:  # the table pair's anchor: the table point below the object's center
-            below = (pos * torch.tensor((1.0, 1.0, 0.0), dtype=F64))[:, None]
+        if not task.fixed:  # the table pairs' anchors: the table below the object's bottom corners
+            corners = pos[:, None] + (BOTTOM * torch.tensor(task.half, dtype=F64)) @ rot.transpose(-1, -2)
+            below = corners * torch.tensor((1.0, 1.0, 0.0), dtype=F64)
             anchor = torch.cat([tips, below], 1)
             vel_a = torch.cat([tip_vel, torch.zeros_like(below)], 1)
         p_a = anchor + POS_SCALE * off_a

@@ -14,7 +14,7 @@ from contactopt.handmodel import MODELS
 from contactopt.kinematics import load_chain
 from contactopt.policy import Policy
 from contactopt.replay import replay, scene_xml
-from contactopt.sim3d import F64, GRAVITY, MASS, Step3D, policy_fn, rollout3d, scene
+from contactopt.sim3d import BOTTOM, F64, GRAVITY, MASS, Step3D, policy_fn, rollout3d, scene
 from contactopt.tasks import get_task
 from contactopt.tasks3d import TASKS3D, task_residual3d
 
@@ -65,14 +65,16 @@ def test_box_and_cylinder_signed_distance() -> None:
 
 
 def rest_step(force_table: float, tip_force: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Step3D:
-    """One step with the cube resting on the table, the table pair pushing up with force_table."""
+    """One step with the cube resting on the table, each table pair (bottom corner) pushing up
+    with a quarter of force_table."""
     sc = scene(LIFT.robot)
     tips = sc.chain.sphere_centers(sc.q0[None], sc.base)
     pos = torch.tensor([[0.0, 0.0, 0.025]], dtype=F64)
-    anchor = torch.cat([tips, torch.zeros(1, 1, 3, dtype=F64)], 1)
-    p_b = torch.cat([torch.zeros(1, 5, 3, dtype=F64) + pos[:, None], torch.zeros(1, 1, 3, dtype=F64)], 1)
-    force = torch.zeros(1, 6, 3, dtype=F64)
-    force[0, 5, 2] = force_table
+    corners = (BOTTOM * 0.025 + pos)[None]
+    anchor = torch.cat([tips, corners * torch.tensor([1.0, 1.0, 0.0], dtype=F64)], 1)
+    p_b = torch.cat([torch.zeros(1, 5, 3, dtype=F64) + pos[:, None], corners], 1)
+    force = torch.zeros(1, 9, 3, dtype=F64)
+    force[0, 5:, 2] = force_table / 4
     force[0, 0] = torch.tensor(tip_force, dtype=F64)
     z = torch.zeros(1, 3, dtype=F64)
     eye = torch.eye(3, dtype=F64)[None]
