@@ -143,10 +143,15 @@ def residual_parts3d(ro: Rollout3D, task: Task3D, scales: Scales = SCALES) -> li
 
 
 def make_policy(task: Task3D) -> Policy:
-    """A fresh policy; with a free object its table pairs start out carrying the object's weight
-    (m g / 4 up at each bottom corner), so the first rollouts start at rest."""
+    """A fresh policy with small force outputs; with a free object its table pairs start out
+    carrying the object's weight (m g / 4 up at each bottom corner), so the first rollouts start
+    nearly at rest."""
     sc = scene(task.robot)
     policy = Policy(n_in=sc.n_in(), n_out=sc.n_out(task))
+    with torch.no_grad():  # small initial forces: random ones spin the light cube at tens of rad/s
+        for k in range(sc.n_pairs(task)):
+            at = sc.chain.n_dof + 9 * k
+            policy.net[2].weight[at + 6:at + 9].mul_(0.1)
     if not task.fixed:
         first = sc.chain.n_dof + 9 * len(sc.chain.sphere_names)  # the table pairs' outputs follow
         with torch.no_grad():
