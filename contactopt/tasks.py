@@ -1,4 +1,5 @@
-"""Tasks 1-2 of thesis Table 2.1: two fingers turn a cube or a cylinder about the vertical axis.
+"""Tasks 1-2 of thesis Table 2.1: two fingers turn a cube or a cylinder about the vertical axis
+(tasks 3-8, the hand tasks, are in `tasks3d`; `get_task` finds either).
 
 Task loss (thesis 2.3): the squared difference between the object's average angular velocity
 over the episode and the goal velocity. Object positions are randomized in X and Y with a
@@ -10,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+
+from contactopt.tasks3d import TASKS3D, Task3D
 
 
 @dataclass(frozen=True)
@@ -30,19 +33,24 @@ TASKS: dict[str, Task] = {
 }
 
 
-def get_task(name: str) -> Task:
+ALL_TASKS = (*TASKS, *TASKS3D)  # in the order of thesis Table 2.1
+
+
+def get_task(name: str) -> Task | Task3D:
     """The task called `name`; a ValueError lists the tasks that exist."""
-    if name not in TASKS:
-        raise ValueError(f"unknown task {name!r}; tasks: {', '.join(sorted(TASKS))}")
-    return TASKS[name]
+    if name in TASKS:
+        return TASKS[name]
+    if name in TASKS3D:
+        return TASKS3D[name]
+    raise ValueError(f"unknown task {name!r}; tasks: {', '.join(ALL_TASKS)}")
 
 
-def sample_positions(task: Task, batch: int, generator: torch.Generator) -> torch.Tensor:
+def sample_positions(task: Task | Task3D, batch: int, generator: torch.Generator) -> torch.Tensor:
     """(batch, 2) initial object positions: the origin plus Gaussian noise in X and Y."""
     return task.position_sigma * torch.randn(batch, 2, generator=generator, dtype=torch.float64)
 
 
-def batch_positions(task: Task, batch: int, seed: int, index: int) -> torch.Tensor:
+def batch_positions(task: Task | Task3D, batch: int, seed: int, index: int) -> torch.Tensor:
     """Batch number `index` of a seeded sequence, so optimizers compared see the same batches."""
     g = torch.Generator().manual_seed(seed * 1_000_003 + index)
     return sample_positions(task, batch, g)

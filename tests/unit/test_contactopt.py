@@ -191,4 +191,4 @@ def test_nonfinite_residual_is_rejected_and_counted() -> None:
 
 def test_unknown_task_lists_the_tasks() -> None:
     with pytest.raises(ValueError, match="turn_cube"):
-        get_task("lift")
+        get_task("spin")
