@@ -95,7 +95,7 @@ def load() -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the job (the panel's train_threads)")
-    parser.add_argument("--preset", default="first", help="the job's preset (the panel's first_preset)")
+    parser.add_argument("--preset", default="no_tactile", help="the job's preset (the panel's first_preset)")
     parser.add_argument("--train-args", default="", help="more `xm train` options (the panel's train_args)")
     parser.add_argument("--timeout-min", type=float, default=40.0)
     parser.add_argument("--sample-s", type=float, default=5.0)

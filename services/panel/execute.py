@@ -68,7 +68,8 @@ class Execute:
             self.rejections_md = gui.add_markdown("")
             self.layout = gui.add_number("layout seed", initial_value=0, min=0, step=1,
                                          hint="the world resets to this seed's layout, then the robot acts")
-            self.seconds = gui.add_number("seconds", initial_value=9.0, min=1.0, max=executions.MAX_SECONDS, step=1.0)
+            self.seconds = gui.add_number("run seconds", initial_value=9.0, min=1.0, max=executions.MAX_SECONDS,
+                                          step=1.0)
             gui.add_button("Run execution", color="green").on_click(self._run)
             self.run_md = gui.add_markdown("no execution yet: the world's success test judges each one")
 

@@ -59,7 +59,9 @@ class PanelService:
         robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
         recordings: str = ""  # the demonstration library; empty: [services.recorder.main] directory
         models: str = "runs/models"  # where training jobs started from the page write their models
-        train_threads: int = 2  # torch threads of a training job (the cell runs beside it)
+        # torch threads of a training job: one, as the cell takes about a core of a 2-core host beside it and a
+        # second thread stalls each step at torch's barrier whenever another process holds its core (docs/panel.md)
+        train_threads: int = 1
         train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
         # A fresh install's first network: trained as the page's job when this checkpoint (the policy
         # service's) is missing, while the policy service runs the naive fallback ("": never).
