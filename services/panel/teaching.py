@@ -157,7 +157,8 @@ class Teaching:
         if s is not None:
             self.session_md.content = (f"session `{s.id}`: task **{s.task}**, teacher **{s.teacher}**, glove on the "
                                        f"{s.glove_hand} hand, {s.demos} demonstrations"
-                                       + (f", {s.executions} executions ({s.successes} succeeded)"
+                                       + (f", {s.executions} execution{'s' * (s.executions != 1)} "
+                                          f"({s.successes} succeeded)"
                                           if s.executions else ""))
 
     def context(self) -> dict:

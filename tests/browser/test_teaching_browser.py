@@ -459,25 +459,37 @@ def trajectory_drawn(browser: Chromium, session, tmp_path: Path) -> None:
 
 def execution(browser: Chromium, session, model: Path, requests: list) -> None:
     """Run execution: reset to the layout, robot mode, the world's test, teacher mode; the outcome
-    logged beside the model, in the Execute folder, the model list and the session line."""
+    logged beside the model, in the Execute folder, the model list and the session line. A long
+    one: a second press meanwhile is told one runs, STOP ends it, logged as stopped."""
     type_into(browser, "layout seed", "4")
-    type_into(browser, "run seconds", "3")
-    wait_until(lambda: value_of(browser, "layout seed") == "4" and value_of(browser, "run seconds") == "3", WAIT,
+    type_into(browser, "run seconds", "2")
+    wait_until(lambda: value_of(browser, "layout seed") == "4" and value_of(browser, "run seconds") == "2", WAIT,
                "the typed layout and duration")
     n = len(requests)
     click_button(browser, "Run execution")
-    wait_until(lambda: ("mode", {"mode": "robot"}) in requests[n:], WAIT, "the world in robot mode")
-    assert ("reset", {"seed": 4}) in requests[n:]
-    click_button(browser, "Run execution")  # a second press while it runs is told so
-    wait_until(lambda: "Execution refused" in page_text(browser), WAIT, "the second Run refused")
     wait_until(lambda: "layout 4: success after" in page_text(browser), WAIT,
                lambda: f"the outcome shown; page: {page_text(browser)[-1500:]}")
     assert "connector gap 1.7 mm" in page_text(browser)
     assert [v for v, _ in requests[n:] if v in ("reset", "mode", "outcome")] == ["reset", "mode", "outcome", "mode"]
+    assert ("reset", {"seed": 4}) in requests[n:] and ("mode", {"mode": "robot"}) in requests[n:]
     [logged] = [json.loads(line) for line in (model / "executions.jsonl").read_text().splitlines()]
     assert logged["success"] and logged["seed"] == 4 and logged["distances"] == {"connector_gap_mm": 1.7}
     assert logged["session"].startswith("pick_place-ada-") and logged["teacher"] == "ada"
     wait_until(lambda: "1 / 1 succeeded" in page_text(browser), WAIT, "the execution in the model list")
-    assert "1 executions (1 succeeded)" in page_text(browser)  # the session line
+    assert "1 execution (1 succeeded)" in page_text(browser)  # the session line
+
+    type_into(browser, "run seconds", "120")
+    wait_until(lambda: value_of(browser, "run seconds") == "120", WAIT, "the long duration")
+    m = len(requests)
+    click_button(browser, "Run execution")
+    wait_until(lambda: ("mode", {"mode": "robot"}) in requests[m:], WAIT, "the world in robot mode")
+    click_button(browser, "Run execution")  # a second press while it runs is told so
+    wait_until(lambda: "Execution refused" in page_text(browser), WAIT, "the second Run refused")
+    click_button(browser, "STOP")
+    wait_until(lambda: "layout 4: stopped after" in page_text(browser), WAIT,
+               lambda: f"the stopped execution shown; page: {page_text(browser)[-1500:]}")
+    lines = [json.loads(line) for line in (model / "executions.jsonl").read_text().splitlines()]
+    assert len(lines) == 2 and lines[1]["stopped"] and not lines[1]["success"] and lines[1]["seconds"] < 120
+    wait_until(lambda: "1 / 2 succeeded" in page_text(browser), WAIT, "both executions in the model list")
     health = query_json(session, "xm/panel/main/@health")[0]
-    assert health["executions"]["runs"] == 1 and health["executions"]["last"]["success"]
+    assert health["executions"]["runs"] == 2 and health["executions"]["last"]["stopped"]
