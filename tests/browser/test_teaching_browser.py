@@ -364,6 +364,8 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     wait_until(lambda: ("arm", {"armed": True}) in requests, WAIT, "the arm query")
     wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT,
                lambda: f"the armed state shown; page: {page_text(browser)[:600]}")
+    click_button(browser, "Close review")  # the scene shows the live cell again, where trajopt's trajectory is drawn
+    wait_until(lambda: query_json(session, "xm/panel/main/@health")[0]["reviewing"] is None, WAIT, "the review closed")
     trajectory_drawn(browser, session, tmp_path)
     execution(browser, session, model, requests)
     click_button(browser, "STOP")
