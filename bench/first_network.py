@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sample-s", type=float, default=5.0)
     parser.add_argument("--label", default="", help="suffix of the result file")
     args = parser.parse_args(argv)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # the cell is stopped on the way out
+    ended = []  # SIGTERM: stop measuring, stop the cell, report what was measured
+    signal.signal(signal.SIGTERM, lambda *_: ended.append(True))
     samples: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="xm-first-") as tmp_name:
         tmp = Path(tmp_name)
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         with xm_up(dep, tmp / "up.log") as proc:
             job_pid, t_job, served_at, last = None, None, None, (None, None, None)
             deadline = t_up + args.timeout_min * 60
-            while time.monotonic() < deadline and proc.poll() is None:
+            while time.monotonic() < deadline and proc.poll() is None and not ended:
                 time.sleep(args.sample_s)
                 now = time.monotonic()
                 if job_pid is None:
