@@ -91,16 +91,15 @@ def plan() -> object:
                      efforts=np.zeros(0, np.float32))
 
 
-def trajectory(joints: int | None = None) -> object:
-    """trajopt's JointTrajectory: 5 knots of the workcell moving its left carriage; ``joints``: a
-    broken one, with that many positions per knot."""
+def trajectory(knots: int = 5) -> object:
+    """trajopt's JointTrajectory: ``knots`` knots of the workcell moving its left carriage."""
     names = list(load_robot("workcell").joint_names)
-    knots = np.zeros((5, len(names) if joints is None else joints))
-    knots[:, 0] = np.linspace(0.0, 0.1, 5)
-    points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=q, velocities=np.zeros(0),
+    q = np.zeros((knots, len(names)))
+    q[:, 0] = np.linspace(0.0, 0.1, knots)
+    points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=qk, velocities=np.zeros(0),
                         accelerations=np.zeros(0), effort=np.zeros(0),
                         time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=0, nanosec=k * 50_000_000))
-              for k, q in enumerate(knots)]
+              for k, qk in enumerate(q)]
     return msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(time.time(), "world"),
                      joint_names=names, points=points)
 
@@ -153,7 +152,7 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
             assert h["tactile_meshes"] == ["right"], "the gloved hand's tactile mesh is drawn"
             assert h["trajectory"]["drawn"] > 0 and h["trajectory"]["shown"], h["trajectory"]
             assert h["trajectory"]["frames"] == ["left_tip_a", "left_tip_b", "right_tip"]
-            frames["xm/trajopt/main/trajectory"] = trajectory(joints=3)  # positions for 3 of the 10 joints
+            frames["xm/trajopt/main/trajectory"] = trajectory(knots=0)  # a trajectory without points
             h = wait_for(lambda: (r := received()) and r["errors"].get("bad_trajectory") and r, 20)
             assert h and "draw_error" not in h["errors"], health_of(session)  # counted; the rest still draws
 
