@@ -5,11 +5,16 @@ Every action is one Zenoh query answered by the service that owns the state: the
 arms, disarms and holds (its arm gate, services/robot/service.py), the policy service loads a
 checkpoint (@cmd/serve). Stop and disarm therefore work with the policy or trajopt down. Buttons
 run on viser's worker threads (blocking queries are fine there); the arm line is refreshed from
-the @health reports the panel's status loop collects.
+the @health reports the panel's status loop collects. **Run execution** runs one execution of the
+served policy on a world layout (services/panel/executions.py) on a thread of its own, so STOP and
+disarm answer meanwhile; its outcome is logged beside the served checkpoint and in the recordings
+directory, counted in the teaching session and listed under the button.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,11 +22,16 @@ from typing import Any
 
 import viser
 
+from services.panel import executions
+from services.panel.executions import Execution, ExecutionError, Runner
 from services.panel.jobs import Model
+
+log = logging.getLogger("xm")
 
 POLICY = "xm/policy/main"
 NO_MODEL = "-"
 SILENT_S = 6.0  # the robot's state stays shown this long after its last @health answer (one may come late)
+SHOWN_EXECUTIONS = 5  # the newest executions listed in the folder
 
 
 class Execute:
@@ -29,8 +39,14 @@ class Execute:
     answered); ``count`` the @health error counter."""
 
     def __init__(self, server: viser.ViserServer, robot: str, query: Callable[[str, dict], list[dict]],
-                 count: Callable[[str], None]) -> None:
+                 count: Callable[[str], None], session_log: Path | None = None,
+                 context: Callable[[], dict] = dict, on_execution: Callable[[Execution], None] | None = None) -> None:
         self.server = server
+        self.runner = Runner(query)
+        self.session_log = session_log  # every execution also goes here (the recordings directory's log)
+        self.context = context  # the teaching session an execution runs in
+        self.on_execution = on_execution
+        self.recent: list[Execution] = []  # this panel's executions, newest last
         self.robot_key = f"xm/robot/{robot}"
         self.query = query
         self.count = count
@@ -50,6 +66,12 @@ class Execute:
             gui.add_button("Serve").on_click(lambda _e: self._serve())
             self.serve_md = gui.add_markdown("policy: asking...")
             self.rejections_md = gui.add_markdown("")
+            self.layout = gui.add_number("layout seed", initial_value=0, min=0, step=1,
+                                         hint="the world resets to this seed's layout, then the robot acts")
+            self.seconds = gui.add_number("run seconds", initial_value=9.0, min=1.0, max=executions.MAX_SECONDS,
+                                          step=1.0)
+            gui.add_button("Run execution", color="green").on_click(self._run)
+            self.run_md = gui.add_markdown("no execution yet: the world's success test judges each one")
 
     # --- buttons (viser worker threads) ----------------------------------------------------------
     def _ask(self, key: str, request: dict) -> dict | None:
@@ -62,6 +84,7 @@ class Execute:
         return replies[0] if replies else None
 
     def _stop(self, _event: Any) -> None:
+        self.runner.stop.set()  # a running execution ends now (its outcome is still measured)
         reply = self._ask(f"{self.robot_key}/@cmd/hold", {"disarm": True})
         if reply is None or not reply.get("ok"):
             self.count("stop_failed")
@@ -73,6 +96,8 @@ class Execute:
         self._state_line("stopped: holding")
 
     def _arm(self, armed: bool) -> None:
+        if not armed:
+            self.runner.stop.set()  # disarming ends a running execution too
         reply = self._ask(f"{self.robot_key}/@cmd/arm", {"armed": armed})
         if reply is None or not reply.get("ok"):
             self.count("arm_failed")
@@ -94,6 +119,74 @@ class Execute:
             self.serve_md.content = f"**refused**: {reply.get('error', '')}"
         else:
             self.serve_md.content = f"policy: loading `{path.parent.name}`..."
+
+    def _run(self, event: Any) -> None:
+        """Viser worker thread: checks and starts the execution's own thread; a refusal goes to the
+        browser that pressed (two browsers at once: one runs, the other is told)."""
+        try:
+            if self.runner.running:
+                raise ExecutionError("an execution is running; wait for its outcome or press STOP")
+            if self.armed is not True:
+                raise ExecutionError("the robot is not armed: arm it first (the robot never moves unless armed)")
+            seed, seconds = int(self.layout.value), float(self.seconds.value)
+        except (ExecutionError, TypeError, ValueError) as exc:
+            self._refuse(event, str(exc))
+            return
+        started = threading.Event()
+        refusal: list[str] = []
+        threading.Thread(target=self._execute, args=(seed, seconds, started, refusal), name="panel-execution",
+                         daemon=True).start()
+        started.wait(10.0)
+        if refusal:
+            self._refuse(event, refusal[0])
+
+    def _refuse(self, event: Any, why: str) -> None:
+        self.count("execute_refused")
+        if event is not None and event.client is not None:
+            event.client.add_notification("Execution refused", why, color="red", auto_close_seconds=10.0)
+        else:
+            self.run_md.content = f"**refused**: {why}"
+
+    def _execute(self, seed: int, seconds: float, started: threading.Event, refusal: list[str]) -> None:
+        """Its own thread: the whole execution, then the outcome logged and shown."""
+        serving, method = self.serving, self.method or "?"
+
+        def running() -> None:
+            self.run_md.content = (f"executing `{serving or method}` on layout {seed} for {seconds:g} s "
+                                   "(STOP ends it)...")
+            started.set()
+
+        try:
+            done = self.runner.run(seed, seconds, self.armed, serving, method, self.context(), on_started=running)
+        except ExecutionError as exc:
+            if not started.is_set():  # refused before anything moved: the presser is told
+                refusal.append(str(exc))
+                started.set()
+                return
+            self.count("execution_error")
+            self.run_md.content = f"**execution failed**: {exc}"
+            return
+        except Exception as exc:  # a dead session: say so, keep the panel alive
+            self.count("execution_error")
+            log.warning("execution: %r", exc, exc_info=exc)
+            self.run_md.content = f"**execution failed**: {exc!r}"
+            started.set()
+            return
+        self._log(done)
+
+    def _log(self, done: Execution) -> None:
+        targets = [p for p in (executions.log_path(done.checkpoint) if done.checkpoint else None, self.session_log)
+                   if p is not None]
+        for path in targets:
+            try:
+                executions.append(path, done)
+            except OSError as exc:
+                self.count("execution_log_error")
+                log.warning("execution log %s: %r", path, exc)
+        self.recent = (self.recent + [done])[-SHOWN_EXECUTIONS:]
+        self.run_md.content = "\n\n".join(executions.describe(e) for e in reversed(self.recent))
+        if self.on_execution is not None:
+            self.on_execution(done)
 
     # --- state ---------------------------------------------------------------------------------
     def _state_line(self, extra: str = "") -> None:
@@ -122,6 +215,7 @@ class Execute:
             text = "policy: **not running**"
         else:
             self.serving = policy.get("checkpoint")
+            self.method = str(policy.get("method", ""))
             loading = policy.get("loading")
             text = f"policy: {policy.get('method', '?')}" + (f" from `{self.serving}`" if self.serving else "")
             if loading:
@@ -147,7 +241,13 @@ class Execute:
                 self.model.value = options[0]
 
     def health(self) -> dict:
-        return {"armed": self.armed, "serving": self.serving}
+        last = self.recent[-1] if self.recent else None
+        return {"armed": self.armed, "serving": self.serving,
+                "executions": {"runs": len(self.recent), "running": self.runner.running,
+                               "last": None if last is None else {"success": last.success, "seed": last.seed,
+                                                                  "stopped": last.stopped,
+                                                                  "distances": last.distances,
+                                                                  "checkpoint": last.checkpoint}}}
 
 
 

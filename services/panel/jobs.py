@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from learning.presets import PRESETS
+from services.panel import executions
 from services.panel.library import Entry
 
 PARTIAL = ".partial"
@@ -271,6 +272,7 @@ class Model:
     validation_demos: int
     score_mm: float | None  # best validation rollout distance (hand + object)
     data: list[str]  # the recordings it was trained on (split in brackets)
+    executions: str = "-"  # its logged executions (executions.jsonl beside it): "2 / 3 succeeded"
 
 
 def models(directory: str | Path) -> list[Model]:
@@ -293,7 +295,8 @@ def models(directory: str | Path) -> list[Model]:
                          int(info.get("train_demos", 0)), int(info.get("selection_demos", 0)),
                          None if not isinstance(score, (int, float)) or score != score or score == float("inf")
                          else score * 1e3,
-                         [f"{u.get('name')} ({u.get('split')})" for u in info.get("data", []) if isinstance(u, dict)]))
+                         [f"{u.get('name')} ({u.get('split')})" for u in info.get("data", []) if isinstance(u, dict)],
+                         executions.summary(executions.read(d / executions.LOG_NAME)[0])))
     return sorted(out, key=lambda m: m.checkpoint.stat().st_mtime, reverse=True)
 
 
@@ -301,10 +304,11 @@ def models_table(items: list[Model], serving: str | None = None) -> str:
     """The model list as markdown: name, preset, demonstrations, score, date, data."""
     if not items:
         return "no trained models yet"
-    rows = ["| model | preset | train / val | score mm | date | data |", "|---|---|---|---|---|---|"]
+    rows = ["| model | preset | train / val | score mm | executions | date | data |", "|---|---|---|---|---|---|---|"]
     for m in items:
         name = f"**{m.name}** (serving)" if serving and str(m.checkpoint) == serving else m.name
         score = "-" if m.score_mm is None else f"{m.score_mm:.1f}"
-        rows.append(f"| {name} | {m.preset} | {m.train_demos} / {m.validation_demos} | {score} | {m.date} | "
+        rows.append(f"| {name} | {m.preset} | {m.train_demos} / {m.validation_demos} | {score} | {m.executions} | "
+                    f"{m.date} | "
                     f"{', '.join(m.data) or '-'} |")
     return "\n".join(rows)

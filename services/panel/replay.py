@@ -31,6 +31,7 @@ GLOVE_GAP_PERIODS = 3.0  # a glove silent this many median periods counts as a g
 MIN_SILENCE_S = 0.2  # shorter silences are receive jitter on a busy host, not lost frames
 STREAMS = {  # (service, topic) of a key xm/<service>/<instance>/<topic> -> its stream name in a frame
     ("recon", "scene"): "scene", ("recon", "tactile_mesh"): "tactile_mesh", ("policy", "plan"): "plan",
+    ("trajopt", "trajectory"): "trajectory",
     ("world", "session"): "session", ("robot", "state"): "state", ("glove", "tactile"): "tactile/{instance}",
     ("camhub", "image"): "image/{instance}", ("camhub", "info"): "info/{instance}",
 }

@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 import viser
 
-from services.panel import view
+from services.panel import executions, view
 from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
@@ -34,13 +34,14 @@ from shared.config import ConfigError, load_deployment
 from shared.geometry import wxyz
 from shared.keys import CAMERAS, GLOVES
 from shared.kinematics import RobotModel, URDFError, load_robot
-from shared.robots.registry import DEFAULT_ROBOT
+from shared.robots.registry import DEFAULT_ROBOT, REGISTRY
 from shared.runtime import EndpointError, Node
 
 RECORDER = "xm/recorder/main/@cmd"
 FRAME_SIZE = 0.8  # the aluminium frame around the table, metres (services/world/model.py)
 FRAME_HEIGHT = 0.8
 TACTILE_MESH_STALE_S = 2.0  # a hand's tactile mesh is hidden when recon has not sent it for this long
+TRAJECTORY_STALE_S = 1.0  # trajopt sends 10 a second: the drawn trajectory is hidden after this long without one
 
 
 class PanelService:
@@ -58,7 +59,9 @@ class PanelService:
         robot: str = DEFAULT_ROBOT  # a described robot (shared/robots/registry.py)
         recordings: str = ""  # the demonstration library; empty: [services.recorder.main] directory
         models: str = "runs/models"  # where training jobs started from the page write their models
-        train_threads: int = 2  # torch threads of a training job (the cell runs beside it)
+        # torch threads of a training job: one, as the cell takes about a core of a 2-core host beside it and a
+        # second thread stalls each step at torch's barrier whenever another process holds its core (docs/panel.md)
+        train_threads: int = 1
         train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
         # A fresh install's first network: trained as the page's job when this checkpoint (the policy
         # service's) is missing, while the policy service runs the naive fallback ("": never).
@@ -87,6 +90,11 @@ class PanelService:
         self._logged: set[str] = set()
         self._mesh_seen: dict[str, float] = {}  # hand -> when its tactile mesh was last drawn
         self._mesh_view: tuple[np.ndarray, np.ndarray] | None = None  # camera facing the most pressed hand
+        # the robot's points that execute the plan (shared/robots): the trajectory is drawn as their paths
+        desc = REGISTRY.get(params.robot)
+        self.trajectory_frames = list(dict.fromkeys(desc.point_map.values())) if desc and self.robot else []
+        self._trajectory_seen = -np.inf  # when the last trajectory was drawn (monotonic)
+        self.trajectories_drawn = 0
         self.alerts = Alerts(missing_after_s=3 * params.health_period_s)
         self.server = viser.ViserServer(host=params.host, port=params.port, verbose=False)
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
@@ -97,7 +105,9 @@ class PanelService:
         recordings = recordings_directory(params.recordings, self.deployment)
         self.teaching = Teaching(self.server, recordings, self._query_recorder, lambda: self.world_session,
                                  node.stats.count)
-        self.execute = Execute(self.server, params.robot, self._query, node.stats.count)
+        self.execute = Execute(self.server, params.robot, self._query, node.stats.count,
+                               recordings / executions.LOG_NAME, self.teaching.context,
+                               lambda e: self.teaching.executed(e.success))
         self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
                            lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
         self.learn.on_models.append(self.execute.set_models)
@@ -105,7 +115,8 @@ class PanelService:
         self.learn.on_models.append(self.neural.set_models)
         if params.first_network:
             self.learn.start_first(Path(params.first_network), params.first_preset)
-        for port in ("state", "scene", "plan", "session", "tactile_mesh"):  # state: robot/<model>/state (ports.py)
+        # state: robot/<model>/state (ports.py)
+        for port in ("state", "scene", "plan", "trajectory", "session", "tactile_mesh"):
             node.input(port, self._keeper(port))
         for port in ("tactile", "info", "image"):  # one message per hand / camera
             node.input(port, self._keeper(port, by_source=True))
@@ -117,6 +128,8 @@ class PanelService:
 
     def _health_extra(self) -> dict:
         return {"url": self.url, "clients": len(self.server.get_clients()), "frames_drawn": self.frames_drawn,
+                "trajectory": {"frames": self.trajectory_frames, "drawn": self.trajectories_drawn,
+                               "shown": bool(self.trajectory.visible)},
                 "robot_model": self.robot is not None, "frustums": sorted(self.frustums),
                 "tactile_meshes": sorted(h for h, m in self.tactile_meshes.items() if m.visible),
                 "alerts": [{"level": a.level, "title": a.title, "body": a.body} for a in self.alerts.recent],
@@ -162,6 +175,11 @@ class PanelService:
                                           point_shape="circle", visible=False)
         self.plan = sc.add_line_segments("/plan", np.zeros((1, 2, 3)), view.PLAN_COLOR, thickness=0.003,
                                          visible=False)
+        # the optimizer's trajectory: each executing point's path over the knots, its end a dot
+        self.trajectory = sc.add_line_segments("/trajectory", np.zeros((1, 2, 3)), view.TRAJECTORY_COLOR,
+                                               thickness=0.006, visible=False)
+        self.trajectory_ends = sc.add_point_cloud("/trajectory_ends", np.zeros((1, 3)), view.TRAJECTORY_COLOR,
+                                                  point_size=0.014, point_shape="diamond", visible=False)
         self.frustums: dict[str, Any] = {}
         self.tactile_meshes: dict[str, Any] = {}  # hand -> GLB handle (its data replaced on every draw)
 
@@ -239,6 +257,7 @@ class PanelService:
         self._draw_robot(take("state"))
         self._draw_scene(take("scene"))
         self._draw_plan(take("plan"))
+        self._draw_trajectory(take("trajectory"), now)
         for cam in CAMERAS:
             info = take(f"info/{cam}")
             if info is not None:
@@ -295,6 +314,32 @@ class PanelService:
             self.plan.points = seg
             self.plan.colors = np.broadcast_to(np.array(view.PLAN_COLOR, np.uint8), seg.shape).copy()
         self.plan.visible = bool(len(seg))
+
+    def _draw_trajectory(self, msg: Any, now: float) -> None:
+        """Where the robot's executing points go over the optimizer's knots; hidden live when trajopt
+        has not sent a trajectory for TRAJECTORY_STALE_S (a review shows the recorded one as it stands)."""
+        if msg is not None and self.trajectory_frames:
+            try:
+                paths = view.trajectory_paths(self.robot, self.trajectory_frames, list(msg.joint_names),
+                                              [p.positions for p in msg.points])
+            except view.ViewError as exc:  # counted and skipped: the rest of the frame still draws
+                self.node.stats.count("bad_trajectory")
+                self.node.log.debug("trajectory: %s", exc)
+                return
+            seg = view.path_segments(paths)
+            if len(seg):
+                self.trajectory.points = seg
+                self.trajectory.colors = np.broadcast_to(np.array(view.TRAJECTORY_COLOR, np.uint8), seg.shape).copy()
+            self.trajectory_ends.points = paths[:, -1].astype(np.float32)
+            self.trajectory_ends.colors = np.broadcast_to(np.array(view.TRAJECTORY_COLOR, np.uint8),
+                                                          (len(paths), 3)).copy()
+            self.trajectory.visible = bool(len(seg))
+            self.trajectory_ends.visible = True
+            self._trajectory_seen = now
+            self.trajectories_drawn += 1
+        elif (self.trajectory_ends.visible and not self.teaching.reviewing
+              and now - self._trajectory_seen > TRAJECTORY_STALE_S):
+            self.trajectory.visible = self.trajectory_ends.visible = False
 
     def _draw_frustum(self, cam: str, info: Any) -> None:
         p = tuple(np.asarray(info.p, float).round(6))

@@ -39,6 +39,8 @@ class TeachingSession:
     teacher: str
     glove_hand: str
     demos: int = 0
+    executions: int = 0  # run from the Execute folder during the session
+    successes: int = 0
 
 
 @dataclass
@@ -154,7 +156,22 @@ class Teaching:
         s = self.session
         if s is not None:
             self.session_md.content = (f"session `{s.id}`: task **{s.task}**, teacher **{s.teacher}**, glove on the "
-                                       f"{s.glove_hand} hand, {s.demos} demonstrations")
+                                       f"{s.glove_hand} hand, {s.demos} demonstrations"
+                                       + (f", {s.executions} execution{'s' * (s.executions != 1)} "
+                                          f"({s.successes} succeeded)"
+                                          if s.executions else ""))
+
+    def context(self) -> dict:
+        """The teaching session an execution runs in (empty without one)."""
+        s = self.session
+        return {} if s is None else {"session": s.id, "teacher": s.teacher, "task": s.task}
+
+    def executed(self, success: bool) -> None:
+        """An execution ended during the session: counted on its line."""
+        if self.session is not None:
+            self.session.executions += 1
+            self.session.successes += int(success)
+            self._session_line()
 
     def _start_recording(self) -> None:
         """With a session: a demonstration, named and labelled; without: a plain recording."""

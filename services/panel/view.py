@@ -24,6 +24,7 @@ BONES: list[tuple[int, int]] = [(0, 1), (1, 2), (2, 3), (3, 4)] + [
 HAND_COLORS = {"left": (230, 120, 90), "right": (90, 120, 230)}
 DIM = 0.35  # brightness of what a mask marks unobserved
 PLAN_COLOR = (60, 190, 90)
+TRAJECTORY_COLOR = (240, 150, 30)  # the optimizer's joint trajectory, drawn as its points' paths
 TACTILE_SHAPE = (16, 16)
 
 
@@ -203,6 +204,32 @@ def link_boxes(model: RobotModel, q: np.ndarray) -> list[LinkBox]:
         offset[:3, 3] = centre
         out.append(LinkBox(f"{s.link}_{i}", dims, poses[s.link] @ s.origin @ offset))
     return out
+
+
+def trajectory_paths(model: RobotModel, frames: Sequence[str], joint_names: Sequence[str],
+                     knots: Sequence[Sequence[float]]) -> np.ndarray:
+    """(F, K, 3): where each of ``frames`` (the robot's points that execute the plan) goes over the
+    optimizer's K knots (JointTrajectory points; joints a knot lacks stay at 0). ViewError for an
+    empty trajectory or an unknown frame."""
+    unknown = [f for f in frames if f not in model.frames()]
+    if unknown or not frames:
+        raise ViewError(f"trajectory: no such robot frames {unknown}" if unknown else "trajectory: no frames to draw")
+    if not len(knots):
+        raise ViewError("trajectory without points")
+    out = np.zeros((len(frames), len(knots), 3))
+    for k, positions in enumerate(knots):
+        if len(positions) != len(joint_names):
+            raise ViewError(f"trajectory point {k} has {len(positions)} positions for {len(joint_names)} joints")
+        poses = model.fk(joint_vector(model.joint_names, joint_names, positions))
+        for i, f in enumerate(frames):
+            out[i, k] = poses[f][:3, 3]
+    return out
+
+
+def path_segments(paths: np.ndarray) -> np.ndarray:
+    """(F, K, 3) paths -> (F * (K - 1), 2, 3) line segments joining consecutive knots."""
+    paths = np.asarray(paths, np.float32)
+    return np.stack([paths[:, :-1], paths[:, 1:]], axis=2).reshape(-1, 2, 3)
 
 
 def joint_markers(positions: Sequence[float], spacing: float = 0.05, origin: Sequence[float] = (-0.35, -0.45, 0.0),

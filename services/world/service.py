@@ -64,6 +64,7 @@ class WorldService:
         self._repace = False  # set by a reset: pace real time from the new simulated time
         node.queryable("reset", self.cmd_reset)
         node.queryable("mode", self.cmd_mode)
+        node.queryable("outcome", self.cmd_outcome)
         node.queryable("calibration", self.cmd_calibration)
         self._board_mocap = int(self.sim.model.body_mocapid[self.sim.model.body(CALIB_BOARD).id])
         self._calib_key: tuple | None = None
@@ -87,8 +88,14 @@ class WorldService:
         mode = req.get("mode")
         if mode not in ("teacher", "robot"):
             return {"ok": False, "error": f"mode must be 'teacher' or 'robot', got {mode!r}"}
-        self.sim.robot_mode = mode
+        self.sim.set_robot_mode(mode)  # robot: the teacher's hands leave the cell, the task's test starts over
         return {"ok": True, "mode": mode}
+
+    def cmd_outcome(self, req: dict) -> dict:
+        """The task's success test on the physical world now, with its measurements (the dashboard's
+        executions log it); meaningful in robot mode, after the robot has acted."""
+        return {"ok": True, "task": self.sim.task, "mode": self.sim.robot_mode, "sim_time": self.sim.time,
+                **self.sim.task_success()}
 
     def cmd_calibration(self, req: dict) -> dict:
         """Place the calibration board at pose ``index`` of the sequence (``count``, ``seed``,

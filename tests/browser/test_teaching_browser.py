@@ -1,17 +1,21 @@
 """The teaching folders in a real browser: headless Chromium (DevTools protocol, mouse and input
-events dispatched in the page) starts a teaching session, records two demonstrations through a stand-in recorder
-that writes real MCAP files, labels one for validation in the library, reviews a third with the
-scrubber (the rendered scene changes with its position), plays, pauses, steps it and trims its start;
-then trains on the library (a second Train is told a job runs, Cancel leaves no model, a tiny
-budget leaves one in the model list), serves it, runs a neural simulation of it from the reviewed
-demonstration (the ghost drawn over the scene), arms the robot and stops it, against stand-ins
-for the policy and robot services (the stand-in's rollout is the policy's own simulation code on
-the trained checkpoint). Screenshots: .cache/teaching_*.png. The live overview's neural
-simulation against the real policy service and its alerts as toasts: test_overview_browser.py."""
+events dispatched in the page) starts a teaching session, records two demonstrations through a
+stand-in recorder that writes real MCAP files, labels one for validation in the library, reviews a
+third with the scrubber (the rendered scene changes with its position), plays, pauses, steps it
+and trims its start; then trains on the library (a second Train is told a job runs, Cancel leaves
+no model, a tiny budget leaves one in the model list), serves it, runs a neural simulation of it
+from the reviewed demonstration (the ghost drawn over the scene), arms the robot, draws the
+optimizer's trajectory (the rendered scene changes), runs an execution whose outcome is logged
+beside the model and shown in the model list and the session line (a second press meanwhile is
+told one runs), and stops the robot, against stand-ins for the policy, robot, trajopt and world
+services (the stand-in's rollout is the policy's own simulation code on the trained checkpoint).
+Screenshots: .cache/teaching_*.png. The live overview's neural simulation against the real policy
+service and its alerts as toasts: test_overview_browser.py."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import threading
 import time
@@ -23,6 +27,7 @@ import pytest
 
 from services.policy.simulation import Simulator, scene_from_request
 from shared import msgs
+from shared.kinematics import load_robot
 from tests.browser._cdp import Chromium, find_chromium
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
 from tests.unit.panel_recordings import write_demo
@@ -142,6 +147,7 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
 
     queryables = [session.declare_queryable(f"xm/recorder/main/@cmd/{v}", fake_recorder) for v in ("start", "stop")]
     queryables += stand_in_robot_and_policy(session, requests)
+    queryables += stand_in_world(session, requests)
     pub = session.declare_publisher("xm/world/sim/session")
     stop = threading.Event()
 
@@ -252,6 +258,9 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         wait_until(lambda: "the file is unchanged" in page_text(browser), WAIT, "the trim confirmed")
         learn_and_execute(browser, session, models_dir, requests, tmp_path)
         browser.screenshot(cache / "teaching_execute.png", PATIENCE_S)
+        text = " ".join(page_text(browser).split())
+        missing = [name for name in walkthrough_names() if name not in text]
+        assert not missing, f"named in the README's walkthrough, not on the page: {missing}"
         health = query_json(session, "xm/panel/main/@health")[0]
         assert not {k for k in health["errors"] if k.startswith(("draw_error", "library_error", "review_error",
                                                                  "train_monitor_error", "execute_error",
@@ -265,6 +274,16 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         for q in queryables:
             q.undeclare()
         assert panel.stop() in (0, -15), panel.output()
+
+
+def walkthrough_names() -> list[str]:
+    """The controls (bold) and fields (code) the README's walkthrough names; files and commands aside."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("## Teaching from the dashboard", 1)[1].split("\n## ", 1)[0]
+    names = re.findall(r"\*\*([^*]+)\*\*", section) + re.findall(r"`([^`]+)`", section)
+    names = [" ".join(n.split()) for n in names]
+    assert len(names) > 20, "the walkthrough names the page's controls"
+    return [n for n in names if "/" not in n and not n.startswith("make ")]
 
 
 def stand_in_robot_and_policy(session, requests: list) -> list:
@@ -332,6 +351,7 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
                lambda: f"the model in the model list; page: {page_text(browser)[-1500:]}")
     health = query_json(session, "xm/panel/main/@health")[0]
     assert health["training"]["state"] == "done" and health["models"] == 1
+    browser.screenshot(ROOT / ".cache" / "teaching_learn.png", PATIENCE_S)
 
     choose(browser, "model", model.name)
     click_button(browser, "Serve")
@@ -344,6 +364,10 @@ def learn_and_execute(browser: Chromium, session, models_dir: Path, requests: li
     wait_until(lambda: ("arm", {"armed": True}) in requests, WAIT, "the arm query")
     wait_until(lambda: "robot: ARMED" in page_text(browser), WAIT,
                lambda: f"the armed state shown; page: {page_text(browser)[:600]}")
+    click_button(browser, "Close review")  # the scene shows the live cell again, where trajopt's trajectory is drawn
+    wait_until(lambda: query_json(session, "xm/panel/main/@health")[0]["reviewing"] is None, WAIT, "the review closed")
+    trajectory_drawn(browser, session, tmp_path)
+    execution(browser, session, model, requests)
     click_button(browser, "STOP")
     wait_until(lambda: ("hold", {"disarm": True}) in requests, WAIT, "the stop query")
     wait_until(lambda: "robot: disarmed" in page_text(browser), WAIT,
@@ -371,3 +395,103 @@ def neural_simulation(browser: Chromium, session, requests: list, tmp_path: Path
     shot = wait_until(ghost_drawn, WAIT, "the ghost drawn in the 3D view", period=0.5)
     shutil.copy(shot, ROOT / ".cache" / "teaching_neural_sim.png")
 
+
+
+def stand_in_world(session, requests: list) -> list:
+    """The world's @cmd/reset, @cmd/mode and @cmd/outcome (the real ones:
+    tests/contract/test_pipeline_services.py); its success test reports a seated module."""
+    def answer(verb: str, query) -> None:
+        req = json.loads((query.payload.to_bytes() if query.payload is not None else b"") or b"{}")
+        requests.append((verb, req))
+        reply = ({"ok": True, "task": "assembly", "mode": "robot", "sim_time": 9.0, "success": True, "seated": True,
+                  "connector_gap_mm": 1.7} if verb == "outcome" else {"ok": True})
+        query.reply(f"xm/world/sim/@cmd/{verb}", json.dumps(reply))
+
+    return [session.declare_queryable(f"xm/world/sim/@cmd/{v}", lambda q, v=v: answer(v, q))
+            for v in ("reset", "mode", "outcome")]
+
+
+def trajectory_msg(shift: float) -> bytes:
+    """A trajopt trajectory: 20 knots carrying the gripper 25 cm along x, the finger 15 cm along y."""
+    robot = load_robot("workcell")
+    names = list(robot.joint_names)
+    knots = np.zeros((20, len(names)))
+    knots[:, names.index("left_x")] = np.linspace(0.0, 0.25, 20) + shift
+    knots[:, names.index("right_y")] = np.linspace(0.0, 0.15, 20)
+    points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=q, velocities=np.zeros(len(names)),
+                        accelerations=np.zeros(0), effort=np.zeros(0),
+                        time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=0, nanosec=int(k * 5e7)))
+              for k, q in enumerate(knots)]
+    return msgs.serialize(msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(time.time(), "world"),
+                                    joint_names=names, points=points))
+
+
+def trajectory_drawn(browser: Chromium, session, tmp_path: Path) -> None:
+    """The optimizer's trajectory, published as trajopt does, is drawn in the 3-D scene (the rendered
+    view changes) and hidden again once trajopt falls silent."""
+    before = viewport(browser.screenshot(tmp_path / "t0.png", PATIENCE_S))
+    pub = session.declare_publisher("xm/trajopt/main/trajectory")
+    stop = threading.Event()
+
+    def feed() -> None:  # as trajopt, 10 a second
+        while not stop.wait(0.1):
+            pub.put(trajectory_msg(0.0))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        wait_until(lambda: (query_json(session, "xm/panel/main/@health")[0]["trajectory"] or {}).get("shown"), WAIT,
+                   "the trajectory drawn")
+
+        def drawn():
+            shot = browser.screenshot(tmp_path / "t1.png", PATIENCE_S)
+            return shot if np.abs(viewport(shot) - before).sum(axis=2).__gt__(60).mean() > 0.001 else None
+
+        shot = wait_until(drawn, WAIT, "the trajectory in the rendered 3D view", period=0.5)
+        shutil.copy(shot, ROOT / ".cache" / "teaching_trajectory.png")
+        health = query_json(session, "xm/panel/main/@health")[0]
+        assert health["trajectory"]["frames"] == ["left_tip_a", "left_tip_b", "right_tip"]
+    finally:
+        stop.set()
+        feeder.join(5)
+        pub.undeclare()
+    wait_until(lambda: not query_json(session, "xm/panel/main/@health")[0]["trajectory"]["shown"], WAIT,
+               "the trajectory hidden once trajopt is silent")
+
+
+def execution(browser: Chromium, session, model: Path, requests: list) -> None:
+    """Run execution: reset to the layout, robot mode, the world's test, teacher mode; the outcome
+    logged beside the model, in the Execute folder, the model list and the session line. A long
+    one: a second press meanwhile is told one runs, STOP ends it, logged as stopped."""
+    type_into(browser, "layout seed", "4")
+    type_into(browser, "run seconds", "2")
+    wait_until(lambda: value_of(browser, "layout seed") == "4" and value_of(browser, "run seconds") == "2", WAIT,
+               "the typed layout and duration")
+    n = len(requests)
+    click_button(browser, "Run execution")
+    wait_until(lambda: "layout 4: success after" in page_text(browser), WAIT,
+               lambda: f"the outcome shown; page: {page_text(browser)[-1500:]}")
+    assert "connector gap 1.7 mm" in page_text(browser)
+    assert [v for v, _ in requests[n:] if v in ("reset", "mode", "outcome")] == ["reset", "mode", "outcome", "mode"]
+    assert ("reset", {"seed": 4}) in requests[n:] and ("mode", {"mode": "robot"}) in requests[n:]
+    [logged] = [json.loads(line) for line in (model / "executions.jsonl").read_text().splitlines()]
+    assert logged["success"] and logged["seed"] == 4 and logged["distances"] == {"connector_gap_mm": 1.7}
+    assert logged["session"].startswith("pick_place-ada-") and logged["teacher"] == "ada"
+    wait_until(lambda: "1 / 1 succeeded" in page_text(browser), WAIT, "the execution in the model list")
+    assert "1 execution (1 succeeded)" in page_text(browser)  # the session line
+
+    type_into(browser, "run seconds", "120")
+    wait_until(lambda: value_of(browser, "run seconds") == "120", WAIT, "the long duration")
+    m = len(requests)
+    click_button(browser, "Run execution")
+    wait_until(lambda: ("mode", {"mode": "robot"}) in requests[m:], WAIT, "the world in robot mode")
+    click_button(browser, "Run execution")  # a second press while it runs is told so
+    wait_until(lambda: "Execution refused" in page_text(browser), WAIT, "the second Run refused")
+    click_button(browser, "STOP")
+    wait_until(lambda: "layout 4: stopped after" in page_text(browser), WAIT,
+               lambda: f"the stopped execution shown; page: {page_text(browser)[-1500:]}")
+    lines = [json.loads(line) for line in (model / "executions.jsonl").read_text().splitlines()]
+    assert len(lines) == 2 and lines[1]["stopped"] and not lines[1]["success"] and lines[1]["seconds"] < 120
+    wait_until(lambda: "1 / 2 succeeded" in page_text(browser), WAIT, "both executions in the model list")
+    health = query_json(session, "xm/panel/main/@health")[0]
+    assert health["executions"]["runs"] == 2 and health["executions"]["last"]["stopped"]

@@ -91,6 +91,19 @@ def plan() -> object:
                      efforts=np.zeros(0, np.float32))
 
 
+def trajectory(knots: int = 5) -> object:
+    """trajopt's JointTrajectory: ``knots`` knots of the workcell moving its left carriage."""
+    names = list(load_robot("workcell").joint_names)
+    q = np.zeros((knots, len(names)))
+    q[:, 0] = np.linspace(0.0, 0.1, knots)
+    points = [msgs.make("trajectory_msgs/msg/JointTrajectoryPoint", positions=qk, velocities=np.zeros(0),
+                        accelerations=np.zeros(0), effort=np.zeros(0),
+                        time_from_start=msgs.make("builtin_interfaces/msg/Duration", sec=0, nanosec=k * 50_000_000))
+              for k, qk in enumerate(q)]
+    return msgs.make("trajectory_msgs/msg/JointTrajectory", header=msgs.header(time.time(), "world"),
+                     joint_names=names, points=points)
+
+
 def camera_info() -> object:
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     P = projection(K, look_at(np.array([0.4, -0.4, 0.8]), np.zeros(3)))
@@ -118,7 +131,7 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
         frames = {"xm/robot/workcell/state": joint_state(), "xm/recon/main/scene": scene(),
                   "xm/glove/left/tactile": tactile("left"), "xm/glove/right/tactile": tactile("right"),
                   "xm/camhub/cam0/info": camera_info(), "xm/policy/main/plan": plan(),
-                  "xm/recon/main/tactile_mesh": tactile_mesh()}
+                  "xm/recon/main/tactile_mesh": tactile_mesh(), "xm/trajopt/main/trajectory": trajectory()}
         pubs = {k: session.declare_publisher(k) for k in frames}
 
         def received() -> dict | None:
@@ -137,6 +150,11 @@ def test_panel_serves_http_and_reports_what_it_received(router, tmp_path):
             assert h, health_of(session)
             assert h["frustums"] == ["cam0"] and "draw_error" not in h["errors"], (h["errors"], panel.output())
             assert h["tactile_meshes"] == ["right"], "the gloved hand's tactile mesh is drawn"
+            assert h["trajectory"]["drawn"] > 0 and h["trajectory"]["shown"], h["trajectory"]
+            assert h["trajectory"]["frames"] == ["left_tip_a", "left_tip_b", "right_tip"]
+            frames["xm/trajopt/main/trajectory"] = trajectory(knots=0)  # a trajectory without points
+            h = wait_for(lambda: (r := received()) and r["errors"].get("bad_trajectory") and r, 20)
+            assert h and "draw_error" not in h["errors"], health_of(session)  # counted; the rest still draws
 
         pubs["xm/glove/left/tactile"].put(b"\x00\x01garbage")  # malformed: counted, not fatal
         h = wait_for(lambda: (r := query_json(session, "xm/panel/main/@health")) and

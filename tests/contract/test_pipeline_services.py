@@ -47,6 +47,14 @@ def test_world_publishes_clock_truth_session_and_hosts_devices(router, tmp_path)
             assert (tmp_path / "run" / name).is_symlink()
         bad = query_json(session, "xm/world/sim/@cmd/mode", {"mode": "dance"})
         assert bad and not bad[0]["ok"] and "teacher" in bad[0]["error"]
+        # the dashboard's executions: robot mode (the teacher's hands leave), the task's success test, back
+        assert query_json(session, "xm/world/sim/@cmd/mode", {"mode": "robot"})[0]["ok"]
+        assert wait_for(lambda: not np.any(truths[-1].hand_keypoints), 10), "the hands left the cell in robot mode"
+        [out] = query_json(session, "xm/world/sim/@cmd/outcome", {})
+        assert out["ok"] and out["task"] == "assembly" and out["mode"] == "robot" and out["success"] is False
+        assert out["seated"] is False and 5.0 < out["connector_gap_mm"] < 1000.0  # nobody assembled anything
+        assert query_json(session, "xm/world/sim/@cmd/mode", {"mode": "teacher"})[0]["ok"]
+        assert wait_for(lambda: np.any(truths[-1].hand_keypoints), 10), "the teacher's hands back"
     finally:
         assert svc.stop() in (0, -15), svc.output()
 

@@ -3,6 +3,7 @@ kill -9 a service and see it come back. The recorded rates against the nominal o
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -13,8 +14,10 @@ import pytest
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.highlevel import AnyReader
 
+from services.panel.executions import Runner
 from shared import keys
 from shared.msgs import typestore
+from shared.runtime import open_client
 from tests.conftest import ROOT, query_router, sim_workcell, wait_until
 
 pytestmark = pytest.mark.slow
@@ -160,3 +163,24 @@ def test_every_service_publishes_again_after_the_world_is_killed(workcell):
     sup = next(r for r in query_router(workcell["router"], "xm/deploy/supervisor/@health"))
     world = next(c for c in sup["children"] if c["service"] == "world")
     _restart_and_check(workcell, lambda: os.kill(world["pid"], signal.SIGKILL))
+
+
+def test_an_execution_from_the_dashboard_is_judged_by_the_world(workcell):
+    """The dashboard's execution sequence (services/panel/executions.py) against the running cell:
+    reset to a layout, robot mode, the world's success test with its distances, teacher mode again."""
+    session = open_client(workcell["router"])
+
+    def query(key: str, request: dict) -> list[dict]:
+        return [json.loads(r.ok.payload.to_bytes()) for r in session.get(key, payload=json.dumps(request), timeout=10)
+                if r.ok is not None]
+
+    try:
+        done = Runner(query).run(2, 3.0, True, None, "naive")
+        assert done.task == "assembly" and done.seed == 2 and not done.stopped
+        assert isinstance(done.success, bool) and done.checks.keys() == {"seated"}
+        assert 0.0 <= done.distances["connector_gap_mm"] < 1000.0
+        truth = wait_until(lambda: query(
+            "xm/world/sim/@cmd/outcome", {}), 30, "the world answering after the execution")[0]
+        assert truth["mode"] == "teacher"  # the cell demonstrates again
+    finally:
+        session.close()

@@ -216,3 +216,36 @@ def test_recorder_text_for_every_reply():
     text = view.recorder_text("stop", [{"ok": True, "path": "/r/a.mcap", "messages": {"k": 3, "j": 4},
                                         "bytes": 2_500_000}])
     assert text == "saved `/r/a.mcap`: 7 messages, 2.5 MB"
+
+
+def test_trajectory_paths_follow_each_point_through_the_knots():
+    robot = load_robot("workcell")
+    frames = ["left_tip_a", "right_tip"]
+    knots = [np.zeros(len(robot.joint_names)) for _ in range(3)]
+    x = robot.joint_names.index("left_x")
+    knots[1][x], knots[2][x] = 0.05, 0.10  # the left carriage moves 5 cm per knot along its axis
+    names = list(robot.joint_names)
+    paths = view.trajectory_paths(robot, frames, names, knots)
+    assert paths.shape == (2, 3, 3)
+    for k, q in enumerate(knots):  # each knot's points are the forward kinematics of that knot
+        poses = robot.fk(q)
+        assert np.allclose(paths[0, k], poses["left_tip_a"][:3, 3])
+        assert np.allclose(paths[1, k], poses["right_tip"][:3, 3])
+    assert np.linalg.norm(paths[0, 2] - paths[0, 0]) == pytest.approx(0.10, abs=1e-6)  # a prismatic axis
+    assert np.allclose(paths[1, 0], paths[1, 2])  # the right arm stands still
+    # a message naming joints in another order is reordered by name
+    order = names[::-1]
+    assert np.allclose(view.trajectory_paths(robot, frames, order, [q[::-1] for q in knots]), paths)
+    seg = view.path_segments(paths)
+    assert seg.shape == (4, 2, 3) and np.allclose(seg[1], paths[0, 1:3])
+
+
+def test_trajectory_paths_refuse_bad_trajectories():
+    robot = load_robot("workcell")
+    names = list(robot.joint_names)
+    with pytest.raises(view.ViewError, match="no such robot frames"):
+        view.trajectory_paths(robot, ["nowhere"], names, [np.zeros(len(names))])
+    with pytest.raises(view.ViewError, match="without points"):
+        view.trajectory_paths(robot, ["right_tip"], names, [])
+    with pytest.raises(view.ViewError, match="positions for"):
+        view.trajectory_paths(robot, ["right_tip"], names, [np.zeros(3)])
