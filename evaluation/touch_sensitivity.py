@@ -23,7 +23,7 @@ from services.world.tasks import TASKS, UnknownTaskError, outcome
 from services.world.teacher import KPA_PER_N, Teacher
 from shared.demo import Demo
 
-OFFSETS_MM = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0, 6.0)
+OFFSETS_MM = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0, 6.0, 10.0)
 MOVED = {"wiping": ("sponge/",), "latch": ()}  # held objects that move with the pressing hand
 
 
