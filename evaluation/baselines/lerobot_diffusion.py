@@ -82,7 +82,7 @@ class LeRobotDiffusion:
 
     def __init__(self, settings: LeRobotDiffusionSettings | None = None) -> None:
         self.settings = settings or LeRobotDiffusionSettings()
-        self.policy = None
+        self.net = None  # LeRobot's DiffusionPolicy (not ``policy``: task_measure reads that as our net)
         self.losses: list[float] = []
         self.curve: list[dict] = []
         self.monitor = None
@@ -122,51 +122,51 @@ class LeRobotDiffusion:
         stats = {STATE: _stats(every), ENV: _stats(every[:, HAND_DIMS:]), ACTION: _stats(nxt)}
         torch.manual_seed(s.seed)
         rng = np.random.default_rng(s.seed)
-        self.policy = DiffusionPolicy(cfg)
+        self.net = DiffusionPolicy(cfg)
         self.pre, self.post = make_diffusion_pre_post_processors(cfg, dataset_stats=stats)
         opt_cfg = cfg.get_optimizer_preset()
-        opt = opt_cfg.build(self.policy.get_optim_params())
+        opt = opt_cfg.build(self.net.get_optim_params())
         sched = cfg.get_scheduler_preset().build(opt, s.iterations)
         obs_t, act_t, pad_t = torch.from_numpy(obs), torch.from_numpy(act), torch.from_numpy(pad)
         t0 = time.perf_counter()
-        self.policy.train()
+        self.net.train()
         for it in range(s.iterations):
             idx = torch.from_numpy(rng.integers(0, len(obs), s.batch))
             batch = self.pre({STATE: obs_t[idx], ENV: obs_t[idx][..., HAND_DIMS:], ACTION: act_t[idx],
                               "action_is_pad": pad_t[idx]})
-            loss, _ = self.policy.forward(batch)
+            loss, _ = self.net.forward(batch)
             if not torch.isfinite(loss):
                 raise BaselineError(f"{self.name}: training loss became {loss.item()} at iteration {it}")
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(self.policy.parameters(), opt_cfg.grad_clip_norm)
+            torch.nn.utils.clip_grad_norm_(self.net.parameters(), opt_cfg.grad_clip_norm)
             opt.step()
             opt.zero_grad()
             sched.step()
             self.losses.append(loss.item())
             done = it + 1
             if self.monitor is not None and s.eval_every > 0 and (done % s.eval_every == 0 or done == s.iterations):
-                self.policy.eval()
+                self.net.eval()
                 t0 = record(self, done, s.eval_every, t0)
-                self.policy.train()
-        self.policy.eval()
+                self.net.train()
+        self.net.eval()
         self.train_seconds = time.perf_counter() - t0
 
     @torch.no_grad()
     def rollout_batch(self, starts: list[Demo], steps: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """Roll out from several start states at once: LeRobot's ``select_action`` (a chunk of
         ``horizon`` predicted every ``n_action_steps``), each action taken as the next state."""
-        if self.policy is None:
+        if self.net is None:
             raise BaselineError(f"fit() {self.name} first")
         x = np.stack([flat_state(s)[0] for s in starts]).astype(np.float32)
         if x.shape[1] != self.dim:
             raise BaselineError(f"start state has {x.shape[1]} values, the policy {self.dim}")
         traj = [x]
-        self.policy.reset()
+        self.net.reset()
         with torch.random.fork_rng():  # sampling noise of its own: a rollout during training leaves its batches
             torch.manual_seed(self.settings.seed + 1)
             while len(traj) < steps:
                 cur = torch.from_numpy(traj[-1])
-                action = self.policy.select_action(self.pre({STATE: cur, ENV: cur[:, HAND_DIMS:]}))
+                action = self.net.select_action(self.pre({STATE: cur, ENV: cur[:, HAND_DIMS:]}))
                 traj.append(self.post(action).numpy().astype(np.float32))
         return [split_state(xi) for xi in np.stack(traj, axis=1).astype(float)]
 

@@ -12,6 +12,7 @@ import torch
 
 from evaluation.baselines import make
 from evaluation.baselines.lerobot_diffusion import LeRobotDiffusion, LeRobotDiffusionSettings, windows
+from evaluation.task_measure import predicted_touch
 from interop import lerobot_site
 from services.policy.flat_state import BaselineError, flat_state
 from tests.unit.policy_demos import synthetic_protocol
@@ -88,8 +89,9 @@ def test_each_action_is_the_next_state(demos):
         return policy.pre({"observation.state": x, "observation.environment_state": x[:, 126:],
                            "action": torch.from_numpy(target[None])})["action"]
 
-    policy.policy.select_action = select_action
+    policy.net.select_action = select_action
     (hands, objects), = policy.rollout_batch([demos[3]], 6)
+    assert predicted_touch(policy, demos[3], 6) is None  # no touch: its force comes from the positions
     assert len(calls) == 5 and calls[0] == (1, policy.dim)
     np.testing.assert_allclose(hands[0].ravel(), start[:126])
     np.testing.assert_allclose(hands[1:].reshape(5, -1), np.broadcast_to(target[:126], (5, 126)), atol=1e-5)
