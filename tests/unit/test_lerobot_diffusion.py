@@ -46,12 +46,12 @@ def test_the_preset_changes_only_the_documented_lerobot_defaults():
 
     settings = LeRobotDiffusionSettings.preset()
     default = DiffusionConfig()
-    assert set(settings.changes) == {"down_dims", "noise_scheduler_type", "num_inference_steps"}
+    assert set(settings.changes) == {"down_dims", "noise_scheduler_type", "num_inference_steps", "prediction_type"}
     assert default.down_dims == (512, 1024, 2048) and default.noise_scheduler_type == "DDPM"
     assert (default.horizon, default.n_obs_steps, default.n_action_steps, default.prediction_type) == \
         (16, 2, 8, "epsilon")
     cfg = LeRobotDiffusion(settings)._config(150)
-    assert cfg.down_dims == (64, 128, 256) and cfg.num_inference_steps == 10
+    assert cfg.down_dims == (64, 128, 256) and cfg.num_inference_steps == 10 and cfg.prediction_type == "sample"
     assert (cfg.diffusion_step_embed_dim, cfg.optimizer_lr, cfg.scheduler_warmup_steps) == \
         (default.diffusion_step_embed_dim, default.optimizer_lr, default.scheduler_warmup_steps)
 
