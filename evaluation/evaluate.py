@@ -59,7 +59,7 @@ METHODS = ("multimodal", "no_tactile", "single_state", "time_window", "dmp", "pr
 ROWS = {"multimodal": ("(1) Multimodal", "Yes", "Yes"), "no_tactile": ("(2) No tactile", "No", "Yes"),
         "single_state": ("(3) Single state", "No", "No"), "time_window": ("(4) Time window", "No", "No"),
         "dmp": ("(5) DMP", "No", "No"), "promp_conditional": ("(6) Conditional ProMP", "No", "No"),
-        "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) Diffusion U-Net", "No", "No"),
+        "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) LeRobot Diffusion U-Net", "No", "No"),
         "diffusion_transformer": ("(9) Diffusion Transformer", "No", "No"), "naive": ("(10) None", "No", "No")}
 REFERENCE = "multimodal"
 ANCHOR_MOVED_M = 0.01  # reconstructed demonstrations: a grasped object has moved 1 cm (their noise is mm)

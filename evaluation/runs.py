@@ -29,10 +29,12 @@ ROW_SOURCES = {
     "dmp": ("evaluation/baselines/dmp.py", "services/policy/flat_state.py"),
     "promp_conditional": ("evaluation/baselines/promp.py", "services/policy/flat_state.py"),
     "promp_simple": ("evaluation/baselines/promp.py", "services/policy/flat_state.py"),
-    "diffusion_unet": ("evaluation/baselines/diffusion_policy.py", "evaluation/baselines/diffusion_nets.py",
+    # LeRobot's version: its pins (the package directory beside the venv, interop/lerobot_site.py)
+    "diffusion_unet": ("evaluation/baselines/lerobot_diffusion.py", "evaluation/baselines/curve.py",
+                       "interop/lerobot_site.py", "tests/lerobot_check/requirements.txt",
                        "services/policy/flat_state.py"),
     "diffusion_transformer": ("evaluation/baselines/diffusion_policy.py", "evaluation/baselines/diffusion_nets.py",
-                              "services/policy/flat_state.py"),
+                              "evaluation/baselines/curve.py", "services/policy/flat_state.py"),
     "naive": ("services/policy/naive.py", "services/policy/flat_state.py"),
 }
 LIBRARIES = ("torch", "numpy", "diffusers", "movement_primitives")

@@ -1,10 +1,9 @@
-"""The two noise-prediction networks of Diffusion Policy (Chi et al. 2023), ported module for module
-from the reference repository (real-stanford/diffusion_policy, ``ConditionalUnet1D`` with
-``cond_predict_scale`` and the observations as global condition, and ``TransformerForDiffusion``
+"""The transformer noise-prediction network of Diffusion Policy (Chi et al. 2023), ported module for
+module from the reference repository (real-stanford/diffusion_policy, ``TransformerForDiffusion``
 with time and observations as condition tokens, causal attention and an MLP condition encoder).
-diffusers has no conditional 1-D U-Net of this kind (its ``UNet1DModel`` takes no observation
-condition), so the architecture is ported; the diffusion process is diffusers' (diffusion_policy.py).
-Inputs and outputs are action chunks (B, horizon, action_dim)."""
+Neither LeRobot (whose ``DiffusionPolicy`` is the 1-D U-Net only) nor diffusers has it; the
+diffusion process is diffusers' (diffusion_policy.py). Inputs and outputs are action chunks
+(B, horizon, action_dim)."""
 
 from __future__ import annotations
 
@@ -24,79 +23,6 @@ class SinusoidalPosEmb(nn.Module):
         freq = torch.exp(-math.log(10000.0) / (half - 1) * torch.arange(half, device=t.device))
         arg = t.float()[:, None] * freq[None]
         return torch.cat([arg.sin(), arg.cos()], dim=-1)
-
-
-class Conv1dBlock(nn.Sequential):
-    """Conv1d, GroupNorm, Mish."""
-
-    def __init__(self, cin: int, cout: int, kernel: int, groups: int = 8) -> None:
-        super().__init__(nn.Conv1d(cin, cout, kernel, padding=kernel // 2), nn.GroupNorm(groups, cout), nn.Mish())
-
-
-class ConditionalResidualBlock1D(nn.Module):
-    """Two conv blocks; the condition predicts a per-channel scale and bias (FiLM) between them."""
-
-    def __init__(self, cin: int, cout: int, cond_dim: int, kernel: int, groups: int) -> None:
-        super().__init__()
-        self.blocks = nn.ModuleList([Conv1dBlock(cin, cout, kernel, groups), Conv1dBlock(cout, cout, kernel, groups)])
-        self.cond_encoder = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, 2 * cout))
-        self.residual_conv = nn.Conv1d(cin, cout, 1) if cin != cout else nn.Identity()
-
-    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        h = self.blocks[0](x)
-        scale, bias = self.cond_encoder(cond).unsqueeze(-1).chunk(2, dim=1)
-        h = self.blocks[1](scale * h + bias)
-        return h + self.residual_conv(x)
-
-
-class ConditionalUnet1D(nn.Module):
-    """The reference U-Net: per level two FiLM residual blocks and a stride-2 down-sampling (not
-    after the last), two middle blocks, per up level a concatenated skip, two blocks and a
-    transposed-conv up-sampling. As in the reference, the first level's skip is not consumed."""
-
-    def __init__(self, action_dim: int, global_cond_dim: int, down_dims: tuple[int, ...] = (256, 512, 1024),
-                 kernel: int = 5, groups: int = 8, step_embed: int = 256) -> None:
-        super().__init__()
-        self.diffusion_step_encoder = nn.Sequential(
-            SinusoidalPosEmb(step_embed), nn.Linear(step_embed, 4 * step_embed), nn.Mish(),
-            nn.Linear(4 * step_embed, step_embed))
-        c = step_embed + global_cond_dim
-        dims = [action_dim, *down_dims]
-        pairs = list(zip(dims[:-1], dims[1:], strict=True))
-        self.down_modules = nn.ModuleList()
-        for i, (cin, cout) in enumerate(pairs):
-            last = i == len(pairs) - 1
-            self.down_modules.append(nn.ModuleList([
-                ConditionalResidualBlock1D(cin, cout, c, kernel, groups),
-                ConditionalResidualBlock1D(cout, cout, c, kernel, groups),
-                nn.Identity() if last else nn.Conv1d(cout, cout, 3, stride=2, padding=1)]))
-        mid = down_dims[-1]
-        self.mid_modules = nn.ModuleList([ConditionalResidualBlock1D(mid, mid, c, kernel, groups),
-                                          ConditionalResidualBlock1D(mid, mid, c, kernel, groups)])
-        self.up_modules = nn.ModuleList()
-        for cin, cout in reversed(pairs[1:]):
-            self.up_modules.append(nn.ModuleList([
-                ConditionalResidualBlock1D(2 * cout, cin, c, kernel, groups),
-                ConditionalResidualBlock1D(cin, cin, c, kernel, groups),
-                nn.ConvTranspose1d(cin, cin, 4, stride=2, padding=1)]))
-        self.final_conv = nn.Sequential(Conv1dBlock(down_dims[0], down_dims[0], kernel, groups),
-                                        nn.Conv1d(down_dims[0], action_dim, 1))
-
-    def forward(self, x: torch.Tensor, t: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
-        """x: (B,H,A) noisy actions, t: (B,) diffusion steps, obs: (B, n_obs, obs_dim) -> (B,H,A)."""
-        cond = torch.cat([self.diffusion_step_encoder(t), obs.flatten(1)], dim=-1)
-        h = x.transpose(1, 2)
-        skips = []
-        for res1, res2, down in self.down_modules:
-            h = res2(res1(h, cond), cond)
-            skips.append(h)
-            h = down(h)
-        for res in self.mid_modules:
-            h = res(h, cond)
-        for res1, res2, up in self.up_modules:
-            h = torch.cat([h, skips.pop()], dim=1)
-            h = up(res2(res1(h, cond), cond))
-        return self.final_conv(h).transpose(1, 2)
 
 
 class TransformerForDiffusion(nn.Module):

@@ -1,23 +1,21 @@
-"""Table 7.1 rows (8) and (9): Diffusion Policy (Chi et al. 2023) in its low-dimensional form,
+"""Table 7.1 row (9): the Diffusion Policy transformer (Chi et al. 2023, low-dimensional form)
 through a thin adapter on our keypoint demonstrations.
 
-The diffusion process, the learning-rate schedule and the weight average are diffusers' own
-(``DDPMScheduler``, ``get_cosine_schedule_with_warmup``, ``EMAModel``) with the reference configs'
-settings; the networks are the reference architectures (diffusion_nets.py). LeRobot's
-``DiffusionPolicy`` does not install beside this project's pins (docs/baselines.md). The adapter
-maps data in and out: observations are the flat 3-D keypoint state (hands and objects, occlusions
-interpolated) of the last ``n_obs_steps`` samples, actions the keypoint velocities of a
-``horizon``-step chunk, both min-max normalised to [-1, 1] as the reference's "limits"
-normaliser does; ``n_action_steps`` of each chunk are integrated into the state before the next
-prediction. ``DiffusionConfig.reference`` holds the reference defaults; ``DiffusionConfig.preset``
-is what a 2-core CPU affords (the differences are listed in docs/baselines.md).
+LeRobot has no transformer Diffusion Policy (its ``DiffusionPolicy`` is the 1-D U-Net, row (8),
+lerobot_diffusion.py), so this row is the reference repository's ``TransformerForDiffusion``
+(diffusion_nets.py) with diffusers' diffusion process, learning-rate schedule and weight average
+(``DDPMScheduler``, ``get_cosine_schedule_with_warmup``, ``EMAModel``) at the reference config's
+settings. The adapter maps data in and out: observations are the flat 3-D keypoint state (hands and
+objects, occlusions interpolated) of the last ``n_obs_steps`` samples, actions the keypoint
+velocities of a ``horizon``-step chunk, both min-max normalised to [-1, 1] as the reference's
+"limits" normaliser does; ``n_action_steps`` of each chunk are integrated into the state before
+the next prediction. ``DiffusionConfig.reference()`` holds the reference defaults;
+``DiffusionConfig.preset`` is what a 2-core CPU affords (docs/baselines.md).
 """
 
 from __future__ import annotations
 
 import copy
-import json
-import sys
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -30,35 +28,31 @@ from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
 from diffusers.training_utils import EMAModel
 from tqdm import tqdm
 
-from evaluation.baselines.diffusion_nets import ConditionalUnet1D, TransformerForDiffusion
+from evaluation.baselines.curve import record, save_curve
+from evaluation.baselines.diffusion_nets import TransformerForDiffusion
 from services.policy.flat_state import BaselineError, check_train, flat_state, split_state
 from shared.demo import Demo
 
 
 @dataclass(frozen=True)
 class DiffusionConfig:
-    """Defaults: the reference low-dimensional U-Net config (train_diffusion_unet_lowdim_workspace)."""
+    """Defaults: the reference push-T low-dimensional transformer config."""
 
-    model: str = "unet"  # "unet" | "transformer"
     horizon: int = 16
     n_obs_steps: int = 2
     n_action_steps: int = 8
     train_timesteps: int = 100
     inference_steps: int = 100  # == train_timesteps: DDPM as the reference; fewer: DDIM on the same model
     prediction: str = "epsilon"  # the scheduler's prediction_type: "epsilon" | "sample"
-    down_dims: tuple[int, ...] = (256, 512, 1024)
-    kernel: int = 5
-    groups: int = 8
-    step_embed: int = 256
-    n_layer: int = 8  # transformer
+    n_layer: int = 8
     n_head: int = 4
     n_emb: int = 256
     p_drop_attn: float = 0.01
     lr: float = 1e-4
-    weight_decay: float = 1e-6
-    betas: tuple[float, float] = (0.95, 0.999)
-    warmup: int = 500
-    iterations: int = 100_000  # the reference: 5000 epochs of batch 256
+    weight_decay: float = 0.1
+    betas: tuple[float, float] = (0.9, 0.95)
+    warmup: int = 1000
+    iterations: int = 100_000  # the reference: 8000 epochs of batch 256
     batch: int = 256
     ema_power: float = 0.75
     ema_max: float = 0.9999
@@ -66,25 +60,20 @@ class DiffusionConfig:
     seed: int = 0
 
     @classmethod
-    def reference(cls, model: str) -> DiffusionConfig:
-        """The reference defaults of the low-dimensional U-Net or (push-T) transformer config."""
-        if model == "unet":
-            return cls()
-        if model == "transformer":
-            return cls(model="transformer", weight_decay=0.1, betas=(0.9, 0.95), warmup=1000)
-        raise ValueError(f"unknown diffusion model {model!r} (unet or transformer)")
+    def reference(cls) -> DiffusionConfig:
+        """The reference defaults of the (push-T) low-dimensional transformer config."""
+        return cls()
 
     @classmethod
-    def preset(cls, model: str, quick: bool = False, seed: int = 0) -> DiffusionConfig:
-        """The CPU budget of Table 7.1 here (docs/baselines.md): the reference nets at reduced width,
+    def preset(cls, quick: bool = False, seed: int = 0) -> DiffusionConfig:
+        """The CPU budget of Table 7.1 here (docs/baselines.md): the reference net at reduced width,
         a smaller batch and fewer iterations, DDIM sampling, and the clean chunk as the prediction
-        target (a reference option; with the noise as target neither net learns within this budget)."""
-        cfg = cls.reference(model)
-        cfg = replace(cfg, down_dims=(64, 128, 256), step_embed=64, n_layer=4, n_emb=128, prediction="sample",
-                      iterations=1500, batch=64, warmup=150, inference_steps=10, eval_every=250, seed=seed)
+        target (a reference option; with the noise as target the net does not learn within this budget)."""
+        cfg = replace(cls.reference(), n_layer=4, n_emb=128, prediction="sample", iterations=1500, batch=64,
+                      warmup=150, inference_steps=10, eval_every=250, seed=seed)
         if quick:
-            cfg = replace(cfg, down_dims=(16, 32), step_embed=16, n_layer=1, n_emb=32, iterations=5, batch=16,
-                          train_timesteps=10, inference_steps=5, warmup=1, eval_every=0)
+            cfg = replace(cfg, n_layer=1, n_emb=32, iterations=5, batch=16, train_timesteps=10, inference_steps=5,
+                          warmup=1, eval_every=0)
         return cfg
 
 
@@ -112,13 +101,14 @@ def reference_scheduler(cfg: DiffusionConfig) -> DDPMScheduler:
 
 
 class DiffusionPolicy:
-    """The method interface (fit / rollout_batch / rollout) around the reference Diffusion Policy.
+    """The method interface (fit / rollout_batch / rollout) around the reference Diffusion Policy
+    transformer.
     ``monitor``: set by `xm eval` to a function scoring this policy on the validation rollouts;
     with ``eval_every`` > 0 it is called during training and ``curve`` records the scores."""
 
     def __init__(self, config: DiffusionConfig | None = None) -> None:
         self.cfg = config or DiffusionConfig()
-        self.name = f"diffusion_{self.cfg.model}"
+        self.name = "diffusion_transformer"
         self.scheduler = reference_scheduler(self.cfg)
         self.model: torch.nn.Module | None = None
         self.losses: list[float] = []
@@ -150,13 +140,8 @@ class DiffusionPolicy:
 
     def _build(self, dim: int) -> torch.nn.Module:
         cfg = self.cfg
-        if cfg.model == "unet":
-            return ConditionalUnet1D(dim, cfg.n_obs_steps * dim, tuple(cfg.down_dims), cfg.kernel, cfg.groups,
-                                     cfg.step_embed)
-        if cfg.model == "transformer":
-            return TransformerForDiffusion(dim, dim, cfg.horizon, cfg.n_obs_steps, cfg.n_layer, cfg.n_head,
-                                           cfg.n_emb, p_drop_attn=cfg.p_drop_attn)
-        raise BaselineError(f"unknown diffusion model {cfg.model!r} (unet or transformer)")
+        return TransformerForDiffusion(dim, dim, cfg.horizon, cfg.n_obs_steps, cfg.n_layer, cfg.n_head, cfg.n_emb,
+                                       p_drop_attn=cfg.p_drop_attn)
 
     # --- training -----------------------------------------------------------------------
     def fit(self, train: list[Demo], progress: bool = True) -> None:
@@ -170,9 +155,7 @@ class DiffusionPolicy:
         obs, act = (torch.from_numpy(a.astype(np.float32)) for a in self._windows(train))
         self.dim = obs.shape[-1]
         model = self._build(self.dim)
-        groups = model.param_groups(cfg.weight_decay) if hasattr(model, "param_groups") else \
-            [{"params": list(model.parameters()), "weight_decay": cfg.weight_decay}]
-        opt = torch.optim.AdamW(groups, lr=cfg.lr, betas=cfg.betas, eps=1e-8)
+        opt = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=cfg.betas, eps=1e-8)
         sched = get_cosine_schedule_with_warmup(opt, cfg.warmup, cfg.iterations)
         ema = EMAModel(model.parameters(), decay=cfg.ema_max, use_ema_warmup=True, inv_gamma=1.0,
                        power=cfg.ema_power)
@@ -201,11 +184,7 @@ class DiffusionPolicy:
             if self.monitor is not None and cfg.eval_every > 0 and (done % cfg.eval_every == 0
                                                                     or done == cfg.iterations):
                 ema.copy_to(self.model.parameters())
-                t_eval = time.perf_counter()
-                self.curve.append({"iteration": done, "loss": float(np.mean(self.losses[-cfg.eval_every:])),
-                                   "train_s": t_eval - t0, **self.monitor(self)})
-                t0 += time.perf_counter() - t_eval  # train_s counts training only
-                print(f"{self.name} {json.dumps(self.curve[-1])}", file=sys.stderr, flush=True)  # a long run's trace
+                t0 = record(self, done, cfg.eval_every, t0)
         ema.copy_to(self.model.parameters())
         self.train_seconds = time.perf_counter() - t0
 
@@ -258,23 +237,4 @@ class DiffusionPolicy:
 
     def save_curve(self, json_path: Path, png_path: Path) -> None:
         """The validation curve (scores of the averaged weights against iterations) and the config."""
-        json_path.write_text(json.dumps({"method": self.name, "config": asdict(self.cfg), "curve": self.curve},
-                                        indent=2))
-        import matplotlib  # optional heavy dependency, loaded only to draw the curve
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        it = [c["iteration"] for c in self.curve]
-        fig, ax = plt.subplots(figsize=(6, 4))
-        for key in ("hand", "object", "hand_masked", "object_masked"):
-            ax.plot(it, [c[key] * 1e3 for c in self.curve], "o-", label=key.replace("_", " "))
-        ax.set_xlabel("training iteration")
-        ax.set_ylabel("validation closest-point distance (mm)")
-        ax.set_yscale("log")
-        ax.set_title(f"{self.name}: validation rollouts of the averaged weights")
-        ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(png_path, dpi=100)
-        plt.close(fig)
+        save_curve(self.name, asdict(self.cfg), self.curve, json_path, png_path)

@@ -24,6 +24,7 @@ PEAK_FORCE_N = (5.6, 7.0)  # the teacher pushes through the snap
 FINGER_N_PER_M = 6000.0  # fingertip pad plus connector travel: 6 N dips the tip 1 mm
 TIP_CONTACT_Z = 0.0055  # index tip above the board's connector keypoint when just touching
 OVER_CONNECTOR_M = 0.006  # a fingertip this close (horizontally) presses on the connector
+CLOSE_M = 0.005  # force control: a predicted press moves the tip down this far to the connector
 SEAT_GAP_M = 0.003  # connectors aligned (services/world/sim.SEAT_GAP_M)
 LIFTED_M = 0.02
 
@@ -65,14 +66,17 @@ def _press_hand(hands: np.ndarray, conn: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def press_from_tactile(hands: np.ndarray, objects: np.ndarray, names: list[str], tactile: np.ndarray,
-                       kpa_per_n: float, index_region: int) -> np.ndarray:
+                       kpa_per_n: float, index_region: int, contact_m: float = CLOSE_M) -> np.ndarray:
     """(T,) N on the connector from the (predicted or measured) index pressure of the hand whose index
-    tip is over it; zero where no tip is over it."""
+    tip is over it and at most ``contact_m`` above its touching height (force control closes that
+    gap, as on wiping); zero elsewhere."""
     conn = objects[:, names.index("board/connector")]
     tips, near = _press_hand(hands, conn)
     steps = np.arange(len(hands))
-    over = np.linalg.norm(tips[steps, near, :2] - conn[:, :2], axis=-1) <= OVER_CONNECTOR_M
-    return np.where(over, tactile[steps, near, index_region] / kpa_per_n, 0.0)
+    tip = tips[steps, near]
+    over = np.linalg.norm(tip[:, :2] - conn[:, :2], axis=-1) <= OVER_CONNECTOR_M
+    close = tip[:, 2] - (conn[:, 2] + TIP_CONTACT_Z) <= contact_m
+    return np.where(over & close, tactile[steps, near, index_region] / kpa_per_n, 0.0)
 
 
 def press_from_positions(hands: np.ndarray, objects: np.ndarray, names: list[str]) -> np.ndarray:

@@ -1,5 +1,6 @@
-"""Table 7.1 rows (8)-(9): the reference Diffusion Policy behind the adapter (diffusers' scheduler,
-the reference networks, our keypoint data in and out)."""
+"""Table 7.1 row (9): the reference Diffusion Policy transformer behind the adapter (diffusers'
+scheduler, the reference network, our keypoint data in and out). Row (8), LeRobot's U-Net:
+test_lerobot_diffusion.py."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import pytest
 import torch
 
 from evaluation.baselines import make
-from evaluation.baselines.diffusion_nets import ConditionalUnet1D, TransformerForDiffusion
+from evaluation.baselines.diffusion_nets import TransformerForDiffusion
 from evaluation.baselines.diffusion_policy import DiffusionConfig, DiffusionPolicy, reference_scheduler
 from services.policy.flat_state import BaselineError, flat_state
 from tests.unit.policy_demos import synthetic_protocol
@@ -35,18 +36,14 @@ def test_the_reference_scheduler_is_the_squared_cosine_schedule():
 
 
 def test_reference_defaults_and_the_cpu_preset_differ_only_where_documented():
-    ref, cpu = DiffusionConfig.reference("unet"), DiffusionConfig.preset("unet")
+    ref, cpu = DiffusionConfig.reference(), DiffusionConfig.preset()
     assert (ref.horizon, ref.n_obs_steps, ref.n_action_steps, ref.train_timesteps, ref.inference_steps) == \
         (16, 2, 8, 100, 100)
-    assert (ref.down_dims, ref.kernel, ref.step_embed, ref.lr, ref.batch) == ((256, 512, 1024), 5, 256, 1e-4, 256)
-    tf = DiffusionConfig.reference("transformer")
-    assert (tf.n_layer, tf.n_head, tf.n_emb, tf.weight_decay, tf.betas, tf.warmup) == (8, 4, 256, 0.1, (0.9, 0.95),
-                                                                                      1000)
+    assert (ref.n_layer, ref.n_head, ref.n_emb, ref.lr, ref.batch) == (8, 4, 256, 1e-4, 256)
+    assert (ref.weight_decay, ref.betas, ref.warmup) == (0.1, (0.9, 0.95), 1000)
     changed = {k for k in ref.__dataclass_fields__ if getattr(ref, k) != getattr(cpu, k)}
-    assert changed == {"down_dims", "step_embed", "n_layer", "n_emb", "prediction", "iterations", "batch",
-                       "warmup", "inference_steps", "eval_every"}
-    with pytest.raises(ValueError, match="unknown diffusion model"):
-        DiffusionConfig.reference("mlp")
+    assert changed == {"n_layer", "n_emb", "prediction", "iterations", "batch", "warmup", "inference_steps",
+                       "eval_every"}
 
 
 class _Oracle(torch.nn.Module):
@@ -90,9 +87,8 @@ def test_rollout_integrates_the_executed_velocities_in_chunks(demos):
     np.testing.assert_allclose(hands2[0], flat_state(demos[4])[0, :126].reshape(2, 21, 3))
 
 
-@pytest.mark.parametrize("model", ["unet", "transformer"])
-def test_a_tiny_budget_trains_rolls_out_and_records_its_validation_curve(model, demos, tmp_path):
-    policy = make(f"diffusion_{model}", quick=True)
+def test_a_tiny_budget_trains_rolls_out_and_records_its_validation_curve(demos, tmp_path):
+    policy = make("diffusion_transformer", quick=True)
     policy.cfg = replace(policy.cfg, iterations=40, lr=1e-3, eval_every=20)
     calls = []
     policy.monitor = lambda p: calls.append(len(p.losses)) or {"hand": 0.1, "object": 0.2, "hand_masked": 0.1,
@@ -104,7 +100,8 @@ def test_a_tiny_budget_trains_rolls_out_and_records_its_validation_curve(model, 
     assert hands.shape == (12, 2, 21, 3) and np.isfinite(hands).all()
     policy.save_curve(tmp_path / "c.json", tmp_path / "c.png")
     saved = json.loads((tmp_path / "c.json").read_text())
-    assert saved["config"]["model"] == model and len(saved["curve"]) == 2 and (tmp_path / "c.png").stat().st_size
+    assert saved["method"] == "diffusion_transformer" and saved["config"]["n_layer"] == 1
+    assert len(saved["curve"]) == 2 and (tmp_path / "c.png").stat().st_size
 
 
 def test_a_diverging_loss_is_refused(demos):
@@ -116,22 +113,21 @@ def test_a_diverging_loss_is_refused(demos):
         def forward(self, x, t, obs):
             return x * self.w * float("nan")
 
-    policy = make("diffusion_unet", quick=True)
+        def param_groups(self, weight_decay):
+            return [{"params": [self.w], "weight_decay": weight_decay}]
+
+    policy = make("diffusion_transformer", quick=True)
     policy._build = lambda dim: Diverged()
     with pytest.raises(BaselineError, match="training loss became nan"):
         policy.fit(demos[:3], progress=False)
 
 
-def test_the_networks_keep_the_reference_shapes():
+def test_the_transformer_keeps_the_reference_shape_and_is_causal():
     torch.manual_seed(0)
-    unet = ConditionalUnet1D(6, 2 * 3, down_dims=(8, 16, 32), kernel=3, groups=4, step_embed=8)
-    assert len(unet.down_modules) == 3 and len(unet.up_modules) == 2  # the first skip is not consumed
     x, t, obs = torch.randn(2, 16, 6), torch.tensor([3, 70]), torch.randn(2, 2, 3)
-    out = unet(x, t, obs)
-    assert out.shape == x.shape and not torch.allclose(out, unet(x, t, obs + 1))
     tf = TransformerForDiffusion(6, 3, 16, 2, n_layer=1, n_head=2, n_emb=8)
     y = tf(x, t, obs)
-    assert y.shape == x.shape
+    assert y.shape == x.shape and not torch.allclose(y, tf(x, t, obs + 1))
     x2 = x.clone()
     x2[:, 10:] += 1  # causal: later action tokens do not change earlier outputs
     torch.testing.assert_close(tf.eval()(x2, t, obs)[:, :10], tf(x, t, obs)[:, :10])

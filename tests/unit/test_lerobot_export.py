@@ -165,7 +165,8 @@ needs_lerobot = pytest.mark.skipif(
 
 def run_lerobot(script: str, *args: str) -> dict:
     """A script of tests/lerobot_check in a process that sees LeRobot; its last stdout line as JSON."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "tests/lerobot_check"), str(LEROBOT_SITE)]),
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "tests/lerobot_check"), str(LEROBOT_SITE),
+                                                       str(ROOT / "interop/lerobot_shim")]),
                HF_HUB_OFFLINE="1", HF_DATASETS_CACHE=str(Path(args[0]).parent / "hf-cache"))
     proc = subprocess.run([sys.executable, str(ROOT / "tests/lerobot_check" / script), *args],
                           capture_output=True, text=True, env=env, timeout=600)

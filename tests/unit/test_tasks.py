@@ -104,6 +104,11 @@ def test_a_latch_pressed_below_its_snap_force_or_crushed_fails():
     assert not under["latched"] and not under["success"]
     crushed = outcome("latch", d.hands, d.objects, d.object_names, touch * 2.5)
     assert crushed["peak_force_n"] > latch.DAMAGE_FORCE_N and not crushed["success"]
+    raised = d.hands.copy()
+    raised[..., 2] += 0.004  # force control closes 4 mm above the connector, not 8
+    assert outcome("latch", raised, d.objects, d.object_names, touch)["success"]
+    raised[..., 2] += 0.004
+    assert not outcome("latch", raised, d.objects, d.object_names, touch)["latched"]
 
 
 def test_a_cap_turned_with_a_slipping_grip_or_left_on_the_bottle_fails():
