@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.recon.hand_crops import crop_matrix
+
 
 @dataclass(frozen=True)
 class AugmentParams:
@@ -100,3 +102,23 @@ def sample(image: np.ndarray, uv: np.ndarray, visibility: np.ndarray, size: tupl
              (net_uv[:, 1] <= size[1] - 0.5)
     target = heatmaps(net_uv, ((visibility > 0) & inside).astype(np.float32), size, sigma)
     return warped.transpose(2, 0, 1), target
+
+
+def augmented_crop(image: np.ndarray, uv: np.ndarray, labelled: np.ndarray, centre: np.ndarray, half: float,
+                   size: int, mirror: bool, aug: AugmentParams, sigma: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A training pair from one window: the square ``half`` pixels around ``centre`` (mirrored if
+    asked), rotated, recoloured and occluded as ``aug`` says, as the network's (3, size, size)
+    input, and heatmaps of the ``labelled`` keypoints ``uv`` (window pixels) that land inside."""
+    M = np.vstack([crop_matrix(centre, half, size, mirror), [0, 0, 1]])
+    c = (size - 1) / 2.0
+    R = np.vstack([cv2.getRotationMatrix2D((c, c), rng.uniform(-aug.rotation_deg, aug.rotation_deg), 1.0), [0, 0, 1]])
+    A = (R @ M)[:2]
+    warped = cv2.warpAffine(image.astype(np.float32) / 255.0, A, (size, size), flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    warped = colour(warped, aug, rng)
+    if rng.random() < aug.occluder_p:
+        warped = occluders(warped, rng)
+    net_uv = uv @ A[:, :2].T + A[:, 2]
+    inside = np.all((net_uv >= -0.5) & (net_uv <= size - 0.5), axis=1)
+    return warped.transpose(2, 0, 1), heatmaps(net_uv, (labelled & inside).astype(np.float32), (size, size), sigma)

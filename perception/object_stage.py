@@ -19,14 +19,12 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
-from perception.augment import AugmentParams, colour, heatmaps, occluders
+from perception.augment import AugmentParams, augmented_crop
 from perception.labels import Frame
 from perception.train import SIGMA, Sampler, export_onnx, load_set, plot_losses, train
-from services.recon.hand_crops import crop_matrix
 from services.recon.learned_detector import OBJECT_INPUT, TRAINING_DIR
 from services.recon.object_crops import HALF_SIZE_M, object_slices
 from services.recon.objects import object_models, task_keypoint_names
@@ -78,19 +76,7 @@ def crop_sample(image: np.ndarray, uv: np.ndarray, labelled: np.ndarray, sl: sli
     centre = np.median(uv[sl][own], axis=0)
     half = pixels_per_metre(uv[sl], own, model) * HALF_SIZE_M * rng.uniform(*HALF_RATIO)
     centre = centre + rng.normal(0.0, CENTRE_JITTER, 2) * half
-    M = np.vstack([crop_matrix(centre, half, size, False), [0, 0, 1]])
-    c = (size - 1) / 2.0
-    R = np.vstack([cv2.getRotationMatrix2D((c, c), rng.uniform(-aug.rotation_deg, aug.rotation_deg), 1.0), [0, 0, 1]])
-    A = (R @ M)[:2]
-    warped = cv2.warpAffine(image.astype(np.float32) / 255.0, A, (size, size), flags=cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
-    warped = colour(warped, aug, rng)
-    if rng.random() < aug.occluder_p:
-        warped = occluders(warped, rng)
-    net_uv = uv @ A[:, :2].T + A[:, 2]
-    inside = np.all((net_uv >= -0.5) & (net_uv <= size - 0.5), axis=1)
-    target = heatmaps(net_uv, (labelled & inside).astype(np.float32), (size, size), SIGMA)
-    return warped.transpose(2, 0, 1), target
+    return augmented_crop(image, uv, labelled, centre, half, size, False, aug, SIGMA, rng)
 
 
 def crop_sampler(frames: list[Frame], images: list[np.ndarray], task: str, size: int, aug: AugmentParams) -> Sampler:
