@@ -11,7 +11,6 @@ and hands.onnx beside the first stage's files.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -20,8 +19,8 @@ import torch
 
 from perception.augment import AugmentParams, augmented_crop
 from perception.labels import Frame
-from perception.train import SIGMA, Sampler, export_onnx, load_set, plot_losses, train
-from services.recon.learned_detector import HAND_INPUT, TRAINING_DIR
+from perception.train import SIGMA, Sampler, export_onnx, plot_losses, stage_parser, stage_set, train
+from services.recon.learned_detector import HAND_INPUT
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
 MIN_LABELLED = 4  # labelled keypoints a hand needs in a window to be cropped for training
@@ -66,23 +65,12 @@ def crop_sampler(frames: list[Frame], images: list[np.ndarray], size: int, aug: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="xm detector train-hands", description=__doc__.splitlines()[0])
-    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
-    p.add_argument("--out", default=str(TRAINING_DIR), help="hands.pt, hands.json, hands_loss.png, hands.onnx")
-    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
-    p.add_argument("--iters", type=int, default=8000)
-    p.add_argument("--batch", type=int, default=16)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--seed", type=int, default=0)
+    p = stage_parser("xm detector train-hands", __doc__.splitlines()[0], "hands")
     a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    torch.set_flush_denormal(True)  # denormal weights late in training slow CPU convolutions many times
-    folder = Path(a.labels)
-    if not (folder / "labels.json").exists():
-        print(f"no labelled set at {folder}; make one with `xm detector label`")
+    loaded = stage_set(a)
+    if loaded is None:
         return 2
-    task, frames, images = load_set(folder)
+    task, frames, images = loaded
     sampler = crop_sampler(frames, images, HAND_INPUT, AugmentParams())
     print(f"{len(hand_crops(frames))} hand crops in {len(frames)} labelled images, input {HAND_INPUT}x{HAND_INPUT}")
     net, losses, seconds = train(frames, images, KEYPOINTS_PER_HAND, (HAND_INPUT, HAND_INPUT), a.iters, a.minutes,
@@ -92,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.save(net.state_dict(), out / "hands.pt")
     meta = {"task": task, "keypoints": [str(k) for k in range(KEYPOINTS_PER_HAND)], "input_size": HAND_INPUT,
             "sigma": SIGMA, "mirrored": "left", "iterations": len(losses), "train_seconds": round(seconds, 1),
-            "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(folder),
+            "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(Path(a.labels)),
             "batch": a.batch, "lr": a.lr, "threads": a.threads, "seed": a.seed}
     (out / "hands.json").write_text(json.dumps(meta, indent=1))
     plot_losses(losses, out / "hands_loss.png")

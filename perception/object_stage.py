@@ -15,7 +15,6 @@ the first stage's files.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -24,8 +23,8 @@ import torch
 
 from perception.augment import AugmentParams, augmented_crop
 from perception.labels import Frame
-from perception.train import SIGMA, Sampler, export_onnx, load_set, plot_losses, train
-from services.recon.learned_detector import OBJECT_INPUT, TRAINING_DIR
+from perception.train import SIGMA, Sampler, export_onnx, plot_losses, stage_parser, stage_set, train
+from services.recon.learned_detector import OBJECT_INPUT
 from services.recon.object_crops import HALF_SIZE_M, object_slices
 from services.recon.objects import object_models, task_keypoint_names
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
@@ -109,25 +108,14 @@ def first_stage_init(folder: Path, n_obj: int) -> dict[str, torch.Tensor] | None
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="xm detector train-objects", description=__doc__.splitlines()[0])
-    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
-    p.add_argument("--out", default=str(TRAINING_DIR), help="objects.pt, objects.json, objects_loss.png, objects.onnx")
-    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
-    p.add_argument("--iters", type=int, default=8000)
-    p.add_argument("--batch", type=int, default=16)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--seed", type=int, default=0)
+    p = stage_parser("xm detector train-objects", __doc__.splitlines()[0], "objects")
     p.add_argument("--init", default="models/detector",
                    help="start from the first stage's weights in this folder (model.onnx; '' for random)")
     a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    torch.set_flush_denormal(True)  # denormal weights late in training slow CPU convolutions many times
-    folder = Path(a.labels)
-    if not (folder / "labels.json").exists():
-        print(f"no labelled set at {folder}; make one with `xm detector label`")
+    loaded = stage_set(a)
+    if loaded is None:
         return 2
-    task, frames, images = load_set(folder)
+    task, frames, images = loaded
     table = object_table(task)
     n_obj = sum(sl.stop - sl.start for sl, _ in table)
     sampler = crop_sampler(frames, images, task, OBJECT_INPUT, AugmentParams())
@@ -142,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.save(net.state_dict(), out / "objects.pt")
     meta = {"task": task, "keypoints": task_keypoint_names(task), "input_size": OBJECT_INPUT,
             "half_size_m": HALF_SIZE_M, "sigma": SIGMA, "iterations": len(losses), "train_seconds": round(seconds, 1),
-            "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(folder),
+            "final_loss": float(np.mean(losses[-20:])) if losses else None, "labels": str(Path(a.labels)),
             "batch": a.batch, "lr": a.lr, "threads": a.threads, "seed": a.seed, "init": a.init or "random",
             "objects": [name for name, _ in object_slices(task_keypoint_names(task), 0)]}
     (out / "objects.json").write_text(json.dumps(meta, indent=1))

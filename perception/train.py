@@ -40,6 +40,32 @@ def load_set(folder: Path) -> tuple[str, list[Frame], list[np.ndarray]]:
     return task, frames, images
 
 
+def stage_parser(prog: str, description: str, stem: str) -> argparse.ArgumentParser:
+    """The options every second-stage trainer shares (``xm detector train-hands``, ``train-objects``)."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "train"), help="labelled set folder")
+    p.add_argument("--out", default=str(TRAINING_DIR), help=f"{stem}.pt, {stem}.json, {stem}_loss.png, {stem}.onnx")
+    p.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
+    p.add_argument("--iters", type=int, default=8000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def stage_set(a: argparse.Namespace) -> tuple[str, list[Frame], list[np.ndarray]] | None:
+    """Torch set up for a stage's training and its labelled set loaded; None (after saying how to
+    make one) when ``a.labels`` holds none."""
+    torch.set_num_threads(a.threads)
+    torch.set_flush_denormal(True)  # denormal weights late in training slow CPU convolutions many times
+    folder = Path(a.labels)
+    if not (folder / "labels.json").exists():
+        print(f"no labelled set at {folder}; make one with `xm detector label`")
+        return None
+    return load_set(folder)
+
+
 def heatmap_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((pred - target) ** 2 * (1.0 + FOREGROUND_WEIGHT * target)).mean()
 
