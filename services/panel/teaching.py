@@ -54,6 +54,7 @@ class Review:
     last_cameras: float = 0.0
     cameras_of: tuple = ()  # the images and view choice the camera image shows
     strip_at: float = -1.0
+    slider_at: float = 0.0  # the slider value the loop last wrote; the loop never writes over a person's move
 
 
 class Teaching:
@@ -314,7 +315,7 @@ class Teaching:
             return
         lo, hi = e.meta.window(timeline.duration)
         head = replay.Playhead(lo, hi, lo, speed=float(self.speed.value))
-        self.review = Review(e, timeline, head, timeline.step_times(), {}, time.monotonic())
+        self.review = Review(e, timeline, head, timeline.step_times(), {}, time.monotonic(), slider_at=round(lo, 2))
         self.time.max = max(math.ceil(timeline.duration * 100) / 100, 0.01)  # the slider's 0.01 s steps
         self.time.disabled = False
         self.time.value = lo
@@ -358,7 +359,9 @@ class Teaching:
                 "reviewing": None if r is None else {"name": r.entry.name, "at_s": round(r.head.position, 3),
                                                      "playing": r.head.playing}}
 
-    def _on_slider(self, event: Any) -> None:
+    async def _on_slider(self, event: Any) -> None:
+        # A coroutine: viser awaits it right after storing the person's value, before the render loop
+        # can write the playhead's position over it (a plain callback would run later, on a pool thread).
         r = self.review
         if r is not None and event.client is not None:  # a person moved it (the loop's own moves have none)
             r.head.playing = False
@@ -414,11 +417,10 @@ class Teaching:
         r = self.review
         if r is None:
             return {}
-        before = r.head.position
         pos = r.head.advance(now - r.last_tick)
         r.last_tick = now
-        if pos != before or abs(self.time.value - pos) > 0.005:
-            self.time.value = round(pos, 2)
+        if round(pos, 2) != r.slider_at:  # moved by playing, a step or a trim
+            r.slider_at = self.time.value = round(pos, 2)
         frame = r.timeline.frame(pos)
         # camera images go to the recorded views (read and decoded on the worker), not to the live thumbnail
         changed = {k: m for k, m in frame.items() if r.shown.get(k) is not m and not k.startswith("image/")}
