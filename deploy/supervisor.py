@@ -194,6 +194,9 @@ class Supervisor:
         # PYTHONFAULTHANDLER: a native crash (SIGSEGV, SIGABRT from a corrupted heap) leaves every
         # thread's Python stack in the service's log.
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONFAULTHANDLER": "1"}
+        # Two malloc arenas, not 8 per core: Zenoh's threads otherwise each grow an arena that keeps
+        # freed payload memory (the recorder at rig rates: 8 MB less RSS, and it stops creeping).
+        env.setdefault("MALLOC_ARENA_MAX", "2")
         root = str(Path(__file__).resolve().parent.parent)
         env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         proc = await asyncio.create_subprocess_exec(
