@@ -110,20 +110,12 @@ def _kind(key: str, msgtype: str) -> str | None:
 
 
 def demos_with_starts(rec: Recording, dt: float, report: list[str]) -> list[tuple[Demo, float]]:
-    """The recording's demonstrations (``learning.dataset`` rules) with the stamp of each one's first
-    step, found by the same session-label grouping."""
+    """The recording's demonstrations (``learning.dataset`` rules) with the stamp of each one's first step."""
     if not rec.scenes or not rec.sessions:
         missing = [k for k, v in ((SCENE_KEY, rec.scenes), (SESSION_KEY, rec.sessions)) if not v]
         raise DatasetError(f"{rec.source}: no messages on {', '.join(missing)}")
     demos = demos_from_messages(rec.scenes, rec.sessions, dt, report=report, source=rec.source)
-    stamps = np.array(sorted(s[0] for s in rec.sessions))
-    labels = [s[1].demo for s in sorted(rec.sessions, key=lambda s: s[0])]
-    first: dict[int, float] = {}
-    for t, _ in rec.scenes:
-        k = int(np.searchsorted(stamps, t, side="right")) - 1
-        if k >= 0:
-            first[int(labels[k])] = min(first.get(int(labels[k]), np.inf), t)
-    return [(d, first[int(d.meta["demo"])]) for d in demos]
+    return [(d, d.meta["start_s"]) for d in demos]
 
 
 def camera_frame(jpeg: bytes, size: tuple[int, int], info: tuple | None) -> np.ndarray:

@@ -276,28 +276,37 @@ def _log_window(start_ns: int, window_s: tuple[float, float | None] | None) -> t
 def demos_from_messages(scenes: list, sessions: list, dt: float = 0.02, max_gap_s: float = 0.5,
                         min_steps: int = 20, report: list[str] | None = None, source: str = "recording"
                         ) -> list[Demo]:
-    """Pure part of ``demos_from_mcap``: (stamp seconds, Scene) and (stamp seconds, Session) pairs."""
+    """Pure part of ``demos_from_mcap``: (stamp seconds, Scene) and (stamp seconds, Session) pairs in the
+    order they were logged. A stamp that steps back by more than ``CLOCK_RESTART_S`` is a world
+    restart (its clock starts again at 0): labels and scenes after it form a new epoch, so a
+    demonstration index that repeats after a restart is another demonstration, never merged."""
     report = report if report is not None else []
     if not scenes:
         raise DatasetError(f"{source}: no scene messages")
     if not sessions:
         raise DatasetError(f"{source}: no session messages, so no demonstration labels")
-    sessions = sorted(sessions, key=lambda s: s[0])
-    stamps = np.array([s[0] for s in sessions])
-    groups: dict[int, list] = {}
+    scene_epochs, session_epochs = clock_epochs(scenes), clock_epochs(sessions)
+    if len(scene_epochs) != len(session_epochs):
+        report.append(f"{source}: the clock restarted {len(session_epochs) - 1} times in the labels but "
+                      f"{len(scene_epochs) - 1} times in the scenes; epochs are paired in order")
+    groups: dict[tuple[int, int], list] = {}
     unlabeled = 0
-    for t, scene in sorted(scenes, key=lambda s: s[0]):
-        k = int(np.searchsorted(stamps, t, side="right")) - 1
-        if k < 0:
-            unlabeled += 1
-            continue
-        groups.setdefault(int(sessions[k][1].demo), []).append((t, scene, sessions[k][1]))
+    for epoch, (scene_part, session_part) in enumerate(zip(scene_epochs, session_epochs, strict=False)):
+        labels = sorted(session_part, key=lambda s: s[0])
+        stamps = np.array([s[0] for s in labels])
+        for t, scene in sorted(scene_part, key=lambda s: s[0]):
+            k = int(np.searchsorted(stamps, t, side="right")) - 1
+            if k < 0:
+                unlabeled += 1
+                continue
+            groups.setdefault((epoch, int(labels[k][1].demo)), []).append((t, scene, labels[k][1]))
+    unlabeled += sum(len(part) for part in scene_epochs[len(session_epochs):])
     if unlabeled:
         report.append(f"{source}: {unlabeled} scenes before the first session label ignored")
     demos = []
-    for index, items in sorted(groups.items()):
+    for (epoch, index), items in sorted(groups.items()):
         try:
-            demo = _one_demo(source, index, items, dt, max_gap_s, report)
+            demo = _one_demo(source, index, items, dt, max_gap_s, report, epoch)
         except DatasetError as exc:
             report.append(str(exc))
             continue
@@ -310,7 +319,25 @@ def demos_from_messages(scenes: list, sessions: list, dt: float = 0.02, max_gap_
     return demos
 
 
-def _one_demo(source: str, index: int, items: list, dt: float, max_gap_s: float, report: list[str]) -> Demo:
+CLOCK_RESTART_S = 0.25  # a stamp this far behind the newest one: the clock started again
+
+
+def clock_epochs(stamped: list) -> list[list]:
+    """``(stamp, message)`` pairs in log order, cut where the stamp steps back by more than
+    CLOCK_RESTART_S (a world restart); small reorderings between publishers stay in one epoch."""
+    epochs: list[list] = [[]]
+    newest = -np.inf
+    for item in stamped:
+        if item[0] < newest - CLOCK_RESTART_S:
+            epochs.append([])
+            newest = -np.inf
+        newest = max(newest, item[0])
+        epochs[-1].append(item)
+    return epochs
+
+
+def _one_demo(source: str, index: int, items: list, dt: float, max_gap_s: float, report: list[str],
+              epoch: int = 0) -> Demo:
     times = np.array([t for t, _, _ in items])
     if len(times) > 1:
         gaps = np.flatnonzero(np.diff(times) > max_gap_s)
@@ -361,7 +388,8 @@ def _one_demo(source: str, index: int, items: list, dt: float, max_gap_s: float,
                 object_names=names, objects=pick(objs).astype(np.float32), object_mask=pick(omask).astype(np.uint8),
                 tactile=pick(tact).astype(np.float32), tactile_mask=pick(tmask).astype(np.uint8), phase=phases,
                 meta={"task": label.task, "demo": index, "tactile_hand": label.tactile_hand,
-                      "grasp_hand": _grasp_hand(pick(hands), pick(objs)), "source": source})
+                      "grasp_hand": _grasp_hand(pick(hands), pick(objs)), "source": source,
+                      "epoch": epoch, "start_s": float(times[0])})
 
 
 def _grasp_hand(hands: np.ndarray, objects: np.ndarray) -> str:

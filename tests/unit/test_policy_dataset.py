@@ -37,6 +37,19 @@ def test_split_by_session_label_masks_nan_and_reports_gaps():
     assert any("demonstration 1" in r and "gap" in r for r in report)
 
 
+def test_a_world_restart_starts_new_demonstrations_even_with_the_same_index():
+    # the world restarts at 3 s of recording: its clock, and its demonstration index, start again at 0
+    first = [(0.02 * i, scene(0.02 * i)) for i in range(50)]
+    second = [(0.02 * i, scene(1.0 + 0.02 * i)) for i in range(40)]
+    sessions = [(0.0, session(0)), (0.9, session(0))]
+    again = [(0.0, session(0)), (0.5, session(0))]
+    report: list[str] = []
+    demos = demos_from_messages(first + second, sessions + again, report=report)
+    assert [(d.meta["demo"], d.meta["epoch"], d.steps) for d in demos] == [(0, 0, 50), (0, 1, 40)]
+    assert demos[1].hands[0, 0, 0, 0] == pytest.approx(1.1)  # the second run's own first scene
+    assert not any("gap" in r for r in report)
+
+
 def test_unlabelled_or_empty_recordings_are_rejected(tmp_path):
     with pytest.raises(DatasetError, match="session"):
         demos_from_messages([(0.0, scene(0.0))], [])
