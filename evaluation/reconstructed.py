@@ -25,8 +25,8 @@ with the robot in it, objects reconstructed, nothing observed between frame sets
 
 Reconstructing a demonstration costs rendering and detection (minutes for the 15 of a protocol on
 this machine), so each is cached on disk under ``cache/<key>/demo_<i>.npz``, the key naming the
-seed, the detector (and a digest of its weights), the image size, the windows and the recipe's
-version.
+seed, the detector (and a digest of its weights), the image size, the windows and a digest of the
+sources that make the reconstruction (``RECON_SOURCES``).
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from evaluation.runs import sources_digest
 from services.camhub.camera_info import encode_jpeg
 from services.camhub.roi import CameraGeometry, Roi, RoiParams, full_frame, rig_windows
 from services.recon.detector import CameraModel, SimulatedDetector
@@ -56,7 +57,9 @@ from shared.geometry import projection
 OBSERVATIONS = ("truth", "reconstructed")
 DETECTORS = ("learned", "simulated")
 WINDOWS = ("roi", "full")
-RECIPE_VERSION = 1  # bump when the reconstruction changes, so cached demonstrations are redone
+# the code that makes a reconstructed demonstration: a change to any of it redoes the cached ones
+RECON_SOURCES = ("evaluation/reconstructed.py", "services/recon", "perception", "services/camhub",
+                 "services/world", "shared/geometry.py", "shared/demo.py")
 
 
 class ReconstructionError(ValueError):
@@ -88,7 +91,7 @@ def cache_key(seed: int, options: ReconOptions) -> str:
     """The folder name of one protocol's reconstructed demonstrations: readable fields, then a digest
     of everything that changes the result (the learned detector's weights included)."""
     fields = {k: v for k, v in asdict(options).items() if k not in ("threads", "weights")}
-    fields["version"] = RECIPE_VERSION
+    fields["code"] = sources_digest(RECON_SOURCES).hexdigest()[:12]
     if options.detector == "learned":
         fields["weights"] = weights_digest(Path(options.weights))
     else:

@@ -14,6 +14,7 @@ import hashlib
 import json
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,15 +53,20 @@ def _files(rel: str) -> list[Path]:
     return sorted(path.rglob("*.py")) if path.is_dir() else [path]
 
 
-def code_version(method: str, reconstructed: bool = False) -> str:
-    """12 hex digits: the hash of ``method``'s sources, the protocol's and the libraries' versions."""
+def sources_digest(rels: tuple[str, ...] | list[str]) -> Any:
+    """A running SHA-256 over the named files and folders' Python sources (paths and contents)."""
     h = hashlib.sha256()
-    sources = PROTOCOL_SOURCES + ROW_SOURCES.get(method, ()) + (("evaluation/reconstructed.py",) if reconstructed
-                                                                 else ())
-    for rel in sources:
+    for rel in rels:
         for f in _files(rel):
             h.update(str(f.relative_to(ROOT)).encode())
             h.update(f.read_bytes() if f.exists() else b"<missing>")
+    return h
+
+
+def code_version(method: str, reconstructed: bool = False) -> str:
+    """12 hex digits: the hash of ``method``'s sources, the protocol's and the libraries' versions."""
+    h = sources_digest(PROTOCOL_SOURCES + ROW_SOURCES.get(method, ())
+                       + (("evaluation/reconstructed.py",) if reconstructed else ()))
     for lib in LIBRARIES:
         try:
             h.update(f"{lib}=={version(lib)}".encode())

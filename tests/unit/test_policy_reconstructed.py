@@ -109,6 +109,9 @@ def test_cache_is_reused_and_keyed(tmp_path, clip, monkeypatch):
     np.testing.assert_array_equal(again[0].hands, first[0].hands[:3])
     assert R.cache_key(0, opts) != R.cache_key(1, opts)
     assert R.cache_key(0, opts) != R.cache_key(0, replace(opts, windows="full"))
+    key = R.cache_key(0, opts)
+    monkeypatch.setattr(R, "RECON_SOURCES", (*R.RECON_SOURCES, "tests/unit/test_policy_reconstructed.py"))
+    assert R.cache_key(0, opts) != key  # other reconstruction code, another cache
 
 
 def test_learned_detector_without_weights_says_how_to_train(tmp_path):
