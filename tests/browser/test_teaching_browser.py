@@ -228,6 +228,8 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         key(browser, "time", "End")  # the scrubber to the end: 4 s, the hands 0.2 m further along x
         wait_until(lambda: float(value_of(browser, "time") or 0) > 3.0, WAIT,
                    lambda: f"the slider at the end (shows {value_of(browser, 'time')})")
+        wait_until(lambda: (query_json(session, "xm/panel/main/@health")[0]["reviewing"] or {}).get("at_s", 0) > 3.0,
+                   WAIT, lambda: f"the panel's playhead at the end ({query_json(session, 'xm/panel/main/@health')})")
 
         def moved():
             shot = browser.screenshot(tmp_path / "b.png", PATIENCE_S)
