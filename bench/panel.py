@@ -29,6 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # runnable as a script from anywhere
 
+from services.panel.service import PanelService  # noqa: E402
 from services.world.teacher import generate_demo  # noqa: E402
 from shared.runtime import open_router  # noqa: E402
 from tests.browser._cdp import Chromium, find_chromium  # noqa: E402
@@ -123,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0, help="length of each phase")
     parser.add_argument("--fps", type=float, default=15.0, help="the panel's draw rate (its `fps` parameter)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads of the training job")
+    parser.add_argument("--threads", type=int, default=PanelService.Params().train_threads,
+                        help="torch threads of the training job (default: the panel's train_threads, %(default)s)")
     args = parser.parse_args(argv)
     chromium = find_chromium()
     if chromium is None:
