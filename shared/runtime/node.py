@@ -50,8 +50,9 @@ LOG_SUMMARY_S = 10.0  # a recurring warning is summarised at most this often
 class Publisher:
     """Typed puts on one key. ``block``: when the transport is congested, ``put`` waits instead of
     dropping (for bulk transfers that must arrive whole; a control loop wants the default, drop).
-    A payload of ``shm.MIN_BYTES`` or more goes out from the process's shared-memory pool
-    (shared/runtime/shm.py), as bytes when the pool is unavailable or full (counted)."""
+    A payload of ``shm.MIN_BYTES`` or more of a sensor type (``shm.POOL_TYPES``) goes out from the
+    process's shared-memory pool (shared/runtime/shm.py), as bytes when the pool is unavailable or
+    full (counted)."""
 
     def __init__(self, node: Node, key: str, msgtype: str, block: bool = False) -> None:
         self.key = key
@@ -63,17 +64,18 @@ class Publisher:
         self._write = msgs.pieces_writer(msgtype)
         self.meter = node.stats.published.setdefault(key, RateMeter())
         self.shm_sent = 0  # payloads put from the shared-memory pool
+        self._pool_min = shm.MIN_BYTES if msgtype in shm.POOL_TYPES else float("inf")
 
     def put(self, msg: Any) -> None:
         pieces, size = self._write(msg)
-        if size >= shm.MIN_BYTES:
+        if size >= self._pool_min:
             self._put_large(pieces, size)
         else:
             self._pub.put(b"".join(pieces))
         self.meter.tick(time.monotonic())
 
     def put_bytes(self, payload: bytes) -> None:
-        if len(payload) >= shm.MIN_BYTES:
+        if len(payload) >= self._pool_min:
             self._put_large([payload], len(payload))
         else:
             self._pub.put(payload)

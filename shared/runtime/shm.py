@@ -11,8 +11,10 @@ created or is full, the payload goes out as bytes, counted per key as ``shm_unav
 Zenoh keeps a pool mapped in every process that received from it, and in the router, for their
 lifetime, also after its publisher exits (eclipse-zenoh/zenoh#2787): each restart of a publisher
 that used its pool adds ``POOL_BYTES`` plus Zenoh's 1.25 MB of metadata to those processes'
-memory. So only processes that put large payloads have a pool, and it is small: a few dozen
-frames in flight.
+memory. So only the sensor streams have a pool (``POOL_TYPES``: camera images, raw tactile), and it
+is small: a few dozen frames in flight. A derived message that happens to be large (recon's
+tactile mesh) goes as bytes: its publisher restarts with recon, and each recon restart
+would otherwise add about 11 MB to the recorder, the panel and every other subscriber.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from zenoh.shm import GarbageCollect, ShmProvider, ZShmMut
 
 MIN_BYTES = 64 * 1024  # below this a copy through the router costs about what the pool's bookkeeping does
 POOL_BYTES = 8 << 20  # the pool per process: ~27 camera frames of 300 kB in flight
+POOL_TYPES = frozenset({"sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image", "xm_msgs/msg/TactileRaw"})
 
 log = logging.getLogger("xm")
 

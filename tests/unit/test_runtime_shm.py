@@ -79,8 +79,10 @@ def test_a_full_pool_falls_back_to_copies_counted(router, monkeypatch):
     assert from_pool == 0 and errors[f"shm_exhausted:{KEY}"] == N
 
 
-@pytest.mark.parametrize("size", [shm.MIN_BYTES - 1, shm.MIN_BYTES])
-def test_put_bytes_uses_the_pool_from_the_threshold(router, monkeypatch, size):
+@pytest.mark.parametrize(("size", "msgtype"), [(shm.MIN_BYTES - 1, "sensor_msgs/msg/CompressedImage"),
+                                               (shm.MIN_BYTES, "sensor_msgs/msg/CompressedImage"),
+                                               (shm.MIN_BYTES, "std_msgs/msg/UInt8MultiArray")])
+def test_put_bytes_uses_the_pool_from_the_threshold_for_sensor_types(router, monkeypatch, size, msgtype):
     endpoint, _ = router
     monkeypatch.setattr(shm, "POOL", shm.Pool())
 
@@ -89,7 +91,7 @@ def test_put_bytes_uses_the_pool_from_the_threshold(router, monkeypatch, size):
         dst = Node("bench", "dst", open_client(endpoint))
         got: list = []
         dst.subscribe(KEY, got.append, fifo(), msgtype="raw")
-        pub = src.publisher(KEY, "std_msgs/msg/UInt8MultiArray")
+        pub = src.publisher(KEY, msgtype)
         await asyncio.sleep(0.3)
         pub.put_bytes(bytes(range(256)) * (size // 256) + b"x" * (size % 256))
         await wait_until_async(lambda: got, 10, "the payload")
@@ -100,4 +102,4 @@ def test_put_bytes_uses_the_pool_from_the_threshold(router, monkeypatch, size):
 
     got, from_pool = asyncio.run(go())
     assert len(got[0]) == size and got[0][:3] == b"\x00\x01\x02"
-    assert from_pool == (size >= shm.MIN_BYTES)
+    assert from_pool == (size >= shm.MIN_BYTES and msgtype in shm.POOL_TYPES)
