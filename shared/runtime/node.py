@@ -445,6 +445,7 @@ class Node:
             "rejected": rejected,
             **self._queue_counts(),
             "clock_jumps": self.clock.jumps,
+            "shm": shm.POOL.report(),  # the process's shared-memory pool: puts, and copies made instead
         }
         if self.health_extra is not None:
             report.update(self.health_extra())
