@@ -3,7 +3,7 @@
 Profile ``ros2``, schemas ``ros2msg`` generated from the typestore the services use, channels
 ``cdr``; each payload is stored exactly as received, so the wire format is the file format.
 
-Crash safety: messages go into chunks of ~1 MB; a chunk is closed, written and fsync'ed when
+Crash safety: messages go into LZ4-compressed chunks of ~1 MB; a chunk is closed, written and fsync'ed when
 full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
 therefore ends after its last complete chunk, but has no summary section and no footer:
 
@@ -39,6 +39,9 @@ from shared.recording_files import recording_segments
 MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1024 * 1024
 FLUSH_S = 0.25  # what a kill -9 of the recorder can lose, on top of its restart
+# LZ4: on camera frames (already JPEG) zstd gains nothing and costs the recorder ~4 % of a core
+# more at a rig's rates; both squeeze the raw tactile and state streams alike (bench/recorder.py)
+COMPRESSION = CompressionType.LZ4
 METADATA_NAME = "crossmodal"
 SUMMARY_NAME = "crossmodal.summary"
 LIBRARY = "crossmodal recorder"
@@ -117,7 +120,7 @@ class McapRecorder:
         self._file = _CountingFile(self.path.open("wb"))
         # Held while the file is written: a recorder starting up repairs only cut files nobody holds.
         fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=COMPRESSION)
         self._writer.start(profile="ros2", library=LIBRARY)
         self.metadata = {"host": socket.gethostname(), "started_ns": str(time.time_ns()),
                          "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
@@ -376,7 +379,7 @@ def repair(src: str | Path, dst: str | Path) -> int:
     out_channel: dict[int, int] = {}
     count = 0
     with Path(dst).open("wb") as out_file, Path(src).open("rb") as f:
-        out = Writer(out_file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        out = Writer(out_file, chunk_size=CHUNK_BYTES, compression=COMPRESSION)
         out.start(profile="ros2", library=f"{LIBRARY} (repair)")
         try:
             for record in StreamReader(f).records:
