@@ -3,8 +3,8 @@
 Profile ``ros2``, schemas ``ros2msg`` generated from the typestore the services use, channels
 ``cdr``; each payload is stored exactly as received, so the wire format is the file format.
 
-Crash safety: messages go into LZ4-compressed chunks of ~1 MB; a chunk is closed, written and fsync'ed when
-full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
+Crash safety: messages go into LZ4-compressed chunks of ~1 MB; a chunk is closed, written and
+fsync'ed when full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
 therefore ends after its last complete chunk, but has no summary section and no footer:
 
 * seeking readers (``mcap_ros2.reader.read_ros2_messages(path)``, rosbags ``AnyReader``) refuse it;
