@@ -74,12 +74,16 @@ class SegmentedRecorder:
     def write(self, key: str, msgtype: str, payload: bytes, log_time_ns: int | None = None) -> None:
         if self.closed:
             raise RecordingError(f"{self.path}: recording already closed")
-        self.maybe_rotate()
+        if self.segment_s > 0:
+            self.maybe_rotate()
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
         self.current.write(key, msgtype, payload, log_time)
         self.counts[key] += 1
-        span = self.span_ns.setdefault(key, [log_time, log_time])
-        span[1] = log_time
+        span = self.span_ns.get(key)
+        if span is None:
+            self.span_ns[key] = [log_time, log_time]
+        else:
+            span[1] = log_time
 
     def maybe_rotate(self, now: float | None = None) -> bool:
         """Close the open segment and start the next when it is ``segment_s`` old."""

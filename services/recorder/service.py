@@ -1,8 +1,11 @@
 """recorder node: record keys to MCAP on command (`@cmd/start`, `@cmd/stop`, `@cmd/status`).
 
-Subscriptions are lossless FIFOs of raw payloads; each key's type comes from the registry.
-Keys with an `@` chunk (health, liveliness, commands) are never recorded; unregistered keys and
-payloads that do not decode as their key's type are counted in @health and skipped. A recording
+A recording subscribes to raw payloads on Zenoh's thread, which only notes each sample's receive
+time and queues it; the writer takes what arrived every ``DRAIN_S`` on the event loop (one loop
+wake-up per batch, not one per message), bounded by ``MAX_PENDING`` waiting messages (more are
+counted as ``queue_overflow``). Each key's type comes from the registry. Keys with an `@` chunk
+(health, liveliness, commands) are never recorded; unregistered keys and payloads that do not
+decode as their key's type are counted in @health and skipped. A recording
 is written in segments of ``segment_s`` (services/recorder/segments.py); at start the service
 repairs the segments in its directory that a crash left cut. A recording in progress is noted in
 ``<directory>/.recording-<instance>.json`` until it is stopped: a recorder that finds the note at
@@ -13,6 +16,7 @@ crash of the recorder costs the recording only the recorder's own restart.
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import os
 import time
@@ -30,7 +34,8 @@ from shared.config import load_deployment
 from shared.runtime import Node, Subscription, fifo
 from shared.runtime.logs import fields
 
-FLUSH_CHECK_S = 0.1
+DRAIN_S = 0.02  # the writer's period: at rig rates ~70 messages a batch, a few ms of work
+MAX_PENDING = 100_000  # messages received and not yet written (~1.5 s of a rig's streams at most)
 DROP_KINDS = ("unregistered_key", "bad_payload", "write_error", "queue_overflow")
 
 
@@ -65,7 +70,8 @@ def check_pattern(pattern: str) -> str:
 
 
 class Recording:
-    """One open recording: a lossless raw subscription feeding a writer, flushed by a timer."""
+    """One open recording: a lossless raw subscription queueing for a writer that drains and
+    flushes on a timer."""
 
     def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any],
                  segment_s: float = SEGMENT_S, first_index: int = 0) -> None:
@@ -78,49 +84,74 @@ class Recording:
         self.write_errors = 0
         self.late = 0
         self.closed = False
+        # (key, payload, receive time in ns): appended on Zenoh's thread, taken on the loop
+        self._pending: collections.deque[tuple[str, bytes, int]] = collections.deque()
+        self._types: dict[str, str | None] = {}  # key -> its type; "" internal, None unregistered
         try:
-            self.sub: Subscription = node.subscribe(pattern, self._on, fifo(), msgtype="raw")
+            self.sub: Subscription = node.subscribe(pattern, self._arrived, fifo(), msgtype="raw", inline=True)
         except Exception:
             self.writer.close()
             path.unlink(missing_ok=True)
             raise
-        self._flusher = node.spawn(self._flush_loop(), name="recorder-flush")
+        self._drainer = node.spawn(self._drain_loop(), name="recorder-write")
 
-    def _on(self, payload: bytes, key: str) -> None:
-        if is_internal(key):
-            return
+    def _arrived(self, payload: bytes, key: str) -> None:
+        """Zenoh's thread: stamp and queue, nothing else (a deque's append is atomic)."""
         if self.closed:
             self.late += 1
             return
-        msgtype = keys.msgtype_of(key)
-        if msgtype is None:
-            if not self.unknown[key]:
-                self.node.log.warning("key not in the registry: skipped", extra=fields(key=key))
-            self.unknown[key] += 1
-            self.node.stats.count("unregistered_key", key)
+        if len(self._pending) >= MAX_PENDING:
+            self.node.stats.count("queue_overflow")
             return
-        try:
-            self.writer.write(key, msgtype, payload)
-        except msgs.MessageError as exc:
-            if not self.malformed[key]:
-                self.node.log.warning("malformed payload: skipped",
-                                      extra=fields(key=key, error=str(exc)[:200]))
-            self.malformed[key] += 1
-            self.node.stats.count("bad_payload", key)
-        except OSError as exc:  # disk full, removed directory: keep counting, say so in health
-            self.write_errors += 1
-            self.node.stats.count("write_error")
-            self.node.set_status("error", f"cannot write {self.writer.path}: {exc}")
+        self._pending.append((key, payload, time.time_ns()))
 
-    async def _flush_loop(self) -> None:
+    def _type(self, key: str) -> str | None:
+        """The type a key is recorded as, looked up on its first message."""
+        if is_internal(key):
+            self._types[key] = ""
+        else:
+            self._types[key] = keys.msgtype_of(key)
+            if self._types[key] is None:
+                self.node.log.warning("key not in the registry: skipped", extra=fields(key=key))
+        return self._types[key]
+
+    def write_pending(self) -> None:
+        """Write what arrived so far, in order of arrival."""
+        pending, types, write = self._pending, self._types, self.writer.write
+        for _ in range(len(pending)):
+            key, payload, t = pending.popleft()
+            msgtype = types[key] if key in types else self._type(key)
+            if not msgtype:
+                if msgtype is None:
+                    self.unknown[key] += 1
+                    self.node.stats.count("unregistered_key", key)
+                continue
+            try:
+                write(key, msgtype, payload, t)
+            except msgs.MessageError as exc:
+                if not self.malformed[key]:
+                    self.node.log.warning("malformed payload: skipped",
+                                          extra=fields(key=key, error=str(exc)[:200]))
+                self.malformed[key] += 1
+                self.node.stats.count("bad_payload", key)
+            except OSError as exc:  # disk full, removed directory: keep counting, say so in health
+                self._write_failed(exc)
+            except Exception as exc:  # a writer bug must not end the recording
+                self.node.handler_failed(key, exc)
+
+    def _write_failed(self, exc: OSError) -> None:
+        self.write_errors += 1
+        self.node.stats.count("write_error")
+        self.node.set_status("error", f"cannot write {self.writer.path}: {exc}")
+
+    async def _drain_loop(self) -> None:
         while True:
-            await asyncio.sleep(FLUSH_CHECK_S)
+            await asyncio.sleep(DRAIN_S)
+            self.write_pending()
             try:
                 self.writer.maybe_flush()
             except OSError as exc:
-                self.write_errors += 1
-                self.node.stats.count("write_error")
-                self.node.set_status("error", f"cannot write {self.writer.path}: {exc}")
+                self._write_failed(exc)
 
     def summary(self) -> dict:
         return {**self.writer.summary().as_dict(), "keys": self.pattern, "unknown_keys": dict(self.unknown),
@@ -130,10 +161,11 @@ class Recording:
     async def stop(self) -> dict:
         """Unsubscribe, write what is still queued, close the file."""
         self.sub.close()
-        self._flusher.cancel()
-        for _ in range(5):  # drain callbacks the Zenoh threads queued before the undeclare
-            await asyncio.sleep(0)
-        self.closed = True
+        self._drainer.cancel()
+        await asyncio.sleep(0.01)  # callbacks already running on Zenoh's threads queue their sample
+        self.closed = True  # from here arrivals are counted as late
+        await asyncio.sleep(0.01)
+        self.write_pending()
         self.writer.close()
         return self.summary()
 

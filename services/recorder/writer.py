@@ -3,8 +3,8 @@
 Profile ``ros2``, schemas ``ros2msg`` generated from the typestore the services use, channels
 ``cdr``; each payload is stored exactly as received, so the wire format is the file format.
 
-Crash safety: messages go into chunks of ~1 MB; a chunk is closed, written and fsync'ed when
-full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
+Crash safety: messages go into LZ4-compressed chunks of ~1 MB; a chunk is closed, written and
+fsync'ed when full and at least every ``flush_s`` seconds. A recording cut by ``kill -9`` or a power loss
 therefore ends after its last complete chunk, but has no summary section and no footer:
 
 * seeking readers (``mcap_ros2.reader.read_ros2_messages(path)``, rosbags ``AnyReader``) refuse it;
@@ -22,8 +22,9 @@ import os
 import socket
 import time
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -38,6 +39,9 @@ from shared.recording_files import recording_segments
 MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1024 * 1024
 FLUSH_S = 0.25  # what a kill -9 of the recorder can lose, on top of its restart
+# LZ4: on camera frames (already JPEG) zstd gains nothing and costs the recorder ~4 % of a core
+# more at a rig's rates; both squeeze the raw tactile and state streams alike (bench/recorder.py)
+COMPRESSION = CompressionType.LZ4
 METADATA_NAME = "crossmodal"
 SUMMARY_NAME = "crossmodal.summary"
 LIBRARY = "crossmodal recorder"
@@ -60,7 +64,21 @@ def stamp_ns(msg: Any) -> int | None:
 
 def check_payload(msgtype: str, payload: bytes) -> int | None:
     """Decode ``payload`` as ``msgtype`` (raises ``msgs.MessageError``); returns its stamp in ns."""
-    return stamp_ns(msgs.deserialize(payload, msgtype))
+    return payload_checker(msgtype)(payload)
+
+
+@cache
+def payload_checker(msgtype: str) -> Callable[[bytes], int | None]:
+    """``check_payload`` for one type, looked up once per channel: the type's decoder, and
+    ``stamp_ns`` only for a type that has a stamp. MessageError for an unknown type."""
+    decode = msgs.decoder(msgtype)
+    fields = msgs.msg_class(msgtype).__dataclass_fields__
+    if "header" not in fields and "clock" not in fields:
+        def check(payload: bytes) -> None:
+            decode(payload)
+            return None
+        return check
+    return lambda payload: stamp_ns(decode(payload))
 
 
 def warm_up(msgtypes: Iterable[str]) -> None:
@@ -99,17 +117,17 @@ class McapRecorder:
                  chunk_bytes: int = CHUNK_BYTES, validate: bool = True) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: BinaryIO = self.path.open("wb")
+        self._file = _CountingFile(self.path.open("wb"))
         # Held while the file is written: a recorder starting up repairs only cut files nobody holds.
         fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._writer = Writer(self._file, chunk_size=chunk_bytes, compression=COMPRESSION)
         self._writer.start(profile="ros2", library=LIBRARY)
         self.metadata = {"host": socket.gethostname(), "started_ns": str(time.time_ns()),
                          "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         self.metadata.update({k: _text(v) for k, v in (metadata or {}).items()})
         self._writer.add_metadata(METADATA_NAME, self.metadata)
         self._schemas: dict[str, int] = {}
-        self._channels: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, Callable[[bytes], int | None]]] = {}  # key -> (id, checker)
         self.counts: Counter[str] = Counter()
         self.span_ns: dict[str, list[int]] = {}  # key -> [first, last] log time
         self.bytes = 0
@@ -120,40 +138,42 @@ class McapRecorder:
         self.validate = validate
         self.started = time.monotonic()
         self._last_flush = self.started
-        self._synced_pos = self._file.tell()
+        self._synced_pos = self._file.pos
         self._sync()
         self.closed = False
 
-    def _channel(self, key: str, msgtype: str) -> int:
-        channel = self._channels.get(key)
-        if channel is None:
-            schema = self._schemas.get(msgtype)
-            if schema is None:
-                schema = self._writer.register_schema(msgtype, "ros2msg", msgs.schema_text(msgtype).encode())
-                self._schemas[msgtype] = schema
-            channel = self._writer.register_channel(key, "cdr", schema)
-            self._channels[key] = channel
-        return channel
+    def _channel(self, key: str, msgtype: str) -> tuple[int, Callable[[bytes], int | None]]:
+        check = payload_checker(msgtype)  # an unknown type raises MessageError before a channel exists
+        schema = self._schemas.get(msgtype)
+        if schema is None:
+            schema = self._writer.register_schema(msgtype, "ros2msg", msgs.schema_text(msgtype).encode())
+            self._schemas[msgtype] = schema
+        self._channels[key] = (self._writer.register_channel(key, "cdr", schema), check)
+        return self._channels[key]
 
     def write(self, key: str, msgtype: str, payload: bytes, log_time_ns: int | None = None) -> None:
         """Append one message; log time defaults to now, publish time is its stamp when it has one."""
         if self.closed:
             raise RecordingError(f"{self.path}: recording already closed")
-        stamp = check_payload(msgtype, payload) if self.validate else None
+        channel, check = self._channels.get(key) or self._channel(key, msgtype)
+        stamp = check(payload) if self.validate else None
         log_time = log_time_ns if log_time_ns is not None else time.time_ns()
-        self._writer.add_message(self._channel(key, msgtype), log_time=log_time, data=payload,
-                                 publish_time=stamp if stamp is not None else log_time,
-                                 sequence=self.counts[key] & 0xFFFFFFFF)
-        self.counts[key] += 1
+        n = self.counts[key]
+        self._writer.add_message(channel, log_time, payload, log_time if stamp is None else stamp, n & 0xFFFFFFFF)
+        self.counts[key] = n + 1
         self._pending += 1
         self.bytes += len(payload)
-        span = self.span_ns.setdefault(key, [log_time, log_time])
-        span[1] = log_time
-        if self._file.tell() != self._synced_pos:  # the writer closed a full chunk: make it durable now
+        span = self.span_ns.get(key)
+        if span is None:
+            self.span_ns[key] = [log_time, log_time]
+        else:
+            span[1] = log_time
+        if self._file.pos != self._synced_pos:  # the writer closed a full chunk: make it durable now
             self.chunks += 1
             self._sync()
             self._durable_now()
-        self.maybe_flush()
+        elif time.monotonic() - self._last_flush >= self.flush_s:
+            self.flush()
 
     def maybe_flush(self, now: float | None = None) -> bool:
         """Flush when the open chunk is older than ``flush_s``; call it from a timer too."""
@@ -167,9 +187,9 @@ class McapRecorder:
         """Close the open chunk and fsync: everything written so far survives a kill."""
         if self.closed:
             return
-        before = self._file.tell()
+        before = self._file.pos
         self._writer.flush()
-        if self._file.tell() != before:
+        if self._file.pos != before:
             self.chunks += 1
         self._sync()
         self._durable_now()
@@ -181,7 +201,7 @@ class McapRecorder:
     def _sync(self) -> None:
         self._file.flush()
         os.fsync(self._file.fileno())
-        self._synced_pos = self._file.tell()
+        self._synced_pos = self._file.pos
         self._last_flush = time.monotonic()
 
     def rates(self) -> dict[str, float]:
@@ -208,6 +228,32 @@ class McapRecorder:
             self.closed = True
             self._summary = summary
         return self._summary
+
+
+class _CountingFile:
+    """A file written only at its end, that knows its size without asking the kernel (``tell`` of
+    a buffered file is a system call, and the writer asks after every message)."""
+
+    def __init__(self, file: BinaryIO) -> None:
+        self._f = file
+        self.pos = file.tell()
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        n = self._f.write(data)
+        self.pos += n
+        return n
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def fileno(self) -> int:
+        return self._f.fileno()
+
+    def close(self) -> None:
+        self._f.close()
 
 
 def _text(value: Any) -> str:
@@ -333,7 +379,7 @@ def repair(src: str | Path, dst: str | Path) -> int:
     out_channel: dict[int, int] = {}
     count = 0
     with Path(dst).open("wb") as out_file, Path(src).open("rb") as f:
-        out = Writer(out_file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        out = Writer(out_file, chunk_size=CHUNK_BYTES, compression=COMPRESSION)
         out.start(profile="ros2", library=f"{LIBRARY} (repair)")
         try:
             for record in StreamReader(f).records:

@@ -1,13 +1,16 @@
 """The node: one service instance's window onto Zenoh, bridged into asyncio.
 
-Zenoh callbacks run on Zenoh threads; they only copy the payload and hand it to the event loop
-with ``call_soon_threadsafe``, once per batch: samples that arrive while one is pending join it.
-Each subscription owns a bounded queue with an explicit policy: ``latest(n)`` keeps the newest n
-samples (control loops), ``fifo(n)`` keeps all up to n waiting (the recorder; a batch being handled
-has left the queue); whatever a policy discards is counted per key ("dropped" in @health). Decoding,
-validation (shared/runtime/validate.py) and handlers run on the loop, so a slow handler never
-blocks Zenoh, and a payload that is malformed or unfit is counted per key and reason
-("rejected") and never reaches the handler. Warnings about bad input are rate-limited per kind.
+Zenoh callbacks run on Zenoh threads; they copy the payload and hand it to the event loop with
+``call_soon_threadsafe``, once per batch: samples that arrive while one is pending join it. Each
+subscription owns a bounded queue with an explicit policy: ``latest(n)`` keeps the newest n
+samples (control loops), ``fifo(n)`` keeps all up to n waiting (bulk consumers; a batch being
+handled has left the queue); whatever a policy discards is counted per key ("dropped" in @health).
+A payload that is malformed or unfit (shared/runtime/validate.py) is counted per key and reason
+("rejected") and never reaches the handler. Handlers run on the loop, so a slow handler never
+blocks Zenoh. A ``fifo`` subscription handles every sample, so its samples are decoded and
+validated on the Zenoh thread as they arrive, beside the loop rather than on it; a ``latest``
+subscription decodes on the loop only the samples its policy kept. Warnings about bad input are
+rate-limited per kind.
 
 A subscription made ``inline`` skips the hop, for handlers that only store the newest value or
 put it on a thread-safe queue, where the hop is most of the latency: its plain, thread-safe
@@ -108,6 +111,8 @@ class Subscription:
         self._lock = threading.Lock()
         self._scheduled = False
         self._whole_batches = policy.kind == "fifo" or policy.depth == 1
+        # fifo: every sample is handled, so it is decoded on arrival (Zenoh thread) and queued decoded
+        self._decoded = policy.kind == "fifo"
         self._loop = node.loop
         # Plain functions run straight from the loop callback (one hop); coroutines get a task.
         self._is_async = inspect.iscoroutinefunction(handler)
@@ -165,7 +170,7 @@ class Subscription:
             except Exception as exc:  # a handler bug must not kill the subscription
                 self._node.handler_failed(key, exc)
 
-    # Zenoh thread: copy and hand over, nothing else.
+    # Zenoh thread: copy (and for a fifo, decode) and hand over.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
@@ -173,16 +178,19 @@ class Subscription:
             with self._lock:
                 self.arrived[key] += 1
             return
+        item = self._decode(key, payload) if self._decoded else payload
         with self._lock:
             queue = self._queue
             self.arrived[key] += 1
+            if item is None:  # rejected on arrival (counted by _decode)
+                return
             if len(queue) >= self.policy.depth:
                 if self.policy.kind == "fifo":
                     self.dropped[key] += 1  # the newest is refused
                     self._node.stats.count("queue_overflow")  # the recorder reports this total
                     return
                 self.dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
-            queue.append((key, payload))
+            queue.append((key, item))
             if self._scheduled:
                 return
             self._scheduled = True
@@ -192,7 +200,7 @@ class Subscription:
             pass
 
     def _drain(self) -> None:
-        lock, handler, wants_key = self._lock, self._handler, self._wants_key
+        lock, handler, wants_key, failed = self._lock, self._handler, self._wants_key, self._node.handler_failed
         while True:
             with lock:
                 if not self._queue:
@@ -202,13 +210,20 @@ class Subscription:
                     batch, self._queue = self._queue, collections.deque(maxlen=self._queue.maxlen)
                 else:  # keep-latest(n > 1): one at a time, newer samples push out older ones meanwhile
                     batch = (self._queue.popleft(),)
+            if self._decoded:
+                for key, msg in batch:
+                    try:
+                        handler(msg, key) if wants_key else handler(msg)
+                    except Exception as exc:  # a handler bug must not kill the subscription
+                        failed(key, exc)
+                continue
             for key, payload in batch:
                 msg = self._decode(key, payload)
                 if msg is not None:
                     try:
                         handler(msg, key) if wants_key else handler(msg)
                     except Exception as exc:  # a handler bug must not kill the subscription
-                        self._node.handler_failed(key, exc)
+                        failed(key, exc)
 
     def _key(self, key: str) -> tuple:
         """What decoding a sample on ``key`` needs, looked up on its first sample: its received
@@ -251,11 +266,11 @@ class Subscription:
                 with self._lock:
                     if not self._queue:
                         break
-                    key, payload = self._queue.popleft()
-                await self._deliver(key, payload)
+                    key, item = self._queue.popleft()
+                await self._deliver(key, item)
 
-    async def _deliver(self, key: str, payload: bytes) -> None:
-        msg = self._decode(key, payload)
+    async def _deliver(self, key: str, item: Any) -> None:
+        msg = item if self._decoded else self._decode(key, item)
         if msg is None:
             return
         try:
@@ -432,6 +447,7 @@ class Node:
             "rejected": rejected,
             **self._queue_counts(),
             "clock_jumps": self.clock.jumps,
+            "shm": shm.POOL.report(),  # the process's shared-memory pool: puts, and copies made instead
         }
         if self.health_extra is not None:
             report.update(self.health_extra())

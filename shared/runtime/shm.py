@@ -6,7 +6,8 @@ reads it from the pool without the payload passing through the router's sockets.
 negotiate shared memory per link (shared/runtime/zsession.py), so a subscriber on another host
 gets the same payload copied over the network, with nothing to do here. When the pool cannot be
 created or is full, the payload goes out as bytes, counted per key as ``shm_unavailable`` or
-``shm_exhausted``.
+``shm_exhausted``; the pool counts its puts and these fallbacks for the process too (``shm`` in
+a node's @health).
 
 Zenoh keeps a pool mapped in every process that received from it, and in the router, for their
 lifetime, also after its publisher exits (eclipse-zenoh/zenoh#2787): each restart of a publisher
@@ -21,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import Counter
 
 import zenoh
 from zenoh.shm import GarbageCollect, ShmProvider, ZShmMut
@@ -40,6 +42,8 @@ class Pool:
         self._provider: ShmProvider | None = None
         self._failed = ""
         self._lock = threading.Lock()
+        self.sent = 0  # payloads put from the pool
+        self.fallbacks: Counter[str] = Counter()  # payloads copied instead, by reason
 
     @property
     def failed(self) -> str:
@@ -60,13 +64,27 @@ class Pool:
         """A pool buffer holding the concatenated ``pieces`` (``size`` bytes), or (None, why not)."""
         provider = self._provider or self._open()
         if provider is None:
-            return None, "shm_unavailable"
+            return self._fallback("shm_unavailable")
         try:
             buf = provider.alloc(size, policy=GarbageCollect())
         except zenoh.ZError:  # every buffer still held by subscribers: copies until they let go
-            return None, "shm_exhausted"
+            return self._fallback("shm_exhausted")
         buf[0:size] = pieces[0] if len(pieces) == 1 else b"".join(pieces)
+        with self._lock:
+            self.sent += 1
         return buf, ""
+
+    def _fallback(self, why: str) -> tuple[None, str]:
+        with self._lock:
+            self.fallbacks[why] += 1
+        return None, why
+
+    def report(self) -> dict:
+        """What @health shows: the pool's state, its puts and the copies made instead, by reason."""
+        with self._lock:
+            state = "unavailable" if self._failed else "open" if self._provider is not None else "unused"
+            return {"pool": state, "pool_bytes": self.size, "sent": self.sent, "fallbacks": dict(self.fallbacks),
+                    **({"unavailable": self._failed} if self._failed else {})}
 
 
 POOL = Pool()

@@ -24,9 +24,10 @@ def frame(i: int) -> object:
                      is_bigendian=0, step=640, data=data)
 
 
-def send_frames(endpoint: str) -> tuple[list, dict, int, list]:
-    """Puts N frames through a router; (received, publisher's errors, frames put from the pool, sent)."""
-    async def go() -> tuple[list, dict, int, list]:
+def send_frames(endpoint: str) -> tuple[list, dict, int, list, dict]:
+    """Puts N frames through a router; (received, publisher's errors, frames put from the pool, sent,
+    the publisher's @health "shm")."""
+    async def go() -> tuple[list, dict, int, list, dict]:
         src = Node("bench", "src", open_client(endpoint))
         dst = Node("bench", "dst", open_client(endpoint))
         got: list = []
@@ -38,11 +39,11 @@ def send_frames(endpoint: str) -> tuple[list, dict, int, list]:
             pub.put(msg)
             await asyncio.sleep(0.01)
         await wait_until_async(lambda: len(got) == N, 20, lambda: f"{N} frames, got {len(got)}")
-        errors = dict(src.stats.errors)
+        errors, pool = dict(src.stats.errors), src.health()["shm"]
         for node in (src, dst):
             await node.close()
             node.session.close()
-        return got, errors, pub.shm_sent, sent
+        return got, errors, pub.shm_sent, sent, pool
 
     return asyncio.run(go())
 
@@ -55,10 +56,12 @@ def assert_same_frames(got: list, sent: list) -> None:
 def test_large_payloads_go_through_the_pool_intact(router, monkeypatch):
     endpoint, _ = router
     monkeypatch.setattr(shm, "POOL", shm.Pool())
-    got, errors, from_pool, sent = send_frames(endpoint)
+    got, errors, from_pool, sent, pool = send_frames(endpoint)
     assert_same_frames(got, sent)
     assert from_pool == N - errors.get(f"shm_exhausted:{KEY}", 0) > 0
     assert f"shm_unavailable:{KEY}" not in errors
+    assert pool["pool"] == "open" and pool["sent"] == from_pool
+    assert pool["fallbacks"] == ({"shm_exhausted": N - from_pool} if from_pool < N else {})
 
 
 def test_without_shared_memory_frames_are_copied_and_counted(router, monkeypatch):
@@ -66,17 +69,20 @@ def test_without_shared_memory_frames_are_copied_and_counted(router, monkeypatch
     pool = shm.Pool()
     monkeypatch.setattr(pool, "_failed", "no /dev/shm")  # as when the pool could not be created
     monkeypatch.setattr(shm, "POOL", pool)
-    got, errors, from_pool, sent = send_frames(endpoint)
+    got, errors, from_pool, sent, health = send_frames(endpoint)
     assert_same_frames(got, sent)
     assert from_pool == 0 and errors[f"shm_unavailable:{KEY}"] == N
+    assert health["pool"] == "unavailable" and health["unavailable"] == "no /dev/shm"
+    assert health["sent"] == 0 and health["fallbacks"] == {"shm_unavailable": N}
 
 
 def test_a_full_pool_falls_back_to_copies_counted(router, monkeypatch):
     endpoint, _ = router
     monkeypatch.setattr(shm, "POOL", shm.Pool(size=256 * 1024))  # smaller than one frame
-    got, errors, from_pool, sent = send_frames(endpoint)
+    got, errors, from_pool, sent, pool = send_frames(endpoint)
     assert_same_frames(got, sent)
     assert from_pool == 0 and errors[f"shm_exhausted:{KEY}"] == N
+    assert pool["sent"] == 0 and pool["fallbacks"] == {"shm_exhausted": N}
 
 
 @pytest.mark.parametrize(("size", "msgtype"), [(shm.MIN_BYTES - 1, "sensor_msgs/msg/CompressedImage"),
