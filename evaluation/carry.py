@@ -101,6 +101,7 @@ class CarryState:
     held: bool = False  # the gripper is shut with the grasp point between its pads
     closing: bool = False  # the gripper is closing on the grasp point
     grasp_at: np.ndarray | None = None  # the grasp point the pinch is pulled onto while closing
+    released: bool = False  # the policy's touch let go of what it held: the anchors are done
 
 
 def over_area(point: np.ndarray, corners: np.ndarray, margin: float) -> bool:
@@ -124,8 +125,11 @@ def carry_horizon(horizon: np.ndarray, g: int, anchors: CarryAnchors, objects: n
     Holding: the held object moves with the pads, so a sample's goal carries the held point to
     ``objects[point] + goal - pads``; pick_place: pulled onto the place target (fully within 10 cm,
     not beyond 20 cm); wiping: where the pad would be over the marked area (``area``, 4 corners)
-    and within CONTACT_ABOVE_M above its surface, lowered onto it. ``depth``: the robot mapping's
-    grasp depth (the horizon's pinch is already that far below the hand's; the grasp anchor too)."""
+    and within CONTACT_ABOVE_M above its surface, lowered onto it. Released: as the policy put it.
+    ``depth``: the robot mapping's grasp depth (the horizon's pinch is already that far below the
+    hand's; the grasp anchor too)."""
+    if state.released:  # placed: the policy's own retreat (a grasp pull would bring the gripper back)
+        return horizon
     hand = slice(g * KEYPOINTS_PER_HAND, (g + 1) * KEYPOINTS_PER_HAND)
     pts = horizon[:, hand]
     pinches = pinch(pts)

@@ -192,10 +192,12 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
                 effort[fingers] = -EFFORT_N_PER_KPA * kpa
             grip = 1.0
         else:  # predicted touch says when, the demonstrations how hard; closes only on the grasp point
-            if state.held and near > LOST_M:
+            if state.held and near > LOST_M:  # slipped out: back to reaching
                 state.held = False
             was = squeeze
-            squeeze = touch_switch(squeeze, kpa, anchors.grasp_kpa) and (state.held or near < HOLD_M)
+            touch = touch_switch(squeeze, kpa, anchors.grasp_kpa)
+            state.released = state.released or (state.held and not touch)
+            squeeze = touch and not state.released and (state.held or near < HOLD_M)
             squeeze_since = t if squeeze and not was else squeeze_since
             grip = min(1.0, (t - squeeze_since) / TOUCH_RAMP_S)
             if squeeze:

@@ -14,6 +14,7 @@ from evaluation.anchors import pinch
 from evaluation.carry import CarryAnchors, CarryState, carry_horizon, mine_carry_anchors, over_area
 from evaluation.evaluate import main as eval_main
 from evaluation.execute_carry import CARRY_TASKS, execute_carry
+from evaluation.wipe_diagnosis import path_stats
 from learning.ours import Ours
 from learning.presets import preset
 from services.world.tasks import TASKS
@@ -155,3 +156,24 @@ def test_the_cell_does_the_carry_tasks_with_the_teachers_own_hands(task):
     anchors = mine_carry_anchors(task, spec.protocol(0)[:spec.train])
     r = execute_carry(None, task, seed=0, demo=spec.train, anchors=anchors)
     assert r.success, r
+
+
+def test_the_wipe_diagnosis_reads_the_pads_height_and_path():
+    d = generate_demo("wiping", 3, tactile_hand="left", grasp_hand="left")
+    names = d.object_names
+    r = path_stats(d.objects, names)
+    assert r["near_steps"] > 150 and -4.5 < r["height_mm"] < -2.0  # the foam pressed 2-4.5 mm
+    assert r["from_centre_mm"] < 30 and 5 < r["across_sd_mm"] < 10  # 12 mm circles over the area's centre
+    raised = d.objects.copy()
+    raised[:, [i for i, n in enumerate(names) if n.startswith("sponge/")], 2] += 0.012
+    h = path_stats(raised, names)
+    assert h["near_steps"] < 10 and 7.0 < h["height_mm"] < 10.0
+
+
+def test_once_released_the_anchors_leave_the_policys_retreat_alone():
+    names = ["box/top", "box/bottom", "plate/center"]
+    objects = np.array([[0.0, 0.0, 0.055], [0.0, 0.0, 0.005], [0.0, 0.0, 0.005]])
+    a = CarryAnchors("box/top", np.zeros(3), 0.05, 40.0, "box/bottom", "plate/center", np.zeros(3))
+    h = _horizon(np.array([0.0, 0.02, 0.08]))  # 2 cm beside and above the box's top: a grasp pull would act
+    assert not np.allclose(carry_horizon(h, 0, a, objects, names, CarryState(), np.zeros(3)), h)
+    np.testing.assert_allclose(carry_horizon(h, 0, a, objects, names, CarryState(released=True), np.zeros(3)), h)
