@@ -98,6 +98,13 @@ class CarryResult:
         return dict(self.__dict__)
 
 
+def carried_weight(sim: WorldSim, joint: str) -> float:
+    """N: the weight of everything the vertical axis ``joint`` carries (its body's subtree in the
+    MuJoCo model), what its drive must hold when its position loop is off."""
+    m = sim.model
+    return float(m.body_subtreemass[m.jnt_bodyid[m.joint(joint).id]] * -m.opt.gravity[2])
+
+
 def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors | None = None,
                   feedback: bool = True, catch_m: float | None = 0.03, seconds: float | None = None,
                   plan_period_s: float = 0.1, knots: int = 20, horizon_s: float = 1.0) -> CarryResult:
@@ -144,10 +151,11 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
     dq = np.zeros(n)
     dq[z] = 0.01
     down = float(np.sign(opt.points(q)[tips[0], 2] - opt.points(q + dq)[tips[0], 2]))  # + effort lowers it?
+    hold = -down * carried_weight(sim, ROLES.gripper_lift)  # force control holds the carriage's own weight
     current, t_current = np.repeat(q[None], knots, axis=0), 0.0
     state = CarryState()
     observing = feedback and catch_m is None
-    squeeze, pressing, squeeze_since, grip, hold = False, False, 0.0, 1.0, 0.0
+    squeeze, pressing, squeeze_since, grip = False, False, 0.0, 1.0
     rejected, tracking, frame = 0, [], 0
     closest, max_kpa, max_press = np.inf, 0.0, 0.0
     for k in range(steps):
@@ -219,7 +227,7 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
             max_press = max(max_press, press)
         modes = np.full(n, Mode.POSITION, np.uint8)
         stiffness, damping = np.zeros(n), np.zeros(n)
-        if press > 0.0:  # force in z: no stiffness, the weight held as the position loop held it
+        if press > 0.0:  # force in z: no stiffness, the carriage's weight held by feed-forward
             modes[z], damping[z] = Mode.IMPEDANCE, axis_params(sim.joint_names[z]).kd
             effort[z] = hold + down * press
         for sub in range(physics_per_step):
@@ -236,8 +244,6 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
             efforts, _ = board.step(sim.time, q, qd, sim.physics_dt)
             sim.set_efforts(efforts)
             sim.step(1)
-        if press == 0.0:
-            hold = float(board.integral[z])  # what holds the carriage's weight, for the next force phase
     _, truth = sim.object_keypoints()
     world = sim.task_success()
     released = not squeeze
