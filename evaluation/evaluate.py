@@ -26,28 +26,25 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from evaluation.anchors import AnchorError, mine_anchors
 from evaluation.baselines import make
-from evaluation.execute import execute_layout
 from evaluation.plots import plot_results, plot_rollout
 from evaluation.reconstructed import (
     DETECTORS,
     OBSERVATIONS,
     WINDOWS,
-    CellObserver,
     ReconOptions,
     ReconstructionError,
-    held_objects,
     reconstructed_demos,
     reconstruction_error,
 )
+from evaluation.robot_eval import VARIANTS, execute_main
 from evaluation.runs import RunError, check_merge, run_grid, run_meta
 from evaluation.task_measure import measure_table, task_measure
 from learning.metrics import SCORE_KEYS, trajectory_scores
 from learning.ours import Ours
 from learning.presets import PRESETS, config_changes, quick_budget
 from services.policy.flat_state import BaselineError
-from services.policy.model import Policy, PolicyError
+from services.policy.model import PolicyError
 from services.world.tasks import TASKS, UnknownTaskError
 from services.world.tasks import task as task_spec
 from services.world.teacher import assembly_protocol
@@ -62,7 +59,6 @@ ROWS = {"multimodal": ("(1) Multimodal", "Yes", "Yes"), "no_tactile": ("(2) No t
         "promp_simple": ("(7) Simple ProMP", "No", "No"), "diffusion_unet": ("(8) LeRobot Diffusion U-Net", "No", "No"),
         "diffusion_transformer": ("(9) Diffusion Transformer", "No", "No"), "naive": ("(10) None", "No", "No")}
 REFERENCE = "multimodal"
-ANCHOR_MOVED_M = 0.01  # reconstructed demonstrations: a grasped object has moved 1 cm (their noise is mm)
 
 
 class EvaluationError(ValueError):
@@ -362,8 +358,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rescore", action="store_true",
                         help="no fitting: recompute the scores of an earlier run in --out from its saved rollouts")
     parser.add_argument("--execute", action="store_true",
-                        help="robot in the loop instead: the trained policy (--checkpoint) drives the simulated robot "
-                        "through trajopt and the control board on the 12 validation layouts; writes execute.json")
+                        help="robot in the loop instead: the trained policy (--checkpoint, a net of --task) drives the "
+                        "simulated robot through trajopt and the control board on the task's validation layouts of "
+                        "--seed and of --held-out-seeds, alone and with contact anchors (--variants); writes "
+                        "execute.json and execute.md (tasks: assembly, latch, pick_place, wiping)")
     parser.add_argument("--checkpoint", default="runs/policy/policy.pt",
                         help="--execute: policy checkpoint (default %(default)s; `make policy` trains it)")
     parser.add_argument("--hand-feedback", action=argparse.BooleanOptionalAction, default=True,
@@ -378,7 +376,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="--execute: contact anchors mined from the training demonstrations (grasp point and "
                         "heading, connector mate, pressures; docs/policy.md) close the last centimetres; "
                         "--no-anchors: the policy's goals as they are (default: on)")
-    parser.add_argument("--layouts", type=int, default=12, help="--execute: how many validation layouts (default 12)")
+    parser.add_argument("--layouts", type=int, default=12,
+                        help="--execute: how many validation layouts per seed (default 12, at most the task's)")
+    parser.add_argument("--held-out-seeds", default="",
+                        help="--execute: comma-separated seeds whose validation layouts are run too, with the net and "
+                        "the anchors of --seed (layouts never used to choose the loop's constants)")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="--execute: learned (the policy alone, no anchors), anchored (with contact anchors) or "
+                        "both (default %(default)s)")
     parser.add_argument("--teacher", action="store_true",
                         help="--execute: the teacher's own hands instead of a policy (what the cell does with a "
                         "perfect policy)")
@@ -389,11 +394,6 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     if args.execute:
-        if not TASKS[args.task].executable:
-            print(f"error: --execute runs the robot loop of: "
-                  f"{', '.join(t.name for t in TASKS.values() if t.executable)}; task {args.task!r} has its world "
-                  "success test and robot mapping (docs/tasks.md) but no robot loop", file=sys.stderr)
-            return 2
         if args.catch_mm < 0 or not np.isfinite(args.catch_mm):
             print(f"error: --catch-mm must be 0 or a positive distance in mm, not {args.catch_mm}", file=sys.stderr)
             return 2
@@ -427,72 +427,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print((Path(args.out) / "results.md").read_text())
-    return 0
-
-
-def execute_main(args: argparse.Namespace) -> int:
-    """`xm eval --execute`: success rate of the robot driven by the learned policy."""
-    path = Path(args.checkpoint)
-    if args.teacher:
-        model, path = None, Path("teacher")
-    elif not path.exists():
-        print(f"error: no policy checkpoint at {path}; train one with `make policy` or give --checkpoint",
-              file=sys.stderr)
-        return 2
-    else:
-        try:
-            model = Policy.load(str(path))
-        except (PolicyError, OSError, RuntimeError, KeyError, ValueError) as exc:
-            print(f"error: cannot load {path}: {exc}", file=sys.stderr)
-            return 2
-    torch.set_num_threads(1)
-    demos = assembly_protocol(args.seed)
-    recon = None
-    if args.observations == "reconstructed":  # anchors mined from, and the start hands of, reconstructed demos
-        recon = ReconOptions(detector=args.detector, weights=args.detector_weights, windows=args.recon_windows)
-        try:
-            demos = reconstructed_demos(demos, args.task, args.seed, recon, args.recon_cache, not args.no_progress)
-        except (ReconstructionError, FileNotFoundError) as exc:
-            print(f"error: cannot reconstruct the demonstrations: {exc}", file=sys.stderr)
-            return 2
-    anchors = None
-    if args.anchors:
-        try:
-            anchors = (mine_anchors([held_objects(d) for d in demos[:3]], moved_m=ANCHOR_MOVED_M) if recon
-                       else mine_anchors(demos[:3]))
-        except AnchorError as exc:
-            print(f"error: no contact anchors in the training demonstrations ({exc}); run with --no-anchors",
-                  file=sys.stderr)
-            return 2
-    results = []
-    for demo in tqdm(range(3, 3 + args.layouts), desc="execute", disable=args.no_progress):
-        observer = CellObserver(args.task, args.seed, demo, recon) if recon else None
-        try:
-            r = execute_layout(model, args.seed, demo, feedback=args.hand_feedback, anchors=anchors,
-                               catch_m=args.catch_mm / 1e3 if args.catch_mm > 0 else None, observer=observer,
-                               start_hands=demos[demo].hands[0].astype(float) if recon else None)
-        finally:
-            if observer is not None:
-                observer.close()
-        results.append(r.to_dict())
-        if args.no_progress:
-            print(f"layout {demo}: grasp {r.grasp_hand} (robot: {r.chosen_hand}), success {r.success}, tracking "
-                  f"{r.tracking_mm:.1f} mm, module moved {r.object_motion_mm:.0f} mm, gripper closest "
-                  f"{r.closest_mm:.1f} mm (policy's own pinch {r.policy_closest_mm:.1f} mm) at opening "
-                  f"{r.opening_mm:.0f} mm, predicted grasp {r.max_grasp_kpa:.1f} kPa, "
-                  f"connector gap {r.connector_gap_mm:.1f} mm, seated {r.seated}, rejected solves "
-                  f"{r.solves_rejected}", flush=True)
-    rate = float(np.mean([r["success"] for r in results]))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "execute.json").write_text(json.dumps({"checkpoint": str(path), "seed": args.seed, "success_rate": rate,
-                                                  "observations": recon.__dict__ if recon else "truth",
-                                                  "hand_feedback": args.hand_feedback, "catch_mm": args.catch_mm,
-                                                  "anchors": anchors.to_dict() if anchors else None,
-                                                  "layouts": results}, indent=2))
-    how = "with contact anchors" if anchors else "without contact anchors"
-    print(f"success {rate * 100:.0f} % of {len(results)} layouts {how} (target 90 %); details in "
-          f"{out / 'execute.json'}")
     return 0
 
 

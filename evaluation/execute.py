@@ -46,6 +46,7 @@ from services.policy.runner import PolicyRunner, SceneObs
 from services.robot.board_sim import BoardSim, axis_params
 from services.trajopt.mapping import PlanArrays, goals_for_horizon
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
+from services.world.model import ASSEMBLY_TASKS
 from services.world.sim import WorldSim
 from services.world.teacher import KPA_PER_N, Teacher
 from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS
@@ -203,8 +204,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
                    horizon_dt: float | None = None, catch_m: float | None = None, observer=None,
-                   start_hands: np.ndarray | None = None) -> ExecutionResult:
+                   start_hands: np.ndarray | None = None, task: str = "assembly") -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
+
+    ``task``: "assembly" or "latch" (the same layouts; the latch's snap-fit engages only at 5 N).
 
     ``model``: a trained Policy, or None for the teacher's own hands (TeacherReplay).
     ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
@@ -228,7 +231,9 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     frame sets the policy runs on its own object predictions; None: the world's truth every step.
     ``start_hands``: the policy's initial hands (default the teacher's true start pose). Success and
     the recorded distances are always measured on the world's truth."""
-    sim = WorldSim("assembly", seed=seed, width=32, height=24)  # cameras unused here
+    if task not in ASSEMBLY_TASKS:
+        raise ValueError(f"execute_layout runs {ASSEMBLY_TASKS}, not {task!r} (execute_carry.py runs the others)")
+    sim = WorldSim(task, seed=seed, width=32, height=24)  # cameras unused here
     sim.start_demo(demo)
     if start_hands is None:
         start_hands = sim.hand_keypoints()  # the teacher's pose at the start: the policy's initial hands

@@ -42,7 +42,7 @@ class TaskSpec:
     validation: int
     robot: RobotMapping
     measure: str | None = None  # the force-decided outcome `xm eval` reports beside the distances
-    executable: bool = False  # `xm eval --execute` runs it on the simulated robot
+    executable: bool = False  # `xm eval --execute` runs it on the simulated robot (evaluation/robot_eval.py)
 
     def protocol(self, seed: int) -> list[Demo]:
         """The task's demonstrations for ``seed``: train first, then validation (meta['split'])."""
@@ -69,12 +69,12 @@ TASKS: dict[str, TaskSpec] = {
         "latch", "the assembly with the connector pressed until it latches (snap at 5 N)",
         "connectors aligned while a finger over them presses >= 5 N (never > 12 N), then the board lifted", 3, 12,
         RobotMapping("press", GRIP + "; the pressing index pressure is the finger's force (force-controlled press)"),
-        measure="latched"),
+        measure="latched", executable=True),
     "wiping": TaskSpec(
         "wiping", "a sponge grasped, pressed onto a plate's marked area and wiped across it in circles",
         ">= 90 % of the marked area under the pad while it presses with 4-9 N", 5, 10,
         RobotMapping("park", GRIP + "; middle + ring + palm pressure is the gripper's downward force (force control "
-                     "in z once the pad is within 5 mm of the plate)"), measure="coverage"),
+                     "in z once the pad is within 5 mm of the plate)"), measure="coverage", executable=True),
     "bottle": TaskSpec(
         "bottle", "a bottle's cap twisted off in repeated turns under the thread's load and lifted",
         "the cap turned a full turn at steps where the grip held it (>= 3 N per finger), then 3 cm above the neck",
@@ -82,7 +82,9 @@ TASKS: dict[str, TaskSpec] = {
         measure="turns"),
     "pick_place": TaskSpec(
         "pick_place", "a box grasped and placed on a plate",
-        "box released with its bottom on the plate, within 3 cm of its centre", 10, 10, RobotMapping("park", GRIP)),
+        "box released with its bottom on the plate, within 3 cm of its centre", 10, 10,
+        RobotMapping("park", GRIP + "; the pads close 2.5 cm below the hand's pinch (they hold the box by its sides)"),
+        executable=True),
 }
 
 

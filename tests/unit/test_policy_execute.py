@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-import evaluation.evaluate as ev
 import evaluation.execute as ex
+import evaluation.robot_eval as re_
 from evaluation.evaluate import main as eval_main
 from evaluation.execute import (
     anchored_press,
@@ -116,15 +116,15 @@ def test_execute_writes_the_success_rate(tmp_path, monkeypatch):
         return ex.ExecutionResult(seed, demo, "left", "left", demo == 3, 9.0, 10.0, 0, 1.0, 20.0, 30.0, 0.0, 5.0,
                                   demo == 3)
 
-    monkeypatch.setattr(ev, "execute_layout", fake)  # where `xm eval --execute` calls it
+    monkeypatch.setattr(re_, "execute_layout", fake)  # where `xm eval --execute` calls it
     demos = assembly_protocol(0)
     model = Ours(preset("single_state", hidden=(16,), steps=1, batch=8, eval_every=10 ** 6))
     model.fit(demos[:1], progress=False)
     model.save(str(tmp_path / "p.pt"))
     assert eval_main(["--execute", "--checkpoint", str(tmp_path / "p.pt"), "--layouts", "2", "--out",
-                      str(tmp_path), "--no-progress"]) == 0
+                      str(tmp_path), "--no-progress", "--variants", "anchored"]) == 0
     report = json.loads((tmp_path / "execute.json").read_text())
-    assert calls == [3, 4] and report["success_rate"] == 0.5
+    assert calls == [3, 4] and report["rows"][0]["success_rate"] == 0.5 and report["anchors"] is not None
 
 
 @pytest.mark.slow
@@ -140,7 +140,8 @@ def test_the_cell_assembles_the_camera_with_the_teachers_own_hands(tmp_path):
         assert r.connector_gap_mm < 3.0 and r.seated and r.success, r
     assert eval_main(["--execute", "--teacher", "--layouts", "1", "--out", str(tmp_path), "--no-progress"]) == 0
     report = json.loads((tmp_path / "execute.json").read_text())
-    assert report["checkpoint"] == "teacher" and report["success_rate"] == 1.0
+    assert report["checkpoint"] == "teacher" and all(r["success_rate"] == 1.0 for r in report["rows"]
+                                                     if r["variant"] == "anchored")
 
 
 def test_roles_are_read_from_the_rollout_and_the_gripper_keeps_its_wrist_in_range():

@@ -41,7 +41,7 @@ def test_xm_eval_lists_the_tasks_for_an_unknown_one(capsys):
 
 
 def test_execute_refuses_a_task_without_a_robot_loop(capsys):
-    assert eval_main(["--task", "wiping", "--execute", "--teacher"]) == 2
+    assert eval_main(["--task", "bottle", "--execute", "--teacher"]) == 2
     assert "no robot loop" in capsys.readouterr().err
 
 
