@@ -86,6 +86,8 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
     out = []
     try:
         for seed in seeds:
+            if hasattr(detector, "reset"):
+                detector.reset()  # a new session: no object's detections carry over
             sim = WorldSim(task, seed=seed)
             steps = int(round(1.0 / rate_hz / sim.physics_dt))
             rec = Reconstructor(task, hand_present_confidence=getattr(detector, "hand_present_confidence", 0.0))
