@@ -18,7 +18,7 @@ import numpy as np
 from perception.occlusion import OBJECT_CLEARANCE_M, hidden_by_capsules, hidden_by_geoms
 from services.camhub.camera_info import encode_jpeg
 from services.camhub.roi import CameraGeometry, RoiParams, missing_hand, rig_windows, tracked_points
-from services.recon.cli import Frames, keep_observed, refine_hands
+from services.recon.cli import Frames, refine_hands
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel, SimulatedDetector, View
 from services.recon.hand_model import CHAINS
 from services.recon.objects import task_keypoint_names
@@ -191,24 +191,18 @@ def geometry(recs: list[Reconstruction], uvs: list, P: np.ndarray) -> tuple[list
     return reproj, rays
 
 
-def offline(s: Session, P: np.ndarray, task: str, rate_hz: float) -> tuple[dict[str, list[Reconstruction]], float]:
+def offline(s: Session, P: np.ndarray, task: str, rate_hz: float) -> tuple[list[Reconstruction], float]:
     """``xm recon``'s offline stages (two passes, then each hand's trajectory refined) on the
-    session's learned detections; per frame set hands/objects as Reconstructions, for what ``xm
-    recon`` reports (``reported``: the refined model under the live fit's rules) and for the
-    refined model alone (``model``)."""
+    session's learned detections; per frame set hands/objects as Reconstructions."""
     cams = {f"cam{i}": CameraModel(P[i], 0, 0) for i in range(len(P))}
     frames = Frames(cameras=cams, stamps=[i / rate_hz for i in range(len(s.uv))], uv=list(s.uv),
                     confidence=list(s.conf), hand_present_confidence=HAND_PRESENT_CONFIDENCE)
     t0 = time.perf_counter()
     result = refine_hands(frames, task, OfflineConfig())
-    variants = {"reported": keep_observed(result), "model": result.hands}
     seconds = time.perf_counter() - t0
-    out = {}
-    for name, hands in variants.items():
-        out[name] = [Reconstruction(h, m, live.hand_fitted, r.objects, r.object_mask, live.object_posed,
-                                    live.inliers, live.triangulated)
-                     for h, m, r, live in zip(hands, result.hand_mask, result.live, s.live, strict=True)]
-    return out, seconds
+    return [Reconstruction(h, m, live.hand_fitted, r.objects, r.object_mask, live.object_posed, live.inliers,
+                           live.triangulated)
+            for h, m, r, live in zip(result.hands, result.hand_mask, result.live, s.live, strict=True)], seconds
 
 
 def anipose(sessions: list[Session], P: np.ndarray, width: int, height: int,

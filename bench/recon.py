@@ -203,25 +203,18 @@ def run_images(args: argparse.Namespace) -> dict:
     print("simulated, live:", images.dump(out["simulated_live"]))
     n_off = min(args.offline_sessions, len(sessions))
     if n_off:
-        keys = ("hand", "obj", "obj_k", "cover_h", "cover_o")
-        errs = {k: [] for k in keys}
-        model_only = {k: [] for k in keys}
-        live_same = {k: [] for k in keys}
+        errs = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
+        live_same = {k: [] for k in errs}
         seconds = 0.0
         for s in sessions[:n_off]:
             recs, sec = images.offline(s, P, "assembly", args.rate)
             seconds += sec
-            for k, v in images.errors(recs["reported"], s).items():
+            for k, v in images.errors(recs, s).items():
                 errs[k] += v
-            for k, v in images.errors(recs["model"], s).items():
-                model_only[k] += v
             for k, v in images.errors(s.live, s).items():
                 live_same[k] += v
         out["learned_offline"] = {**images.summary(errs, [], []), "sessions": n_off,
                                   "live_on_the_same_sessions_mm": images.mm(live_same["hand"]),
-                                  "refined_model_alone_mm": images.mm(model_only["hand"]),
-                                  "refined_model_alone_median_mm": round(1000 * float(np.median(model_only["hand"])), 2)
-                                  if model_only["hand"] else None,
                                   "seconds_per_session": round(seconds / n_off, 1)}
         print("learned, offline:", images.dump(out["learned_offline"]))
     n_an = min(args.anipose_sessions, len(sessions))

@@ -4,10 +4,8 @@ The live stages run over every frame set of the recording twice (the second time
 shape learned from the whole first pass, so no frame waits for the initialisation phase), then
 each hand's trajectory is refined as one problem (services/recon/offline.py): robust reprojection
 against the detections the live triangulation kept (as it took them, each on the hand it was
-assigned to), joint limits, a jerk regulariser, gaps filled from interpolated poses. The refined
-model reports under the live fit's rules: where it misses a frame's triangulated keypoints by
-more than a live fit may, those stand; an observed keypoint far from it stays as observed.
-OUT.mcap holds the recording with `xm/recon/main/scene` replaced by the refined scenes and
+assigned to), joint limits, a jerk regulariser, gaps filled from interpolated poses. OUT.mcap
+holds the recording with `xm/recon/main/scene` replaced by the refined scenes and
 `xm/recon/main/tactile_mesh` by the glove's cells on the refined hands.
 """
 
@@ -25,7 +23,6 @@ import numpy as np
 from services.glove.layout import region_means
 from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
 from services.recon.frameset import FrameSetBuffer
-from services.recon.hand_fit import FitConfig
 from services.recon.hand_model import N_PARAMS, forward
 from services.recon.offline import OfflineConfig, refine_hand
 from services.recon.pipeline import Reconstructor
@@ -217,33 +214,10 @@ def refine_hands(frames: Frames, task: str, config: OfflineConfig, refine: bool 
     return OfflineHands(live, second.hand_names, second.object_names, hands, hand_mask, refined, summary)
 
 
-def keep_observed(result: OfflineHands, fit: FitConfig | None = None) -> np.ndarray:
-    """The refined hands (T,H,21,3) with the live fit's rules for what the model may report: where
-    the refined model misses the frame's triangulated keypoints by more than the fit's
-    ``max_rms_m`` (RMS; the live fit would be refused) the triangulated keypoints stand and the
-    model fills only the others; otherwise an observed keypoint (three or more views) farther than
-    ``override`` RMS from the model stays as observed (hand_fit.HandTracker.update)."""
-    cfg = fit or FitConfig()
-    hands = result.hands.copy()
-    for t, r in enumerate(result.live):
-        for h in np.flatnonzero(result.refined[t]):
-            sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
-            views = r.inliers[:, sl].sum(axis=0)
-            seen = views >= 2
-            if seen.sum() < cfg.min_points:
-                continue
-            observed = r.triangulated[sl]
-            resid = np.linalg.norm(hands[t, h] - observed, axis=1)
-            rms = float(np.sqrt((resid[seen] ** 2).mean()))
-            keep = seen if rms > cfg.max_rms_m else seen & (views >= 3) & (resid > cfg.override * rms)
-            hands[t, h][keep] = observed[keep]
-    return hands
-
-
 def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> tuple[list, dict]:
     """Scenes (one per frame set) and a summary per hand."""
     result = refine_hands(frames, task, config, refine)
-    hands = keep_observed(result)
+    hands = result.hands
     scenes = []
     for t, stamp in enumerate(frames.stamps):
         tactile, tactile_mask = tactile_matrix(result.hand_names, nearest(frames.tactile, stamp))

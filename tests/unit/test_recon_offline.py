@@ -201,29 +201,3 @@ def test_the_refinement_sees_each_detection_on_the_hand_it_was_assigned_to(monke
         assert used[10 - first:, 0].any(), "cam0's swapped detections are used, on their own hand"
         err = np.linalg.norm(uv - true_uv.transpose(1, 0, 2, 3), axis=-1)[used]
         assert err.max() < 1e-6, "every detection the refinement sees belongs to its hand"
-
-
-def test_the_refined_model_reports_under_the_live_fits_rules():
-    model = np.zeros((2, 2, KEYPOINTS_PER_HAND, 3))  # (T, H, 21, 3)
-    model[..., 0] = np.linspace(0.0, 0.1, KEYPOINTS_PER_HAND)
-    tri = model[:, 0].copy()
-    inliers = np.zeros((4, 2 * KEYPOINTS_PER_HAND), bool)
-    inliers[:, :KEYPOINTS_PER_HAND] = True  # the left hand seen by four views
-    live = []
-    for t in range(2):
-        offset = np.full((KEYPOINTS_PER_HAND, 3), 0.002) if t == 0 else np.full((KEYPOINTS_PER_HAND, 3), 0.02)
-        offset[5] = [0.05, 0.0, 0.0] if t == 0 else offset[5]  # frame 0: one keypoint far from the model
-        points = np.zeros((2 * KEYPOINTS_PER_HAND + 8, 3))
-        points[:KEYPOINTS_PER_HAND] = tri[t] + offset
-        live.append(types.SimpleNamespace(inliers=np.c_[inliers, np.zeros((4, 8), bool)], triangulated=points))
-    result = cli.OfflineHands(live, ["left", "right"], [], model.copy(), np.ones((2, 2, KEYPOINTS_PER_HAND)),
-                              np.array([[True, False], [True, False]]), {})
-    got = cli.keep_observed(result)
-    far = np.zeros(KEYPOINTS_PER_HAND, bool)
-    far[5] = True
-    # Frame 0 fits (11 mm RMS with the far keypoint): the far keypoint stays as observed, the rest is the model.
-    np.testing.assert_allclose(got[0, 0][far], live[0].triangulated[:KEYPOINTS_PER_HAND][far])
-    np.testing.assert_allclose(got[0, 0][~far], model[0, 0][~far])
-    # Frame 1 misses by 35 mm RMS: a live fit would be refused, the triangulated keypoints stand.
-    np.testing.assert_allclose(got[1, 0], live[1].triangulated[:KEYPOINTS_PER_HAND])
-    np.testing.assert_allclose(got[:, 1], model[:, 1])  # the right hand was not refined
