@@ -22,6 +22,8 @@ DETECTOR_ITERS ?= 6500
 DETECTOR_MINUTES ?= 90
 DETECTOR_HAND_ITERS ?= 1800
 DETECTOR_HAND_MINUTES ?= 10
+DETECTOR_OBJECT_ITERS ?= 2800
+DETECTOR_OBJECT_MINUTES ?= 20
 
 .PHONY: run test test-fast bench soak lint clean help policy detector cellmap
 
@@ -63,8 +65,10 @@ detector: $(STAMP)
 	mkdir -p models/detector
 	$(BIN)/xm detector train-hands --labels runs/detector/labels/train --out runs/detector \
 		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 1
+	$(BIN)/xm detector train-objects --labels runs/detector/labels/train --out runs/detector --init runs/detector \
+		--iters $(DETECTOR_OBJECT_ITERS) --minutes $(DETECTOR_OBJECT_MINUTES)
 	cp runs/detector/model.onnx runs/detector/meta.json runs/detector/hands.onnx runs/detector/hands.json \
-		models/detector/
+		runs/detector/objects.onnx runs/detector/objects.json models/detector/
 	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
 
 cellmap: $(STAMP)

@@ -18,7 +18,7 @@ import numpy as np
 from perception.occlusion import OBJECT_CLEARANCE_M, hidden_by_capsules, hidden_by_geoms
 from services.camhub.camera_info import encode_jpeg
 from services.camhub.roi import CameraGeometry, RoiParams, missing_hand, rig_windows, tracked_points
-from services.recon.cli import Frames, reconstruct
+from services.recon.cli import Frames, refine_hands
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel, SimulatedDetector, View
 from services.recon.hand_model import CHAINS
 from services.recon.objects import task_keypoint_names
@@ -86,6 +86,8 @@ def run_sessions(detector: object, seeds: list[int], task: str, frames: int, rat
     out = []
     try:
         for seed in seeds:
+            if hasattr(detector, "reset"):
+                detector.reset()  # a new session: no object's detections carry over
             sim = WorldSim(task, seed=seed)
             steps = int(round(1.0 / rate_hz / sim.physics_dt))
             rec = Reconstructor(task, hand_present_confidence=getattr(detector, "hand_present_confidence", 0.0))
@@ -191,22 +193,16 @@ def geometry(recs: list[Reconstruction], uvs: list, P: np.ndarray) -> tuple[list
 
 def offline(s: Session, P: np.ndarray, task: str, rate_hz: float) -> tuple[list[Reconstruction], float]:
     """``xm recon``'s offline stages (two passes, then each hand's trajectory refined) on the
-    session's learned detections; returns per frame set hands/objects as Reconstructions."""
+    session's learned detections; per frame set hands/objects as Reconstructions."""
     cams = {f"cam{i}": CameraModel(P[i], 0, 0) for i in range(len(P))}
     frames = Frames(cameras=cams, stamps=[i / rate_hz for i in range(len(s.uv))], uv=list(s.uv),
                     confidence=list(s.conf), hand_present_confidence=HAND_PRESENT_CONFIDENCE)
     t0 = time.perf_counter()
-    scenes, _ = reconstruct(frames, task, OfflineConfig())
+    result = refine_hands(frames, task, OfflineConfig())
     seconds = time.perf_counter() - t0
-    out = []
-    for scene, live in zip(scenes, s.live, strict=True):
-        hands = np.asarray(scene.hand_keypoints, float).reshape(live.hands.shape)
-        mask = np.asarray(scene.hand_mask, np.uint8).reshape(live.hand_mask.shape)
-        objects = np.asarray(scene.object_keypoints, float).reshape(live.objects.shape)
-        out.append(Reconstruction(hands, mask, live.hand_fitted, objects,
-                                  np.asarray(scene.object_mask, np.uint8), live.object_posed, live.inliers,
-                                  live.triangulated))
-    return out, seconds
+    return [Reconstruction(h, m, live.hand_fitted, r.objects, r.object_mask, live.object_posed, live.inliers,
+                           live.triangulated)
+            for h, m, r, live in zip(result.hands, result.hand_mask, result.live, s.live, strict=True)], seconds
 
 
 def anipose(sessions: list[Session], P: np.ndarray, width: int, height: int,

@@ -156,7 +156,8 @@ def run_images(args: argparse.Namespace) -> dict:
     """The learned detector on rendered sessions: live, offline, aniposelib, simulated beside."""
     from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, LearnedDetector  # torch/onnx: this row only
 
-    det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR)
+    det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR, object_views=args.object_views,
+                          object_reuse=not args.no_object_reuse)
     stage_keys = ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect", "cpu_reconstruct")
     times = {k: [] for k in stage_keys}
     load_before = images.load_average()
@@ -182,6 +183,12 @@ def run_images(args: argparse.Namespace) -> dict:
            "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images", "input_size")},
            "trained_hand_stage": {k: det.hand_meta.get(k) for k in ("iterations", "train_seconds", "input_size")}
            if det.hand_meta else None,
+           "trained_object_stage": {k: det.object_meta.get(k) for k in ("iterations", "train_seconds", "input_size")}
+           if det.object_meta else None,
+           "object_stage": {"views_per_object": args.object_views, "resting_reused": not args.no_object_reuse,
+                            "crops_per_frame_set": round(det.object_crops / max(len(times["detect"]), 1), 2),
+                            "objects_cropped": det.schedule.refreshed, "objects_reused": det.schedule.reused}
+           if det.object_meta else None,
            "sessions": [f"assembly:{s}" for s in seeds], "frames_per_session": args.frames, "size": "256x192",
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}
     total = np.sum([times[k] for k in ("decode", "detect", "triangulate", "fit_hands", "fit_objects")], axis=0)
@@ -253,6 +260,10 @@ def main() -> None:
     parser.add_argument("--outliers", type=float, default=0.03)
     parser.add_argument("--out", default=".bench/recon.json")
     parser.add_argument("--weights", default="", help="the learned detector's (default: the shipped models/detector)")
+    parser.add_argument("--object-views", type=int, default=3,
+                        help="views the object stage crops per object, its best (0: every view)")
+    parser.add_argument("--no-object-reuse", action="store_true",
+                        help="crop every object on every frame set (default: a resting object every other one)")
     parser.add_argument("--image-sessions", type=int, default=len(IMAGE_SESSIONS),
                         help="rendered sessions for the learned detector (0: none)")
     parser.add_argument("--offline-sessions", type=int, default=2,

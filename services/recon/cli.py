@@ -3,9 +3,10 @@
 The live stages run over every frame set of the recording twice (the second time with each hand's
 shape learned from the whole first pass, so no frame waits for the initialisation phase), then
 each hand's trajectory is refined as one problem (services/recon/offline.py): robust reprojection
-against the detections the live triangulation kept, joint limits, a jerk regulariser, gaps filled
-from interpolated poses. OUT.mcap holds the recording with `xm/recon/main/scene` replaced by the
-refined scenes and `xm/recon/main/tactile_mesh` by the glove's cells on the refined hands.
+against the detections the live triangulation kept (as it took them, each on the hand it was
+assigned to), joint limits, a jerk regulariser, gaps filled from interpolated poses. OUT.mcap
+holds the recording with `xm/recon/main/scene` replaced by the refined scenes and
+`xm/recon/main/tactile_mesh` by the glove's cells on the refined hands.
 """
 
 from __future__ import annotations
@@ -151,8 +152,23 @@ def _learned(args: argparse.Namespace) -> object:
         raise RecordingError(f"learned detector unavailable ({exc}); {TRAIN_HINT}") from exc
 
 
-def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> tuple[list, dict]:
-    """Scenes (one per frame set) and a summary per hand."""
+@dataclass
+class OfflineHands:
+    """The offline hands before the scenes: the second live pass per frame set, the hands (T,H,21,3)
+    with their mask (T,H,21), and which frames of each hand the refinement produced (T,H)."""
+    live: list
+    hand_names: list[str]
+    object_names: list[str]
+    hands: np.ndarray
+    hand_mask: np.ndarray
+    refined: np.ndarray
+    summary: dict
+
+
+def refine_hands(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> OfflineHands:
+    """The two live passes, then each hand's trajectory refined over the span it was seen, against
+    the detections the live triangulation kept (as it took them: after the hand channels were
+    reassigned to the hand each detection belongs to)."""
     order = [c for c in CAMERAS if c in frames.cameras]
     P = np.stack([frames.cameras[c].P for c in order])
     first = Reconstructor(task, object_names=frames.object_names,
@@ -168,36 +184,47 @@ def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool =
     params = np.zeros((H, T, N_PARAMS))
     have = np.zeros((H, T), bool)
     kept = np.zeros((T,) + frames.confidence[0].shape)
+    uv_all = np.zeros((T,) + frames.uv[0].shape)
     for t, (uv, conf) in enumerate(zip(frames.uv, frames.confidence, strict=True)):
         r = second.step(P, uv, conf)
         live.append(r)
-        kept[t] = conf * r.inliers  # the detections the live triangulation kept
+        # The detections the live triangulation kept, as it took them: a hand channel the identity
+        # step swapped holds the other hand's detection in the recorded arrays.
+        uv_all[t], kept[t] = r.uv, r.confidence * r.inliers
         for h, tracker in enumerate(second.trackers.values()):
             if tracker.last_params is not None:
                 params[h, t], have[h, t] = tracker.last_params, True
     summary = {}
     hands = np.stack([r.hands for r in live])  # (T,H,21,3)
     hand_mask = np.stack([r.hand_mask for r in live])
-    uv_all = np.stack(frames.uv)  # (T,C,N,2)
+    refined = np.zeros((T, H), bool)
     for h, (name, tracker) in enumerate(second.trackers.items()):
         if not refine or tracker.shape is None or have[h].sum() < 4:
             summary[name] = {"refined": False, "live_fits": int(have[h].sum())}
             continue
         span = np.arange(np.flatnonzero(have[h])[0], np.flatnonzero(have[h])[-1] + 1)
         sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
-        refined, info = refine_hand(tracker.shape, name, P, uv_all[span][:, :, sl], kept[span][:, :, sl],
-                                    params[h, span], have[h, span], config)
+        out, info = refine_hand(tracker.shape, name, P, uv_all[span][:, :, sl], kept[span][:, :, sl],
+                                params[h, span], have[h, span], config)
         for i, t in enumerate(span):
-            hands[t, h] = forward(tracker.shape, refined[i], name)
+            hands[t, h] = forward(tracker.shape, out[i], name)
             hand_mask[t, h] = 1
+        refined[span, h] = True
         summary[name] = {"refined": True, **info}
+    return OfflineHands(live, second.hand_names, second.object_names, hands, hand_mask, refined, summary)
+
+
+def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> tuple[list, dict]:
+    """Scenes (one per frame set) and a summary per hand."""
+    result = refine_hands(frames, task, config, refine)
+    hands = result.hands
     scenes = []
     for t, stamp in enumerate(frames.stamps):
-        tactile, tactile_mask = tactile_matrix(second.hand_names, nearest(frames.tactile, stamp))
-        r = live[t]
-        scenes.append(scene_message(stamp, second.hand_names, hands[t], hand_mask[t], second.object_names,
+        tactile, tactile_mask = tactile_matrix(result.hand_names, nearest(frames.tactile, stamp))
+        r = result.live[t]
+        scenes.append(scene_message(stamp, result.hand_names, hands[t], result.hand_mask[t], result.object_names,
                                     r.objects, r.object_mask, tactile, tactile_mask))
-    return scenes, summary
+    return scenes, result.summary
 
 
 def nearest(series: dict[str, list[tuple[float, np.ndarray]]], stamp: float) -> dict[str, np.ndarray]:

@@ -29,6 +29,7 @@ from torch import nn
 
 from services.recon import hand_crops, object_crops
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
+from services.recon.triangulation import triangulate_robust
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
 # writes its outputs (weights.pt, loss.png, the labelled sets) under TRAINING_DIR, outside git.
@@ -155,7 +156,11 @@ class LearnedDetector:
     detects every keypoint in every view: ``detect(views) -> (uv (C, N, 2), confidence (C, N))`` in
     full-image pixels, N = len(self.names)."""
 
-    def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2) -> None:
+    def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2,
+                 object_views: int = object_crops.VIEWS, object_reuse: bool = True) -> None:
+        """``object_views``: views the object stage crops per object (its best; 0: every view);
+        ``object_reuse``: a resting object's detections stand in for its crops on every other frame
+        set (object_crops.ObjectSchedule; False: every object is cropped on every frame set)."""
         folder = Path(folder)
         self.meta = load_meta(folder)
         self.names: list[str] = list(self.meta["keypoints"])
@@ -189,7 +194,14 @@ class LearnedDetector:
                                         runtime, threads)
             self.object_size = int(self.object_meta["input_size"])
             self.object_half_m = float(self.object_meta.get("half_size_m", object_crops.HALF_SIZE_M))
+        self.object_views = object_views
+        self.schedule = object_crops.ObjectSchedule(len(self.object_slices), reuse=object_reuse)
+        self.object_crops = 0  # crops the object stage ran, over all frame sets
         self.times: dict[str, float] = {}  # seconds of the last detect(), per stage
+
+    def reset(self) -> None:
+        """Forgets the objects' held detections (a new session or recording)."""
+        self.schedule.reset()
 
     def heatmaps(self, batch: np.ndarray) -> np.ndarray:
         return self._run(batch)
@@ -218,23 +230,26 @@ class LearnedDetector:
         geometry = _geometry(views) if self._run_hand is not None or self._run_object is not None else None
         if geometry is not None:  # else no geometry to find hands and objects with: the first stage stands
             first = (uv.copy(), conf.copy())  # both stages start from the first stage's peaks
+            hands = None
             if self._run_hand is not None:
-                self._refine_hands(views, images, uv, conf, geometry)
+                hands = self._refine_hands(views, images, uv, conf, geometry)
             t2 = time.perf_counter()
             self.times["hand_stage"] = t2 - t1
             if self._run_object is not None:
-                self._refine_objects(views, images, first, uv, conf, geometry)
+                self._refine_objects(views, images, first, uv, conf, geometry, hands)
                 self.times["object_stage"] = time.perf_counter() - t2
         return uv, conf
 
     def _refine_hands(self, views: list[View], images: list[np.ndarray], uv: np.ndarray, conf: np.ndarray,
-                      geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
+                      geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
         """The second stage, in place: every hand found in two views or more is cropped in every
         view around its triangulated centre, and the crop network's 21 peaks replace the first
-        stage's for that hand and view (confidence 0 where the crop misses the view's window)."""
+        stage's for that hand and view (confidence 0 where the crop misses the view's window).
+        Returns the hands' centres (H,3) and which were found (H,), or None without geometry."""
         geometry = geometry or _geometry(views)
         if geometry is None:
-            return
+            return None
         P, calibrated, focal = geometry
         centres, found = hand_crops.hand_centres(P, uv, conf * calibrated[:, None], self.hand_slices)
         centre, half, ok = hand_crops.hand_boxes(P, centres, found, focal)
@@ -258,7 +273,7 @@ class LearnedDetector:
                                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
                 where.append((c, sl, M, (x0, y0)))
         if not crops:
-            return
+            return centres, found
         uv_crop, conf_crop = peaks(self._run_hand(np.ascontiguousarray(np.stack(crops))))
         for (c, sl, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
             local = hand_crops.to_image(u, M)
@@ -266,50 +281,83 @@ class LearnedDetector:
             inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
             uv[c, sl] = local + offset
             conf[c, sl] = np.where(inside, np.clip(k, 0.0, 1.0), 0.0)  # a crop reaches past its window: no view
+        return centres, found
 
     def _refine_objects(self, views: list[View], images: list[np.ndarray], first: tuple[np.ndarray, np.ndarray],
                         uv: np.ndarray, conf: np.ndarray,
-                        geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> None:
-        """The object stage, in place: every object found in two views or more (from the first
-        stage's peaks, ``first``) is cropped in every view around its triangulated centre at the
-        window's own resolution, and the crop network's peaks of that object's keypoints replace
-        the first stage's (confidence 0 where the crop misses the view's window)."""
+                        geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                        hands: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """The object stage, in place. Each object found in two views or more (from the first
+        stage's peaks, ``first``) is placed at its triangulated centre; the schedule
+        (object_crops.ObjectSchedule) says whether to crop it now or reuse its last detections.
+        A cropped object is cropped in its ``object_views`` best views at the window's own
+        resolution (largest projection, least covered by the ``hands``' centres in front of it),
+        all crops in one network call; the crop network's peaks of its keypoints replace the first
+        stage's there, and its other views get confidence 0 (the first stage's object peaks are
+        mostly on a neighbouring keypoint). An object with fewer than two usable views keeps the
+        first stage's peaks."""
         geometry = geometry or _geometry(views)
         if geometry is None:
             return
         P, calibrated, focal = geometry
         uv0, conf0 = first
         centres, found = object_crops.object_centres(P, uv0, conf0 * calibrated[:, None], self.object_slices)
+        refresh, reuse = self.schedule.plan(centres, found)
+        cameras = [v.camera for v in views]
+        for o in np.flatnonzero(reuse):
+            sl = self.object_slices[o]
+            held = self.schedule.reuse(o)
+            conf[:, sl] = 0.0
+            for c, name in enumerate(cameras):
+                if name in held:
+                    uv[c, sl], conf[c, sl] = held[name]
+        if not refresh.any():
+            return
+        windows = np.array([v.model.roi or (0, 0, v.model.width, v.model.height) for v in views], float)
+        known = [self.schedule.keypoints(o, centres[o]) for o in range(len(self.object_slices))]
+        hand_centres, hands_found = hands if hands is not None else (None, None)
+        scores = object_crops.view_scores(P, focal, windows, centres, refresh, known, hand_centres, hands_found)
+        chosen = object_crops.choose_views(scores * calibrated[:, None], self.object_views)
         centre, half, ok = hand_crops.hand_boxes(P, centres, found, focal, half_m=self.object_half_m)
-        ok &= calibrated[:, None]
+        chosen &= ok
+        local = centre - windows[:, None, :2]
+        misses = ok & (np.any(local < -half[..., None], axis=-1)
+                       | np.any(local > windows[:, None, 2:] + half[..., None], axis=-1))
+        for c, o in zip(*np.nonzero(misses & refresh[None, :]), strict=True):
+            conf[c, self.object_slices[o]] = 0.0  # its crop shows none of this window: the view does not see it
         size, base = self.object_size, self.object_slices[0].start
         crops, where = [], []
-        for c, v in enumerate(views):
-            x0, y0, w, h = v.model.roi or (0, 0, v.model.width, v.model.height)
+        for c in range(len(views)):
+            x0, y0 = windows[c, :2].astype(int)
             img = None
-            for o, sl in enumerate(self.object_slices):
-                if not ok[c, o]:
-                    continue
-                local = centre[c, o] - (x0, y0)
-                if np.any(local < -half[c, o]) or np.any(local > np.array([w, h]) + half[c, o]):
-                    conf[c, sl] = 0.0  # the object's crop shows none of this window: the view does not see it
-                    continue
+            for o in np.flatnonzero(chosen[c]):
                 if img is None:
                     img = images[c].astype(np.float32) / 255.0
-                M = hand_crops.crop_matrix(local, half[c, o], size, mirror=False)
+                M = hand_crops.crop_matrix(centre[c, o] - (x0, y0), half[c, o], size, mirror=False)
                 crops.append(cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR,
                                             borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
-                where.append((c, sl, M, (x0, y0)))
+                where.append((c, o, M, (x0, y0)))
+        for o in np.flatnonzero(refresh & (chosen.sum(axis=0) < 2)):
+            self.schedule.forget(o)  # no crops: the first stage's peaks stand, and it is tried again next time
         if not crops:
             return
+        self.object_crops += len(crops)
         uv_crop, conf_crop = peaks(self._run_object(np.ascontiguousarray(np.stack(crops))))
-        for (c, sl, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
+        for o in np.flatnonzero(chosen.any(axis=0)):
+            conf[:, self.object_slices[o]] = 0.0  # only the cropped views speak for a cropped object
+        for (c, o, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
+            sl = self.object_slices[o]
             rows = slice(sl.start - base, sl.stop - base)  # the cropped object's channels
             local = hand_crops.to_image(u[rows], M)
             h, w = images[c].shape[:2]
             inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
             uv[c, sl] = local + offset
             conf[c, sl] = np.where(inside, np.clip(k[rows], 0.0, 1.0), 0.0)
+        for o in np.flatnonzero(chosen.any(axis=0)):
+            sl, views_o = self.object_slices[o], np.flatnonzero(chosen[:, o])
+            pts, mask, _ = triangulate_robust(P[views_o], uv[views_o, sl], conf[views_o, sl])
+            self.schedule.store(o, centres[o], {cameras[c]: (uv[c, sl].copy(), conf[c, sl].copy()) for c in views_o},
+                                pts[mask.astype(bool)] if mask.sum() >= 2 else None)
 
 
 def _geometry(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

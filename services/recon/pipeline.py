@@ -58,6 +58,10 @@ class Reconstruction:
     inliers: np.ndarray  # (C,N) views each triangulated point used
     triangulated: np.ndarray  # (N,3) the robust triangulation before the fits, zero where masked
     times: dict = field(default_factory=dict)  # seconds per stage
+    # The 2-D detections as the triangulation took them: hand channels reassigned to the hand they
+    # belong to (hand_identity.py), dropped or absent ones at confidence 0. ``inliers`` index these.
+    uv: np.ndarray | None = None  # (C,N,2)
+    confidence: np.ndarray | None = None  # (C,N)
 
 
 class Reconstructor:
@@ -182,4 +186,5 @@ class Reconstructor:
         self._objects, self._objects_known = objects.copy(), object_mask.astype(bool)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,
-                              {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2})
+                              {"triangulate": t1 - t0, "fit_hands": t2 - t1, "fit_objects": t3 - t2},
+                              np.asarray(uv), np.asarray(confidence))

@@ -68,17 +68,22 @@ def test_object_centres_ignore_exchanged_keypoints_and_need_two_views():
     assert found.tolist() == [True, False]
 
 
-def object_stage(tmp_path, peak_offset_px: float, keypoints: list[str] | None = None) -> LearnedDetector:
+def object_stage(tmp_path, peak_offset_px: float, keypoints: list[str] | None = None, **options) -> LearnedDetector:
     names = keypoint_names("assembly")
     torch.save(UNet(len(names)).state_dict(), tmp_path / "weights.pt")
     (tmp_path / "meta.json").write_text(json.dumps({"task": "assembly", "keypoints": names, "input_size": [32, 24]}))
     torch.save(UNet(8).state_dict(), tmp_path / "objects.pt")
     (tmp_path / "objects.json").write_text(json.dumps({"input_size": 32, "half_size_m": 0.05,
                                                        "keypoints": keypoints or names[NH:]}))
-    det = LearnedDetector(tmp_path, runtime="torch")
+    det = LearnedDetector(tmp_path, runtime="torch", **options)
     ys, xs = np.mgrid[:32, :32]
     target = np.exp(-((xs - 15.5 - peak_offset_px) ** 2 + (ys - 15.5) ** 2) / (2 * 1.5**2)).astype(np.float32)
-    det._run_object = lambda batch: np.broadcast_to(target, (len(batch), 8, 32, 32)).copy()
+    det.batches = []  # crops per network call
+
+    def run(batch: np.ndarray) -> np.ndarray:
+        det.batches.append(len(batch))
+        return np.broadcast_to(target, (len(batch), 8, 32, 32)).copy()
+    det._run_object = run
     return det
 
 
@@ -86,7 +91,7 @@ def test_the_object_stage_replaces_each_objects_peaks_around_its_centre(tmp_path
     P = rig()
     pts = objects_on_the_table()
     truth, _ = project(P, pts)
-    det = object_stage(tmp_path, peak_offset_px=4.0)  # every crop's peaks 4 crop pixels right of its centre
+    det = object_stage(tmp_path, peak_offset_px=4.0, object_views=0)  # peaks 4 crop pixels right of its centre
     views = [View(f"cam{i}", CameraModel(P[i], W, H, (0, 0, W, H)), np.zeros((H, W, 3), np.uint8))
              for i in range(len(P))]
     first = np.zeros((len(P), len(det.names), 2))
@@ -139,3 +144,109 @@ def test_training_crops_hold_the_objects_keypoints_unmirrored_at_the_labels_scal
     got, _ = peaks(y[sl])
     assert np.argmin(got[:4, 0]) in (0, 3) and np.argmax(got[:4, 0]) in (1, 2)  # c0/c3 left, as in the image
     assert got[0, 1] > got[3, 1]  # c0 below c3: not mirrored
+
+
+def full_views(P: np.ndarray, det: LearnedDetector) -> list[View]:
+    return [View(f"cam{i}", CameraModel(P[i], W, H, (0, 0, W, H)), np.zeros((H, W, 3), np.uint8))
+            for i in range(len(P))]
+
+
+def test_view_scores_rank_by_projected_size_and_drop_views_that_miss_or_are_covered():
+    P = rig()
+    pts = objects_on_the_table()
+    centres = np.stack([pts[:5].mean(axis=0), pts[5:].mean(axis=0)])
+    f = np.array([hand_crops.focal_px(p) for p in P])
+    full = np.tile([0.0, 0.0, W, H], (len(P), 1))
+    plain = object_crops.view_scores(P, f, full, centres, np.ones(2, bool), [None, None])
+    assert (plain > 0).all()
+    depth = project(P, centres)[1]
+    assert np.argmax(plain[:, 0]) == np.argmin(depth[:, 0])  # without keypoints: the nearest camera
+    # A window that misses the object, and an object not wanted, score 0.
+    windows = full.copy()
+    windows[2] = (0, 0, 10, 10)
+    got = object_crops.view_scores(P, f, windows, centres, np.array([True, False]), [None, None])
+    assert got[2, 0] == 0 and (got[:, 1] == 0).all() and (got[np.arange(len(P)) != 2, 0] > 0).all()
+    # Keypoints give the projected extent: the board's long side seen end-on ranks below seen broadside.
+    flat = object_crops.view_scores(P, f, full, centres, np.ones(2, bool), [pts[:5], pts[5:]])
+    assert (flat > 0).all() and not np.allclose(flat[:, 0] / plain[:, 0], flat[0, 0] / plain[0, 0])
+    # A hand between camera 0 and the board covers it there, and only there.
+    eye = -np.linalg.solve(P[0][:, :3], P[0][:, 3])
+    hand = centres[0] + 0.3 * (eye - centres[0])
+    one = np.ones(1, bool)
+    covered = object_crops.view_scores(P, f, full, centres, np.ones(2, bool), [None, None], hand[None], one)
+    assert covered[0, 0] < 0.1 * plain[0, 0]
+    hpix, hz = project(P, hand[None])
+    opix, oz = project(P, centres[:1])
+    apart = np.linalg.norm(hpix[:, 0] - opix[:, 0], axis=-1) > f * (object_crops.HAND_RADIUS_M / hz[:, 0]
+                                                                     + object_crops.EXTENT_M / oz[:, 0])
+    assert apart[1:].any() and np.allclose(covered[apart, 0], plain[apart, 0])
+    # An unfound hand covers nothing.
+    assert np.allclose(object_crops.view_scores(P, f, full, centres, np.ones(2, bool), [None, None], hand[None],
+                                                np.zeros(1, bool)), plain)
+
+
+def test_choose_views_keeps_the_best_k_and_none_below_two():
+    scores = np.array([[5.0, 1.0], [3.0, 0.0], [4.0, 0.0], [1.0, 0.0]])
+    got = object_crops.choose_views(scores, 2)
+    assert got[:, 0].tolist() == [True, False, True, False]
+    assert not got[:, 1].any()  # one view shows the second object: not triangulable
+    assert object_crops.choose_views(scores, 0)[:, 0].all()
+
+
+def test_schedule_crops_moving_objects_every_time_and_resting_ones_in_turn():
+    s = object_crops.ObjectSchedule(2)
+    centres, found = np.array([[0.0, 0, 0], [0.2, 0, 0]]), np.ones(2, bool)
+    refresh, reuse = s.plan(centres, found)
+    assert refresh.all() and not reuse.any()  # new objects
+    for o in range(2):
+        s.store(o, centres[o], {"cam0": (np.zeros((1, 2)), np.ones(1))}, None)
+    plans = []
+    for _ in range(4):
+        refresh, reuse = s.plan(centres, found)
+        plans.append((refresh.tolist(), reuse.tolist()))
+        for o in np.flatnonzero(refresh):
+            s.store(o, centres[o], {}, None)
+        for o in np.flatnonzero(reuse):
+            s.reuse(o)
+    # At rest: both just cropped are reused, then they take turns, one crop per frame set.
+    assert plans[0] == ([False, False], [True, True])
+    assert [r for r, _ in plans[1:]] == [[True, False], [False, True], [True, False]]
+    assert all([a or b for a, b in zip(r, u, strict=True)] == [True, True] for r, u in plans)
+    moved = centres + [[0.05, 0, 0], [0, 0, 0]]  # the board is picked up
+    refresh, reuse = s.plan(moved, found)
+    assert refresh[0] and not reuse[0]
+    refresh, reuse = s.plan(centres, np.array([True, False]))  # the camera module is lost
+    assert s.held[1] is None and not refresh[1] and not reuse[1]
+    every = object_crops.ObjectSchedule(2, reuse=False)
+    for o in range(2):
+        every.store(o, centres[o], {}, None)
+    assert every.plan(centres, found)[0].all()
+
+
+def test_the_object_stage_crops_the_best_views_and_reuses_a_resting_objects_detections(tmp_path):
+    P = rig()
+    truth, _ = project(P, objects_on_the_table())
+    det = object_stage(tmp_path, peak_offset_px=0.0)  # three views per object, resting objects reused
+    views = full_views(P, det)
+    first = np.zeros((len(P), len(det.names), 2))
+    first[:, NH:] = truth
+    conf = np.ones(first.shape[:2])
+
+    def frame_set() -> tuple[np.ndarray, np.ndarray]:
+        uv, c = first.copy(), conf.copy()
+        det._refine_objects(views, [v.image for v in views], (first.copy(), conf.copy()), uv, c)
+        return uv, c
+
+    uv1, c1 = frame_set()
+    assert det.batches == [6]  # both objects, three views each, one network call
+    for sl in det.object_slices:
+        cropped = (c1[:, sl] > 0.9).all(axis=1)
+        assert cropped.sum() == 3 and (c1[~cropped, sl] == 0).all()  # the other views are silenced
+    # Nothing moves: both objects' detections are reused, then one object at a time is cropped again.
+    for _ in range(3):
+        uv, c = frame_set()
+        assert np.array_equal(c1 > 0, c > 0) and np.allclose(uv1[c1 > 0], uv[c > 0])
+    assert det.batches == [6, 3, 3]
+    det.reset()
+    frame_set()
+    assert det.batches[-1] == 6

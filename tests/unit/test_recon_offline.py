@@ -9,10 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from services.recon.cli import MESH_KEY, SCENE_KEY, main
+from services.recon import cli
+from services.recon.cli import MESH_KEY, SCENE_KEY, Frames, main
+from services.recon.detector import CameraModel
 from services.recon.hand_model import N_PARAMS
 from services.recon.objects import task_keypoint_names
-from services.recon.offline import fill_gaps
+from services.recon.offline import OfflineConfig, fill_gaps
 from services.recon.triangulation import project
 from services.recorder.writer import McapRecorder, read_messages
 from services.world.model import camera_specs
@@ -154,3 +156,48 @@ def test_offline_recon_without_a_learned_detector_says_how_to_train(tmp_path, mo
     _image_recording(src, frames=1)
     assert main([str(src), "-o", str(tmp_path / "out.mcap"), "--detector", "learned"]) == 2
     assert "xm detector train" in capsys.readouterr().err
+
+
+def _teacher_frames(frames: int, swap_from: int) -> tuple[Frames, np.ndarray]:
+    """Simulated detections of a teacher session (every camera, no noise) whose cam0 exchanges the
+    left and right hands' channels from frame set ``swap_from`` on; and the truth (T,42,3)."""
+    sim = WorldSim("assembly", seed=7311)
+    specs = camera_specs(256, 192)
+    P = np.stack([projection(s.K, s.world_T_cam) for s in specs])
+    out = Frames(cameras={s.name: CameraModel(P[i], 256, 192) for i, s in enumerate(specs)})
+    truth = []
+    for f in range(frames):
+        sim.step(100)
+        hands = sim.hand_keypoints().reshape(-1, 3)
+        _, objects = sim.object_keypoints()
+        uv, _ = project(P, np.concatenate([hands, objects]))
+        if f >= swap_from:
+            uv[0, :KEYPOINTS_PER_HAND], uv[0, KEYPOINTS_PER_HAND:2 * KEYPOINTS_PER_HAND] = \
+                uv[0, KEYPOINTS_PER_HAND:2 * KEYPOINTS_PER_HAND].copy(), uv[0, :KEYPOINTS_PER_HAND].copy()
+        out.stamps.append(0.2 * f)
+        out.uv.append(uv)
+        out.confidence.append(np.ones(uv.shape[:2]))
+        truth.append(hands)
+    return out, np.stack(truth)
+
+
+def test_the_refinement_sees_each_detection_on_the_hand_it_was_assigned_to(monkeypatch):
+    frames, truth = _teacher_frames(14, swap_from=10)
+    seen = {}
+
+    def spy(shape, side, P, uv, confidence, init, have, config):
+        seen[side] = (uv, confidence)
+        return init.copy(), {}
+    monkeypatch.setattr(cli, "refine_hand", spy)
+    result = cli.refine_hands(frames, "assembly", OfflineConfig())
+    P = np.stack([m.P for m in frames.cameras.values()])
+    assert set(seen) == {"left", "right"}
+    for h, side in enumerate(("left", "right")):
+        uv, conf = seen[side]
+        first = np.flatnonzero(result.refined[:, h])[0]
+        sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
+        true_uv, _ = project(P, truth[first:first + len(uv), sl])  # (C,T,21,2)
+        used = conf > 0
+        assert used[10 - first:, 0].any(), "cam0's swapped detections are used, on their own hand"
+        err = np.linalg.norm(uv - true_uv.transpose(1, 0, 2, 3), axis=-1)[used]
+        assert err.max() < 1e-6, "every detection the refinement sees belongs to its hand"

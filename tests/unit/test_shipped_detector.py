@@ -21,8 +21,10 @@ def test_the_shipped_network_is_in_the_repository_and_is_the_default():
     assert DEFAULT_WEIGHTS_DIR == ROOT / "models" / "detector"
     assert (DEFAULT_WEIGHTS_DIR / "model.onnx").stat().st_size > 1_000_000
     assert (DEFAULT_WEIGHTS_DIR / "hands.onnx").stat().st_size > 1_000_000  # the second stage, per hand crop
+    assert (DEFAULT_WEIGHTS_DIR / "objects.onnx").stat().st_size > 1_000_000  # the object stage, per object crop
     assert not (DEFAULT_WEIGHTS_DIR / "weights.pt").exists(), "the ONNX graph alone ships"
     assert not (DEFAULT_WEIGHTS_DIR / "hands.pt").exists()
+    assert not (DEFAULT_WEIGHTS_DIR / "objects.pt").exists()
 
 
 def test_the_shipped_keypoints_are_the_sim_deployments_task_in_recons_order():
@@ -36,7 +38,7 @@ def test_the_shipped_keypoints_are_the_sim_deployments_task_in_recons_order():
 def test_the_shipped_graph_detects_every_keypoint_in_a_frame_set():
     pytest.importorskip("onnxruntime")
     det = LearnedDetector()
-    assert det.runtime == "onnx" and det.hand_meta is not None
+    assert det.runtime == "onnx" and det.hand_meta is not None and det.object_meta is not None
     rng = np.random.default_rng(0)
     views = [View(f"cam{i}", CameraModel(np.zeros((3, 4)), 256, 192, (40, 30, 96, 72)),
                   rng.integers(0, 256, (72, 96, 3), np.uint8)) for i in range(7)]
