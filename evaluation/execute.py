@@ -200,6 +200,18 @@ def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
     return kpa > (TOUCH_OFF if on else TOUCH_ON) * demonstrated_kpa
 
 
+def receding_solve(opt: TrajectoryOptimizer, current: np.ndarray, goals: np.ndarray, mask: np.ndarray,
+                   shift: int, opt_dt: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """One receding-horizon step: the goals clipped into the gantry's reach (the optimizer rejects
+    goals outside it), the last solution shifted by ``shift`` knots as the warm start, one solve.
+    Returns the clipped goals, the joint trajectory to keep and whether the solve succeeded."""
+    goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
+    if shift:
+        current = np.concatenate([current[shift:], np.repeat(current[-1:], shift, 0)])
+    result = opt.solve(current, goals, mask, opt_dt)
+    return goals, (result.q if result.ok else current), bool(result.ok)
+
+
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
@@ -330,17 +342,10 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                 # finger merely left without a goal stays put, and its carriage blocks the gripper)
                 goals[:, finger], mask[:, finger] = finger_home, True
             press_beside = bool(beside[0])
-            # as close as the gantry gets: the optimizer rejects goals outside its reach
-            goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
             shift = max(0, min(knots - 1, round((t - t_current) / opt_dt)))
-            if shift:
-                current = np.concatenate([current[shift:], np.repeat(current[-1:], shift, 0)])
+            goals, current, ok = receding_solve(opt, current, goals, mask, shift, opt_dt)
             t_current = t
-            result = opt.solve(current, goals, mask, opt_dt)
-            if result.ok:
-                current = result.q
-            else:
-                rejected += 1
+            rejected += not ok
             q_now, _ = sim.joint_state()
             reached = opt.points(q_now)
             tracking.append(float(np.median(np.linalg.norm(reached - goals[0], axis=-1)[mask[0]]))

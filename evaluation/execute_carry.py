@@ -53,6 +53,7 @@ from evaluation.execute import (
     gripper_flipped,
     hand_point_names,
     observed_hands,
+    receding_solve,
     sample_trajectory,
     touch_switch,
 )
@@ -176,16 +177,10 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
             plan = PlanArrays(t, dt, plan_names, horizon, np.ones(horizon.shape[:2], bool))
             goals, mask = goals_for_horizon(plan, opt.point_names, t, opt_dt, knots)
             goals[:, finger], mask[:, finger] = finger_home, True  # the other hand parks: the finger stays home
-            goals = np.clip(goals, opt.reach_lo[None] + 1e-3, opt.reach_hi[None] - 1e-3)
             shift = max(0, min(knots - 1, round((t - t_current) / opt_dt)))
-            if shift:
-                current = np.concatenate([current[shift:], np.repeat(current[-1:], shift, 0)])
+            goals, current, ok = receding_solve(opt, current, goals, mask, shift, opt_dt)
             t_current = t
-            result = opt.solve(current, goals, mask, opt_dt)
-            if result.ok:
-                current = result.q
-            else:
-                rejected += 1
+            rejected += not ok
             reached = opt.points(sim.joint_state()[0])
             tracking.append(float(np.median(np.linalg.norm(reached - goals[0], axis=-1)[mask[0]])))
         effort = np.zeros(n)
