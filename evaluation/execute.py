@@ -200,6 +200,14 @@ def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
     return kpa > (TOUCH_OFF if on else TOUCH_ON) * demonstrated_kpa
 
 
+def physics_step(sim: WorldSim, board: BoardSim) -> None:
+    """One physics step of the cell under the simulated board's control loop."""
+    q, qd = sim.joint_state()
+    efforts, _ = board.step(sim.time, q, qd, sim.physics_dt)
+    sim.set_efforts(efforts)
+    sim.step(1)
+
+
 def receding_solve(opt: TrajectoryOptimizer, current: np.ndarray, goals: np.ndarray, mask: np.ndarray,
                    shift: int, opt_dt: float) -> tuple[np.ndarray, np.ndarray, bool]:
     """One receding-horizon step: the goals clipped into the gantry's reach (the optimizer rejects
@@ -404,10 +412,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                     q_cmd[fingers] *= 1.0 - grip
                 board.receive(CommandFrame(frame, modes, q_cmd, v_cmd, effort, stiffness, damping), sim.time)
                 frame += 1
-            q, qd = sim.joint_state()
-            efforts, _ = board.step(sim.time, q, qd, sim.physics_dt)
-            sim.set_efforts(efforts)
-            sim.step(1)
+            physics_step(sim, board)
         success = success or sim.assembly_success()
         if k % plan_every == 0:
             q_now, _ = sim.joint_state()

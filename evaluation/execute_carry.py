@@ -53,6 +53,7 @@ from evaluation.execute import (
     gripper_flipped,
     hand_point_names,
     observed_hands,
+    physics_step,
     receding_solve,
     sample_trajectory,
     touch_switch,
@@ -235,10 +236,7 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
                                                                     + PAD_CLEAR_M))
                 board.receive(CommandFrame(frame, modes, q_cmd, v_cmd, effort, stiffness, damping), sim.time)
                 frame += 1
-            q, qd = sim.joint_state()
-            efforts, _ = board.step(sim.time, q, qd, sim.physics_dt)
-            sim.set_efforts(efforts)
-            sim.step(1)
+            physics_step(sim, board)
     _, truth = sim.object_keypoints()
     world = sim.task_success()
     released = not squeeze
