@@ -1,7 +1,7 @@
 """P1: the typed runtime against raw zenoh-python in the same run.
 
 Ping-pong latency (64 B payload, p50/p99) and one-way throughput of 4 kB and 300 kB messages
-(a camera frame), through a router on loopback as in a deployment, every session opened alike
+(a camera frame, as a CompressedImage), through a router on loopback as in a deployment, every session opened alike
 (shared/runtime/zsession.py). Throughput publishers block when the transport is congested (raw
 and typed alike), so both count delivered capacity rather than what a flood left after drops.
 The typed runtime is measured both ways a subscription can run: handlers on the event loop (the
@@ -45,7 +45,9 @@ N_THROUGHPUT = 20000
 N_THROUGHPUT_LARGE = 2000
 SIZES = (4096, 300_000)  # a 4 kB message, a camera frame
 PING_TYPE = "std_msgs/msg/String"
-BULK_TYPE = "std_msgs/msg/UInt8MultiArray"
+BULK_TYPE = "std_msgs/msg/UInt8MultiArray"  # a generic payload (4 kB)
+IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"  # a camera frame (300 kB): the pool carries sensor types only
+IMAGE_BYTES = 64 * 1024  # from this size the bulk runs send camera frames
 
 
 def free_port() -> int:
@@ -186,11 +188,11 @@ async def typed_throughput(endpoint: str, size: int, inline: bool) -> tuple[floa
         with lock:
             count[0] += 1
 
-    b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=BULK_TYPE, inline=inline)
-    pub = a.publisher("xm/bench/src/bulk", BULK_TYPE, block=True)
+    msgtype = IMAGE_TYPE if size >= IMAGE_BYTES else BULK_TYPE
+    b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=msgtype, inline=inline)
+    pub = a.publisher("xm/bench/src/bulk", msgtype, block=True)
     await asyncio.sleep(0.5)
-    layout = msgs.make("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
-    msg = msgs.make(BULK_TYPE, layout=layout, data=np.full(size - 16, 7, np.uint8))  # size bytes on the wire
+    msg = bulk_message(size)
     t0, cpu0 = time.perf_counter(), time.process_time()
     for i in range(n):
         pub.put(msg)
@@ -208,6 +210,18 @@ async def typed_throughput(endpoint: str, size: int, inline: bool) -> tuple[floa
         await node.close()
         node.session.close()
     return count[0] / elapsed, cpu / max(count[0], 1) * 1e6
+
+
+def bulk_message(size: int) -> object:
+    """``size`` bytes on the wire: a byte array, or from IMAGE_BYTES on a JPEG-typed CompressedImage."""
+    if size < IMAGE_BYTES:
+        layout = msgs.make("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
+        return msgs.make(BULK_TYPE, layout=layout, data=np.full(size - 16, 7, np.uint8))
+
+    def image(n: int) -> object:
+        return msgs.make(IMAGE_TYPE, header=msgs.header(time.time(), "cam0"), format="jpeg",
+                         data=np.full(n, 7, np.uint8))
+    return image(size - msgs.pieces_writer(IMAGE_TYPE)(image(0))[1])
 
 
 def percentiles(lat: np.ndarray) -> dict:
