@@ -88,18 +88,25 @@ def _grasp(demo: Demo, moved_m: float = MOVED_M) -> tuple[int, int, int, np.ndar
     return int(h), int(k), t, pinches[h] - demo.objects[t, k]
 
 
-def mine_anchors(demos: list[Demo], moved_m: float = MOVED_M) -> ContactAnchors:
-    """The grasp and mate anchors shared by ``demos`` (raises AnchorError where they disagree).
-    ``moved_m``: how far a point must leave its start to count as moved (above the observation's
-    noise: reconstructed demonstrations need more than the truth's ``MOVED_M``)."""
+def shared_grasps(demos: list[Demo], moved_m: float = MOVED_M) -> tuple[list, str]:
+    """Each demonstration's grasp (``_grasp``) and the object point they all grasp (raises
+    AnchorError when there are none or they grasp different points)."""
     if not demos:
         raise AnchorError("no demonstrations to mine contact anchors from")
     names = demos[0].object_names
     grasps = [_grasp(d, moved_m) for d in demos]
-    grasp_points = {names[k] for _, k, _, _ in grasps}
-    if len(grasp_points) != 1:
-        raise AnchorError(f"the demonstrations grasp different points: {sorted(grasp_points)}")
-    grasp_point = grasp_points.pop()
+    points = {names[k] for _, k, _, _ in grasps}
+    if len(points) != 1:
+        raise AnchorError(f"the demonstrations grasp different points: {sorted(points)}")
+    return grasps, points.pop()
+
+
+def mine_anchors(demos: list[Demo], moved_m: float = MOVED_M) -> ContactAnchors:
+    """The grasp and mate anchors shared by ``demos`` (raises AnchorError where they disagree).
+    ``moved_m``: how far a point must leave its start to count as moved (above the observation's
+    noise: reconstructed demonstrations need more than the truth's ``MOVED_M``)."""
+    grasps, grasp_point = shared_grasps(demos, moved_m)
+    names = demos[0].object_names
     held = _object_of(grasp_point)
     own = [k for k, n in enumerate(names) if _object_of(n) == held]
     other = [k for k, n in enumerate(names) if _object_of(n) != held]

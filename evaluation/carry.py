@@ -30,9 +30,9 @@ from evaluation.anchors import (
     MOVED_M,
     THUMB,
     AnchorError,
-    _grasp,
     pinch,
     pull_weights,
+    shared_grasps,
 )
 from services.world.teacher import KPA_PER_N
 from shared.demo import FINGERTIPS, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
@@ -65,20 +65,15 @@ class CarryAnchors:
 
 def mine_carry_anchors(task: str, demos: list[Demo], moved_m: float = MOVED_M) -> CarryAnchors:
     """The anchors ``demos`` of ``task`` share (raises AnchorError where they disagree)."""
-    if not demos:
-        raise AnchorError("no demonstrations to mine contact anchors from")
+    grasps, grasp_point = shared_grasps(demos, moved_m)
     names = demos[0].object_names
-    grasps = [_grasp(d, moved_m) for d in demos]
-    points = {names[k] for _, k, _, _ in grasps}
-    if len(points) != 1:
-        raise AnchorError(f"the demonstrations grasp different points: {sorted(points)}")
     width = float(np.median([np.linalg.norm(d.hands[t0, h, INDEX_TIP] - d.hands[t0, h, THUMB_TIP])
                              for d, (h, _, t0, _) in zip(demos, grasps, strict=True)]))
     gloved = [(d, h) for d, (h, *_) in zip(demos, grasps, strict=True) if d.tactile_mask[:, h, [THUMB, INDEX]].all()]
     if not gloved:
         raise AnchorError("no demonstration has a glove on the grasping hand")
     grasp_kpa = float(np.median([d.tactile[:, h, [THUMB, INDEX]].sum(axis=-1).max() for d, h in gloved]))
-    out = dict(grasp_point=points.pop(), grasp_offset=np.median([o for *_, o in grasps], axis=0),
+    out = dict(grasp_point=grasp_point, grasp_offset=np.median([o for *_, o in grasps], axis=0),
                grasp_width_m=width, grasp_kpa=grasp_kpa)
     if task in PLACE:
         point, target = PLACE[task]
