@@ -63,7 +63,7 @@ def trajectory(names: list[str], t0: float, center: np.ndarray, amplitude: np.nd
                      points=points)
 
 
-PLANS = {"command_rate_hz": 125.0, "lookahead_s": 0.048}
+PLANS = {"command_rate_hz": 125.0, "lookahead_s": 0.112, "knot_spacing_s": 0.016}
 SINGLE_COMMANDS = {"command_rate_hz": 250.0, "lookahead_s": 0.0}
 
 

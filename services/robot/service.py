@@ -79,9 +79,10 @@ class RobotService:
         command_rate_hz: float = 125.0
         # Each frame carries the trajectory's setpoints for this long ahead, knot_spacing_s apart (at
         # most 15 knots); 0: single commands, and the board brakes 10 ms after the host's last one.
-        # 7 knots at 125 Hz: 707-byte frames, 88 kB/s of the 3 Mbaud link.
-        lookahead_s: float = 0.048
-        knot_spacing_s: float = 0.008
+        # 112 ms rides out the 50-110 ms pauses a loaded virtual machine gives a real-time thread
+        # (bench/soak.py); 8 knots at 125 Hz: 787-byte frames, 98 kB/s of the 3 Mbaud link.
+        lookahead_s: float = 0.112
+        knot_spacing_s: float = 0.016
         state_rate_hz: float = 100.0
         # "pneumatic": joints with a muscle pair (the hand-arm's fingers) follow the trajectory in the
         # board's PNEUMATIC mode (two-stage pressure PID, thesis 7.3.2) instead of POSITION.
