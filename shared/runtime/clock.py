@@ -24,6 +24,8 @@ class Clock:
         self.mode = mode
         self.jumps = 0  # times the clock went back by more than JUMP_BACK_S
         self._sim_time: float | None = None
+        self._observed: float | None = None  # the newest xm/clock sample, set on Zenoh's thread
+        self._advance_scheduled = False
         self._last_wall: float | None = None
         self._waiters: list[tuple[float, asyncio.Future]] = []
         self._listeners: list[Callable[[float, float], None]] = []
@@ -44,6 +46,27 @@ class Clock:
             self._last_wall = t
             return t
         return self._sim_time if self._sim_time is not None else 0.0
+
+    def reference(self) -> float | None:
+        """The time a message's stamp is checked against (None: the clock has not started): the
+        newest clock sample received, even while the event loop is too busy to ``advance``, so a
+        receiver that is behind does not refuse fresh messages as stamped in the future."""
+        if self.mode == "wall":
+            return self.now()
+        return self._observed if self._observed is not None else self._sim_time
+
+    def observe(self, sim_time: float, loop: asyncio.AbstractEventLoop) -> None:
+        """Zenoh's thread, for each xm/clock sample: the newest time at once, then ``advance`` on the
+        loop (samples that arrive before it runs coalesce into the newest)."""
+        self._observed = sim_time
+        if not self._advance_scheduled:
+            self._advance_scheduled = True
+            loop.call_soon_threadsafe(self._advance_observed)
+
+    def _advance_observed(self) -> None:
+        self._advance_scheduled = False  # before reading: a sample observed from here on schedules again
+        if self._observed is not None:
+            self.advance(self._observed)
 
     def advance(self, sim_time: float) -> None:
         """Called by the runtime for each xm/clock message (on the event loop)."""

@@ -247,7 +247,7 @@ class Subscription:
                 validate.check_size(len(payload), msgtype)
             msg = decode(payload)
             clock = self._node.clock
-            validate.check(msg, msgtype, clock.now() if stamped and clock.started else None)
+            validate.check(msg, msgtype, clock.reference() if stamped else None)
         except msgs.MessageError as exc:
             self._node.reject(key, "malformed", str(exc))
             return None
@@ -317,14 +317,12 @@ class Node:
         self.queryable("@health", lambda _req: self.health(), raw_key=True)
         self.clock.on_jump(self._on_clock_jump)
         self.spawn(self._flush_logs(), name="log-summaries")
-        if clock_mode == "sim":
-            self.subscribe("xm/clock", self._on_clock, latest(1), msgtype="rosgraph_msgs/msg/Clock")
+        if clock_mode == "sim":  # on Zenoh's thread: stamps are checked against the newest time (Clock.observe)
+            self.subscribe("xm/clock", lambda msg: self.clock.observe(msgs.stamp_seconds(msg.clock), self.loop),
+                           msgtype="rosgraph_msgs/msg/Clock", inline=True)
 
     def key(self, topic: str) -> str:
         return keyreg.service_key(self.service, self.instance, topic)
-
-    def _on_clock(self, msg: Any) -> None:
-        self.clock.advance(msgs.stamp_seconds(msg.clock))
 
     def _on_clock_jump(self, old: float, new: float) -> None:
         # Loops on clock.ticks() rebase themselves; services with their own timing listen too.

@@ -72,6 +72,30 @@ def test_wall_ticks_rebase_when_the_host_clock_is_stepped_back(monkeypatch):
     assert seen[3] == 500.0 and seen[5] < 501.0
 
 
+def test_stamps_are_checked_against_the_newest_clock_sample_while_the_loop_is_busy():
+    async def go() -> list:
+        loop = asyncio.get_running_loop()
+        clock = Clock("sim")
+        assert clock.reference() is None  # not started: stamps are not checked
+        clock.observe(10.0, loop)
+        clock.observe(12.5, loop)  # the loop has not run yet: the time is not advanced
+        during = (clock.now(), clock.reference())
+        msg = good("xm_msgs/msg/Tactile", 12.4)  # fresh, though 2.4 s ahead of the advanced time
+        validate.check(msg, "xm_msgs/msg/Tactile", clock.reference())
+        await asyncio.sleep(0)  # the loop catches up once, with the newest sample
+        after = (clock.now(), clock.reference())
+        clock.observe(0.2, loop)  # the world restarts: older stamps are from another timeline at once
+        with pytest.raises(validate.RejectedError, match="ahead"):
+            validate.check(msg, "xm_msgs/msg/Tactile", clock.reference())
+        await asyncio.sleep(0)
+        return [during, after, clock.jumps]
+
+    during, after, jumps = asyncio.run(go())
+    assert during == (0.0, 12.5)
+    assert after == (12.5, 12.5)
+    assert jumps == 1
+
+
 @pytest.mark.parametrize("spec", keys.REGISTRY, ids=lambda s: s.key)
 def test_every_kind_of_bad_message_is_rejected_with_its_reason(spec):
     now = 1000.0
