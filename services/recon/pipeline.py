@@ -113,13 +113,13 @@ class Reconstructor:
         self._objects = np.zeros((len(self.object_names), 3))
         self._objects_known = np.zeros(len(self.object_names), bool)
 
-    def _confirm_new_objects(self, objects: np.ndarray, mask: np.ndarray) -> None:
+    def _confirm_new_objects(self, objects: np.ndarray, mask: np.ndarray, posed: np.ndarray) -> None:
         """In place: an object without a track (not reported on the last frame set) is reported
         only when the last frame set put it at the same place (median keypoint distance under
         ``CONFIRM_M``); otherwise it is masked and remembered as a candidate. A new track needs
         two agreeing frame sets: a network's object peaks on whatever a window shows (a hand, after
         a reset moved the objects out of every window) rarely agree twice."""
-        for m in self.models:
+        for i, m in enumerate(self.models):
             sl = m.slice
             seen = mask[sl].astype(bool)
             last = self._candidates.get(m.name)
@@ -128,7 +128,7 @@ class Reconstructor:
                 continue  # tracked (the gate holds it), or nothing to report
             both = seen & last[1] if last is not None else np.zeros_like(seen)
             if not both.any() or np.median(np.linalg.norm(objects[sl][both] - last[0][both], axis=1)) >= CONFIRM_M:
-                mask[sl], objects[sl] = 0, 0.0
+                mask[sl], objects[sl], posed[i] = 0, 0.0, False
                 self.objects_unconfirmed += 1
 
     @property
@@ -209,7 +209,7 @@ class Reconstructor:
                     posed[i] = True
                     inliers[:, nh + np.arange(m.slice.start, m.slice.stop)] = fit.inliers
         if self.confirm_objects:
-            self._confirm_new_objects(objects, object_mask)
+            self._confirm_new_objects(objects, object_mask, posed)
         self._objects, self._objects_known = objects.copy(), object_mask.astype(bool)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,

@@ -205,6 +205,7 @@ def test_an_object_without_a_track_is_reported_once_two_frame_sets_agree(rig):
         conf[:, nh:] = 1.0
         r = rec.step(P, uv, conf)
         masks.append(r.object_mask.astype(bool))
+        assert r.object_posed.all() == r.object_mask.all(), "an unconfirmed object is not posed either"
         if r.object_mask.any():
             np.testing.assert_allclose(r.objects, objects, atol=1e-3)
     assert [m.any() for m in masks] == [False, False, True, True]
