@@ -1,10 +1,12 @@
 """`xm recon REC.mcap -o OUT.mcap`: reconstruct a whole recording offline.
 
 The live stages run over every frame set of the recording twice (the second time with each hand's
-shape learned from the whole first pass, so no frame waits for the initialisation phase), then
+shape learned from every confident frame of the first pass, so no frame waits for the
+initialisation phase and the shape averages the whole recording's noise), then
 each hand's trajectory is refined as one problem (services/recon/offline.py): robust reprojection
 against the detections the live triangulation kept (as it took them, each on the hand it was
-assigned to), joint limits, a jerk regulariser, gaps filled from interpolated poses. OUT.mcap
+assigned to), joint limits, a jerk regulariser, gaps filled from interpolated poses where the hand
+could have crossed them (a hand that left and came back elsewhere is not interpolated). OUT.mcap
 holds the recording with `xm/recon/main/scene` replaced by the refined scenes and
 `xm/recon/main/tactile_mesh` by the glove's cells on the refined hands.
 """
@@ -23,8 +25,9 @@ import numpy as np
 from services.glove.layout import region_means
 from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
 from services.recon.frameset import FrameSetBuffer
+from services.recon.hand_fit import FitConfig
 from services.recon.hand_model import N_PARAMS, forward
-from services.recon.offline import OfflineConfig, refine_hand
+from services.recon.offline import OfflineConfig, refine_hand, segments
 from services.recon.pipeline import Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
 from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window, info_key
@@ -163,23 +166,30 @@ class OfflineHands:
     hand_mask: np.ndarray
     refined: np.ndarray
     summary: dict
+    shapes: dict  # per hand, the HandShape the refinement used (None: never initialised)
 
 
 def refine_hands(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> OfflineHands:
-    """The two live passes, then each hand's trajectory refined over the span it was seen, against
-    the detections the live triangulation kept (as it took them: after the hand channels were
-    reassigned to the hand each detection belongs to)."""
+    """The two live passes (the first estimates each hand's shape from every confident frame),
+    then each hand's trajectory refined over the segments it was seen (``offline.segments``),
+    against the detections the live triangulation kept (as it took them: after the hand channels
+    were reassigned to the hand each detection belongs to)."""
     order = [c for c in CAMERAS if c in frames.cameras]
     P = np.stack([frames.cameras[c].P for c in order])
+    # The first pass collects every confident frame of the recording and estimates each hand's
+    # shape from all of them (the live phase takes its first 8, whose noise the shape keeps).
     first = Reconstructor(task, object_names=frames.object_names,
-                          hand_present_confidence=frames.hand_present_confidence)
+                          hand_present_confidence=frames.hand_present_confidence,
+                          fit=FitConfig(init_frames=len(frames.stamps) + 1))
     for uv, conf in zip(frames.uv, frames.confidence, strict=True):
         first.step(P, uv, conf)
     second = Reconstructor(task, object_names=frames.object_names,
                            hand_present_confidence=frames.hand_present_confidence)
     for name, tracker in second.trackers.items():
-        tracker.shape = first.trackers[name].shape
+        if first.trackers[name].finish_initialisation(FitConfig().init_frames):
+            tracker.shape = first.trackers[name].shape
     T, H = len(frames.stamps), len(second.hand_names)
+    stamps = np.asarray(frames.stamps, float)
     live = []
     params = np.zeros((H, T, N_PARAMS))
     have = np.zeros((H, T), bool)
@@ -202,16 +212,21 @@ def refine_hands(frames: Frames, task: str, config: OfflineConfig, refine: bool 
         if not refine or tracker.shape is None or have[h].sum() < 4:
             summary[name] = {"refined": False, "live_fits": int(have[h].sum())}
             continue
-        span = np.arange(np.flatnonzero(have[h])[0], np.flatnonzero(have[h])[-1] + 1)
         sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
-        out, info = refine_hand(tracker.shape, name, P, uv_all[span][:, :, sl], kept[span][:, :, sl],
-                                params[h, span], have[h, span], config)
-        for i, t in enumerate(span):
-            hands[t, h] = forward(tracker.shape, out[i], name)
-            hand_mask[t, h] = 1
-        refined[span, h] = True
-        summary[name] = {"refined": True, **info}
-    return OfflineHands(live, second.hand_names, second.object_names, hands, hand_mask, refined, summary)
+        parts = segments(params[h, :, 3:6], have[h], stamps, config.max_gap_speed_m_s)
+        infos = []
+        for span in parts:  # frames between segments keep the live pass's result
+            out, info = refine_hand(tracker.shape, name, P, uv_all[span][:, :, sl], kept[span][:, :, sl],
+                                    params[h, span], have[h, span], config)
+            for i, t in enumerate(span):
+                hands[t, h] = forward(tracker.shape, out[i], name)
+                hand_mask[t, h] = 1
+            refined[span, h] = True
+            infos.append(info)
+        summary[name] = {"refined": True, "segments": len(parts),
+                         **{k: [i[k] for i in infos] for k in infos[0]}}  # per segment
+    return OfflineHands(live, second.hand_names, second.object_names, hands, hand_mask, refined, summary,
+                        {name: tracker.shape for name, tracker in second.trackers.items()})
 
 
 def reconstruct(frames: Frames, task: str, config: OfflineConfig, refine: bool = True) -> tuple[list, dict]:

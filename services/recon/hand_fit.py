@@ -108,6 +108,15 @@ class HandTracker:
         self.overridden = int(keep.sum())
         return np.where(keep[:, None], points, model), np.ones(21, np.uint8), True
 
+    def finish_initialisation(self, min_frames: int) -> bool:
+        """Estimate the shape now from the confident frames collected so far (an offline pass
+        that collects every one of them: ``init_frames`` above the recording's length), when there
+        are at least ``min_frames``. Returns whether the tracker has a shape."""
+        if self.shape is None and len(self._init) >= min_frames:
+            self.shape = estimate_shape(self._init, self.side)
+            self._init = []
+        return self.shape is not None
+
     def _lose(self) -> None:
         self._missed += 1
         if self._missed >= self.config.lost_after and self._window:

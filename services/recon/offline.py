@@ -13,7 +13,8 @@ Jacobian):
 
 Frames without a live fit (occlusion, the hand briefly lost) start from the pose interpolated
 between their neighbours (rotations by slerp) and are filled by the smoothness term and whatever
-detections they have: gap filling.
+detections they have: gap filling. A gap the hand could only have crossed faster than a hand moves
+(it left and came back elsewhere) splits the trajectory instead (``segments``).
 """
 
 from __future__ import annotations
@@ -28,6 +29,11 @@ from scipy.spatial.transform import Rotation, Slerp
 from services.recon.hand_model import N_JOINTS, N_PARAMS, HandShape, forward, joint_bounds
 from services.recon.triangulation import project
 
+# Fastest a hand may move across a gap that is filled: where the wrist moves slowly the
+# interpolated start is close to where the hand was; the simulated teacher's hands move at up to
+# 0.7 m/s between frame sets, a demonstration's reset jumps at 2.3-2.9 m/s.
+MAX_GAP_SPEED_M_S = 0.5
+
 
 @dataclass
 class OfflineConfig:
@@ -36,6 +42,7 @@ class OfflineConfig:
     limit_px_per_rad: float = 100.0
     stretch_px: float = 5.0  # per unit of thumb stretch (10 % costs half a pixel)
     max_nfev: int = 30
+    max_gap_speed_m_s: float = MAX_GAP_SPEED_M_S  # see segments()
 
 
 def fill_gaps(params: np.ndarray, have: np.ndarray) -> np.ndarray:
@@ -53,6 +60,24 @@ def fill_gaps(params: np.ndarray, have: np.ndarray) -> np.ndarray:
     else:
         slerp = Slerp(known.astype(float), Rotation.from_rotvec(params[known, :3]))
         out[:, :3] = slerp(np.clip(t, known[0], known[-1])).as_rotvec()
+    return out
+
+
+def segments(wrist: np.ndarray, have: np.ndarray, stamps: np.ndarray,
+             max_speed: float = MAX_GAP_SPEED_M_S) -> list[np.ndarray]:
+    """The frames to refine as one trajectory each: from the first to the last live fit, split at
+    every gap (frames without a fit) across which the wrist (T,3) would have to move faster than
+    ``max_speed`` (m/s): a hand that left and came back elsewhere, or a demonstration reset, is
+    not interpolated; the gap's frames are in no segment."""
+    known = np.flatnonzero(have)
+    if not len(known):
+        return []
+    out, start = [], known[0]
+    for a, b in zip(known[:-1], known[1:], strict=True):
+        if b - a > 1 and np.linalg.norm(wrist[b] - wrist[a]) > max_speed * (stamps[b] - stamps[a]):
+            out.append(np.arange(start, a + 1))
+            start = b
+    out.append(np.arange(start, known[-1] + 1))
     return out
 
 

@@ -20,6 +20,7 @@ SAME_HAND_MIN_POINTS = 5
 # No keypoint of a hand lies farther than this from the median of its keypoints (the simulated
 # teacher's fingertips reach 0.118 m; the margin holds larger hands and triangulation noise).
 HAND_EXTENT_M = 0.15
+CONFIRM_M = 0.02  # a new object track's two first poses agree this well (median keypoint distance)
 TRACKED_MIN_POINTS = 5  # reported keypoints of a hand needed to decide other detections' hand by it
 
 
@@ -65,13 +66,14 @@ class Reconstruction:
 
 
 class Reconstructor:
-    """Stateful across frame sets only through the hand trackers' windows and shapes."""
+    """Stateful across frame sets through the hand trackers' windows and shapes and the tracked
+    objects."""
 
     def __init__(self, task: str, hand_names: tuple[str, ...] = HAND_NAMES, gate_px: float = 6.0,
                  fit: FitConfig | None = None, fit_hands: bool = True,
                  object_names: list[str] | None = None, identity: bool = True,
                  min_confidence: float = 0.0, hand_present_confidence: float = 0.0,
-                 object_fit: str = "kabsch") -> None:
+                 object_fit: str = "kabsch", confirm_objects: bool = True) -> None:
         """``object_names``: the keypoints the detector reports, when they are not the task's own
         (then no rigid model applies and objects stay triangulated points). ``identity``: give hand
         detections to the tracked hand nearest their ray (hand_identity.py); ``min_confidence``:
@@ -79,7 +81,9 @@ class Reconstructor:
         a hand have a lower median confidence does not show that hand (a learned detector's
         calibration: ``LearnedDetector.hand_present_confidence``; 0: off). ``object_fit``:
         ``reprojection`` poses each rigid object on its 2-D detections in every view, pooled while
-        it rests (object_fit.py); ``kabsch`` on its triangulated keypoints alone (objects.py)."""
+        it rests (object_fit.py); ``kabsch`` on its triangulated keypoints alone (objects.py).
+        ``confirm_objects``: a rigid object without a track is reported once two frame sets agree
+        on it (``_confirm_new_objects``)."""
         if object_fit not in ("reprojection", "kabsch"):
             raise ValueError(f"object_fit: 'reprojection' or 'kabsch', not {object_fit!r}")
         self.hand_names = list(hand_names)
@@ -103,8 +107,29 @@ class Reconstructor:
         self._tracked: list[np.ndarray | None] = [None] * len(self.hand_names)
         self.object_detections_dropped = 0  # object detections far from where the object is tracked
         self.objects_outside_windows = 0  # object detections in views whose window cannot show the object
+        self.confirm_objects = confirm_objects
+        self._candidates: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
+        self.objects_unconfirmed = 0  # objects masked on the frame set that would have started their track
         self._objects = np.zeros((len(self.object_names), 3))
         self._objects_known = np.zeros(len(self.object_names), bool)
+
+    def _confirm_new_objects(self, objects: np.ndarray, mask: np.ndarray, posed: np.ndarray) -> None:
+        """In place: an object without a track (not reported on the last frame set) is reported
+        only when the last frame set put it at the same place (median keypoint distance under
+        ``CONFIRM_M``); otherwise it is masked and remembered as a candidate. A new track needs
+        two agreeing frame sets: a network's object peaks on whatever a window shows (a hand, after
+        a reset moved the objects out of every window) rarely agree twice."""
+        for i, m in enumerate(self.models):
+            sl = m.slice
+            seen = mask[sl].astype(bool)
+            last = self._candidates.get(m.name)
+            self._candidates[m.name] = (objects[sl].copy(), seen) if seen.any() else None
+            if self._objects_known[sl].any() or not seen.any():
+                continue  # tracked (the gate holds it), or nothing to report
+            both = seen & last[1] if last is not None else np.zeros_like(seen)
+            if not both.any() or np.median(np.linalg.norm(objects[sl][both] - last[0][both], axis=1)) >= CONFIRM_M:
+                mask[sl], objects[sl], posed[i] = 0, 0.0, False
+                self.objects_unconfirmed += 1
 
     @property
     def n_points(self) -> int:
@@ -183,6 +208,8 @@ class Reconstructor:
                     i = self.models.index(m)
                     posed[i] = True
                     inliers[:, nh + np.arange(m.slice.start, m.slice.stop)] = fit.inliers
+        if self.confirm_objects:
+            self._confirm_new_objects(objects, object_mask, posed)
         self._objects, self._objects_known = objects.copy(), object_mask.astype(bool)
         t3 = time.perf_counter()
         return Reconstruction(hands, hand_mask, fitted, objects, object_mask, posed, inliers, pts,

@@ -171,6 +171,7 @@ class ReconService:
             out["hand_views_absent"] = self.recon.hand_views_absent
             out["object_detections_off_track"] = self.recon.object_detections_dropped
             out["object_detections_outside_window"] = self.recon.objects_outside_windows
+            out["objects_unconfirmed"] = self.recon.objects_unconfirmed
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial

@@ -12,9 +12,9 @@ import pytest
 from services.recon import cli
 from services.recon.cli import MESH_KEY, SCENE_KEY, Frames, main
 from services.recon.detector import CameraModel
-from services.recon.hand_model import N_PARAMS
+from services.recon.hand_model import CHAINS, N_PARAMS
 from services.recon.objects import task_keypoint_names
-from services.recon.offline import OfflineConfig, fill_gaps
+from services.recon.offline import OfflineConfig, fill_gaps, segments
 from services.recon.triangulation import project
 from services.recorder.writer import McapRecorder, read_messages
 from services.world.model import camera_specs
@@ -201,3 +201,64 @@ def test_the_refinement_sees_each_detection_on_the_hand_it_was_assigned_to(monke
         assert used[10 - first:, 0].any(), "cam0's swapped detections are used, on their own hand"
         err = np.linalg.norm(uv - true_uv.transpose(1, 0, 2, 3), axis=-1)[used]
         assert err.max() < 1e-6, "every detection the refinement sees belongs to its hand"
+
+
+def test_segments_split_at_a_gap_the_hand_could_not_have_crossed():
+    wrist = np.zeros((8, 3))
+    wrist[5:, 0] = 0.5  # 0.5 m between frames 3 and 5 (0.4 s): a reset, not a motion
+    have = np.array([True, True, False, True, False, True, True, True])
+    stamps = 0.2 * np.arange(8)
+    parts = segments(wrist, have, stamps)
+    assert [list(p) for p in parts] == [[0, 1, 2, 3], [5, 6, 7]], "the slow gap (frame 2) is filled"
+    assert len(segments(wrist, have, stamps, max_speed=2.0)) == 1
+    assert segments(wrist, np.zeros(8, bool), stamps) == []
+
+
+def _moved_hand_frames(frames: int, jump_at: int) -> tuple[Frames, np.ndarray]:
+    """Noise-free detections of a teacher session whose right hand is unseen in frame set
+    ``jump_at`` and 0.4 m away from there on (a demonstration reset); and the truth (T,42,3)."""
+    frames_, _ = _teacher_frames(frames, swap_from=frames)
+    sim = WorldSim("assembly", seed=7311)
+    P = np.stack([m.P for m in frames_.cameras.values()])
+    truth = []
+    sl = slice(KEYPOINTS_PER_HAND, 2 * KEYPOINTS_PER_HAND)
+    for f in range(frames):
+        sim.step(100)
+        hands = sim.hand_keypoints().reshape(-1, 3)
+        _, objects = sim.object_keypoints()
+        if f >= jump_at:
+            hands[sl] += [0.0, 0.4, 0.0]
+        frames_.uv[f] = project(P, np.concatenate([hands, objects]))[0]
+        if f == jump_at:
+            frames_.confidence[f][:, sl] = 0.0
+        truth.append(hands)
+    return frames_, np.stack(truth)
+
+
+def test_the_refinement_does_not_interpolate_a_hand_across_a_reset():
+    frames, truth = _moved_hand_frames(16, jump_at=8)
+    result = cli.refine_hands(frames, "assembly", OfflineConfig(max_nfev=5))
+    right = result.hands[:, 1]
+    assert not result.hand_mask[8, 1].any(), "the frame set between the places is not seen: masked"
+    assert result.summary["right"]["segments"] == 2
+    err = np.linalg.norm(right - truth[:, KEYPOINTS_PER_HAND:], axis=-1)
+    seen = result.hand_mask[:, 1].astype(bool)
+    assert seen[[6, 7, 9, 10]].all() and err[seen].max() < 0.01
+
+
+def test_the_offline_shape_comes_from_every_confident_frame():
+    """A recording whose first frame sets see the right hand's fingers 20 % short (a biased start):
+    the shape the refinement uses is the whole recording's, not the first 8 frame sets'."""
+    frames, truth = _teacher_frames(30, swap_from=30)
+    P = np.stack([m.P for m in frames.cameras.values()])
+    sl = slice(KEYPOINTS_PER_HAND, 2 * KEYPOINTS_PER_HAND)
+    for f in range(8):
+        right = truth[f, sl]
+        short = right.copy()
+        for chain in CHAINS:  # each bone 20 % shorter, from the chain's base outward
+            for a, b in zip(chain[:-1], chain[1:], strict=True):
+                short[b] = short[a] + 0.8 * (right[b] - right[a])
+        frames.uv[f][:, sl] = project(P, short)[0]
+    result = cli.refine_hands(frames, "assembly", OfflineConfig(), refine=False)
+    true_bones = np.linalg.norm(np.diff(truth[:, sl][:, CHAINS], axis=2), axis=-1).mean(axis=0)
+    np.testing.assert_allclose(result.shapes["right"].bones[1:], true_bones[1:], rtol=0.05)

@@ -21,8 +21,8 @@ from services.recon.hand_model import (
     rotvec,
 )
 from services.recon.objects import object_models, pose_objects, task_keypoint_names
-from services.recon.pipeline import beyond_the_hand, one_hand_seen_twice
-from services.recon.triangulation import triangulate, triangulate_robust
+from services.recon.pipeline import Reconstructor, beyond_the_hand, one_hand_seen_twice
+from services.recon.triangulation import project, triangulate, triangulate_robust
 from shared.geometry import look_at, projection
 
 
@@ -186,6 +186,36 @@ def test_object_posed_from_three_keypoints_fills_the_rest_and_drops_a_wrong_one(
     np.testing.assert_allclose(out[board.slice], truth[board.slice], atol=1e-9)
     assert out_mask[board.slice].all()
     assert not out_mask[models[1].slice].any() and (out[models[1].slice] == 0).all()
+
+
+def test_an_object_without_a_track_is_reported_once_two_frame_sets_agree(rig):
+    """A network's object peaks on something else (a hand, after a reset moved the objects out of
+    every window) pose the object where it is not, once; a new track waits for a second frame set
+    at the same place, and a tracked object is reported on every frame set."""
+    P = np.stack([c.P for c in rig])
+    models = object_models("assembly")
+    here = np.concatenate([m.points + [0.1 * i, 0.0, 0.0] for i, m in enumerate(models)])
+    elsewhere = here + [-0.15, 0.1, 0.2]
+    rec = Reconstructor("assembly")
+    nh = 2 * 21
+    masks = []
+    for objects in (elsewhere, here, here, here):
+        uv, _ = project(P, np.concatenate([np.zeros((nh, 3)), objects]))
+        conf = np.zeros(uv.shape[:2])
+        conf[:, nh:] = 1.0
+        r = rec.step(P, uv, conf)
+        masks.append(r.object_mask.astype(bool))
+        assert r.object_posed.all() == r.object_mask.all(), "an unconfirmed object is not posed either"
+        if r.object_mask.any():
+            np.testing.assert_allclose(r.objects, objects, atol=1e-3)
+    assert [m.any() for m in masks] == [False, False, True, True]
+    assert all(m.all() for m in masks[2:])
+    assert rec.objects_unconfirmed == 2 * len(models)
+    plain = Reconstructor("assembly", confirm_objects=False)
+    uv, _ = project(P, np.concatenate([np.zeros((nh, 3)), elsewhere]))
+    conf = np.zeros(uv.shape[:2])
+    conf[:, nh:] = 1.0
+    assert plain.step(P, uv, conf).object_mask.all(), "without confirmation the first pose is reported"
 
 
 def test_object_with_two_keypoints_stays_triangulated():
