@@ -64,6 +64,10 @@ PRESS_BESIDE_M = 0.08  # a finger goal this close (xy) to the gripper's: the gri
 THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
 THUMB_TIP, INDEX_TIP = FINGERTIPS["thumb"], FINGERTIPS["index"]
 GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
+# the learned policy alone: its predicted grasping touch shuts the gripper above 3 kPa and lets go
+# below half of that. In the loop the nets predict 3.5-5 kPa while their pinch is on the lens and
+# pass 10 kPa only about 1.5 s later, when the hand has moved on without the module
+LEARNED_GRASP_KPA = 3.0
 EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
 LEAD_IN_FRAME_SETS = 5  # reconstructed objects: frame sets recon sees before the robot starts
 LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
@@ -200,6 +204,12 @@ def touch_switch(on: bool, kpa: float, demonstrated_kpa: float) -> bool:
     return kpa > (TOUCH_OFF if on else TOUCH_ON) * demonstrated_kpa
 
 
+def learned_squeeze(on: bool, kpa: float, grasp_kpa: float | None) -> bool:
+    """Without anchors: shut above ``grasp_kpa`` of predicted grasping touch, open again only below
+    half of it (a prediction wavering near one threshold would drop the module mid-carry)."""
+    return grasp_kpa is not None and kpa > (0.5 * grasp_kpa if on else grasp_kpa)
+
+
 def physics_step(sim: WorldSim, board: BoardSim) -> None:
     """One physics step of the cell under the simulated board's control loop."""
     q, qd = sim.joint_state()
@@ -221,7 +231,7 @@ def receding_solve(opt: TrajectoryOptimizer, current: np.ndarray, goals: np.ndar
 
 
 def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_period_s: float = 0.1,
-                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = GRASP_KPA,
+                   knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = LEARNED_GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
                    horizon_dt: float | None = None, catch_m: float | None = None, observer=None,
                    start_hands: np.ndarray | None = None, task: str = "assembly") -> ExecutionResult:
@@ -230,8 +240,9 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     ``task``: "assembly" or "latch" (the same layouts; the latch's snap-fit engages only at 5 N).
 
     ``model``: a trained Policy, or None for the teacher's own hands (TeacherReplay).
-    ``grasp_kpa``: above this predicted grasping thumb + index pressure the gripper is commanded
-    shut with an effort proportional to it (None: fingers follow the mapped thumb and index only).
+    ``grasp_kpa``: without anchors, above this predicted grasping thumb + index pressure the gripper
+    is commanded shut with an effort proportional to it, and opened again below half of it
+    (``learned_squeeze``; None: fingers follow the mapped thumb and index only).
     ``feedback``: the robot's own points are observed as the policy's hands (7.6.8: the robot's
     end-effector keypoints are detected like the objects'): each step the grasping hand is moved
     rigidly so its pinch lies between the gripper's pads, instead of the policy running on its own
@@ -362,7 +373,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
         kpa = float(runner.efforts[g, THUMB] + runner.efforts[g, INDEX])
         max_kpa = max(max_kpa, kpa)
         if anchors is None:
-            squeeze = grasp_kpa is not None and kpa > grasp_kpa  # 7.2.10: predicted touch becomes squeeze
+            squeeze = learned_squeeze(squeeze, kpa, grasp_kpa)  # 7.2.10: predicted touch becomes squeeze
             if squeeze:
                 effort[fingers] = -EFFORT_N_PER_KPA * kpa
         else:  # predicted touch says when, the demonstrations how hard (on/off with hysteresis); the

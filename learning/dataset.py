@@ -22,9 +22,10 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from learning.reservoir import Reservoir
+from services.policy.model import object_groups
 from services.policy.window import step_windows
 from shared import msgs
-from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
+from shared.demo import FINGERTIPS, HAND_NAMES, KEYPOINTS_PER_HAND, TACTILE_REGIONS, Demo
 from shared.recording_files import recording_segments
 
 SCENE_KEY = "xm/recon/main/scene"
@@ -93,6 +94,7 @@ class DemoArrays:
     left: bool  # grasping with the left hand
     dt: float
     name: str
+    goal: np.ndarray | None = None  # (T,2) object body each hand acts on next (goal_bodies), -1 none
 
     @property
     def steps(self) -> int:
@@ -111,7 +113,41 @@ def demo_arrays(demo: Demo) -> DemoArrays:
     return DemoArrays(pos=pos, vel=vel, mask=mask, vmask=vmask, tactile=demo.tactile.astype(np.float64),
                       tmask=demo.tactile_mask.astype(bool), left=demo.meta.get("grasp_hand", "left") == "left",
                       dt=float(demo.dt), name=f"{demo.meta.get('task', '?')}#{demo.meta.get('demo', '?')}"
-                      + (" (mirrored)" if demo.meta.get("mirrored") else ""))
+                      + (" (mirrored)" if demo.meta.get("mirrored") else ""),
+                      goal=goal_bodies(pos, mask, object_groups(demo.object_names), demo.dt))
+
+
+GOAL_LOOKAHEAD_S = 1.0  # what a hand comes to within the next second is what it is heading for ...
+GOAL_REACH_M = 0.05  # ... if its pinch gets this close to it
+UNMOVED_M = 0.005  # an object whose points all stay this close to where they were first seen lies unmoved
+
+
+def goal_bodies(pos: np.ndarray, mask: np.ndarray, bodies: np.ndarray, dt: float) -> np.ndarray:
+    """(T,2): per step and hand, the object body the hand acts on next: of the objects still where
+    they lay at the start, the one its pinch (thumb-index midpoint) comes closest to within the next
+    GOAL_LOOKAHEAD_S, if closer than GOAL_REACH_M; else -1. Assembly: the module the grasping hand
+    reaches for, then the board it carries the module to (a carried object is no goal)."""
+    T = len(pos)
+    obj, omask = pos[:, HAND_POINTS:], mask[:, HAND_POINTS:]
+    goal = np.full((T, 2), -1, int)
+    n_bodies = int(bodies.max()) + 1 if len(bodies) else 0
+    if not n_bodies:
+        return goal
+    first = np.array([obj[np.argmax(omask[:, k]), k] for k in range(obj.shape[1])])
+    moved = np.maximum.accumulate(omask & (np.linalg.norm(obj - first, axis=-1) > UNMOVED_M), axis=0)
+    window = max(1, round(GOAL_LOOKAHEAD_S / dt))
+    for h in range(2):
+        pinch = pos[:, [h * KEYPOINTS_PER_HAND + FINGERTIPS[f] for f in ("thumb", "index")]].mean(1)
+        d = np.where(omask, np.linalg.norm(obj - pinch[:, None], axis=-1), np.inf)
+        near = np.full((T, n_bodies), np.inf)  # closest approach over the next window, per body
+        for b in range(n_bodies):
+            pts = bodies == b
+            db = np.where(moved[:, pts].any(1), np.inf, d[:, pts].min(1))
+            padded = np.concatenate([db, np.full(window, np.inf)])
+            near[:, b] = np.min([padded[k:k + T] for k in range(window + 1)], axis=0)
+        best = near.argmin(1)
+        goal[:, h] = np.where(near[np.arange(T), best] < GOAL_REACH_M, best, -1)
+    return goal
 
 
 def augmented(demos: list[Demo], mirrored: bool = True) -> list[Demo]:
@@ -152,6 +188,7 @@ class StepData:
     dt: float
     window: np.ndarray | None = None  # (N,B-1,P,3) the time window's older block means (services/policy/window.py)
     wmask: np.ndarray | None = None  # (N,B-1,P) each block observed the point throughout
+    goal: np.ndarray | None = None  # (N,2) goal_bodies at t
 
     def __len__(self) -> int:
         return len(self.pos)
@@ -171,7 +208,7 @@ def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left
             raise DatasetError(f"demonstration {a.name} has {a.steps} steps; at least 3 are needed")
     cols: dict[str, list] = {k: [] for k in ("pos", "vel", "vmask", "mask", "next_pos", "next_vel", "next_vmask",
                                              "next_mask", "tactile", "next_tactile", "tmask", "H", "next_H",
-                                             "left", "demo_index", "step_index")}
+                                             "left", "demo_index", "step_index", "goal")}
     for i, a in enumerate(arrays):
         cols["pos"].append(a.pos[:-1])
         cols["vel"].append(a.vel[:-1])
@@ -191,6 +228,7 @@ def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left
         cols["left"].append(np.full(a.steps - 1, a.left))
         cols["demo_index"].append(np.full(a.steps - 1, i))
         cols["step_index"].append(np.arange(a.steps - 1))
+        cols["goal"].append(a.goal[:-1] if a.goal is not None else np.full((a.steps - 1, 2), -1, int))
     cat = {k: np.concatenate(v, axis=1 if k in ("H", "next_H") else 0) if v else None for k, v in cols.items()}
     win, wmask = step_windows(cat["pos"], cat["mask"], cat["step_index"], window) if window else (None, None)
     return StepData(pos=cat["pos"], vel=cat["vel"], vmask=cat["vmask"], mask=cat["mask"], next_pos=cat["next_pos"],
@@ -198,7 +236,7 @@ def step_data(arrays: list[DemoArrays], reservoir: Reservoir | None = None, left
                     tactile=cat["tactile"], next_tactile=cat["next_tactile"], tmask=cat["tmask"], H=cat["H"],
                     next_H=cat["next_H"], prob=hand_weights(cat["left"], left_probability),
                     demo_index=cat["demo_index"], step_index=cat["step_index"], dt=arrays[0].dt, window=win,
-                    wmask=wmask)
+                    wmask=wmask, goal=cat["goal"])
 
 
 def sample_batch(data: StepData, rng: np.random.Generator, n: int, rotate: bool = True) -> dict[str, np.ndarray]:
@@ -217,6 +255,8 @@ def batch_at(data: StepData, idx: np.ndarray, angle: np.ndarray) -> dict[str, np
            "vmask": data.vmask[idx], "mask": data.mask[idx], "next_vmask": data.next_vmask[idx],
            "next_mask": data.next_mask[idx], "tactile": data.tactile[idx], "next_tactile": data.next_tactile[idx],
            "tmask": data.tmask[idx], "angle": angle, "index": idx, "phase": data.step_index[idx] * data.dt}
+    if data.goal is not None:
+        out["goal"] = data.goal[idx]
     if data.window is not None:
         out["window"] = rotate_z(data.window[idx], angle[:, None, None])
         out["wmask"] = data.wmask[idx]

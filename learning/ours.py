@@ -30,6 +30,21 @@ def _t(x: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
 
 
+def goal_shift(R: np.ndarray, goal: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """(n,P,3): the displacement each hand's denoising target moves along with, zero elsewhere.
+    ``R`` (n,P,3) the sample's noise, ``goal`` (n,2) the object body each hand acts on next
+    (dataset.goal_bodies, -1 none), ``body`` (P,) body per point (hands 0, 1, objects from 2).
+    The object noise stands for a new layout: a hand heading for a displaced object is to meet it
+    where it is seen, so its target moves with that object's mean noise."""
+    n = len(R)
+    n_obj_bodies = int(body.max()) - 1
+    shift = np.zeros_like(R)
+    means = np.stack([R[:, body == 2 + g].mean(1) for g in range(n_obj_bodies)] + [np.zeros((n, 3))], axis=1)
+    for h in range(2):
+        shift[:, body == h] = means[np.arange(n), goal[:, h]][:, None]  # goal -1 picks the zero row
+    return shift
+
+
 class Ours:
     """Methods (1)-(4) of Table 7.1 and every switch of its recipe."""
 
@@ -104,6 +119,8 @@ class Ours:
         b["clean_pos"] = b["pos"]
         b["pos"] = b["pos"] + R  # 7.6
         b["target_vel"] = b["next_vel"] - R * gain  # 7.7
+        if tc.goal_relative and "goal" in b:
+            b["target_vel"] += goal_shift(R, b["goal"], self.body) * gain
         b["scale"] = scale
         if self.recipe.model.memory:
             net = self.net

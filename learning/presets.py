@@ -28,6 +28,7 @@ class TrainConfig:
     object_noise: float = 0.5  # object noise relative to hand noise
     lag_noise: float = 0.25  # probability that a sample's noise is the scene lagging behind: positions of up to
     lag_s: float = 0.3  # this many seconds earlier (as a robot trails its plan), corrected like other noise
+    goal_relative: bool = False  # denoising: a hand's target moves with the noise of the object it heads for next
     reservoir_noise: float = 20.0  # reservoir input noise per metre of position noise (in H std units)
     w_dH_loss: float = 1.0  # loss weight of the reservoir rate output (7.10 drives the memory at inference)
     w_plausible: float = 1e-3  # weight of the 7.14 plausibility loss on J_D

@@ -18,6 +18,7 @@ from evaluation.execute import (
     grasping_hand,
     gripper_flipped,
     hand_point_names,
+    learned_squeeze,
     observed_hands,
 )
 from learning.ours import Ours
@@ -142,6 +143,17 @@ def test_the_cell_assembles_the_camera_with_the_teachers_own_hands(tmp_path):
     report = json.loads((tmp_path / "execute.json").read_text())
     assert report["checkpoint"] == "teacher" and all(r["success_rate"] == 1.0 for r in report["rows"]
                                                      if r["variant"] == "anchored")
+
+
+def test_the_learned_policys_weak_predicted_touch_on_the_lens_shuts_the_gripper_and_holds():
+    """Without anchors, predicted touch alone closes the gripper: the nets predict 3.5-5 kPa of
+    grasping touch while their pinch is on the lens, so the gripper shuts there, and it opens again
+    only once the prediction falls below half the threshold."""
+    on = False
+    for kpa, want in ((1.0, False), (3.5, True), (2.0, True), (4.5, True), (1.4, False), (2.0, False)):
+        on = learned_squeeze(on, kpa, ex.LEARNED_GRASP_KPA)
+        assert on is want, (kpa, on)
+    assert not learned_squeeze(False, 50.0, None)  # no touch channel: the fingers follow the pinch only
 
 
 def test_roles_are_read_from_the_rollout_and_the_gripper_keeps_its_wrist_in_range():

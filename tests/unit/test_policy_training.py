@@ -102,6 +102,36 @@ def test_lag_noise_shows_the_scene_as_it_was_earlier_and_corrects_towards_now(de
     np.testing.assert_allclose(b["target_vel"], b["next_vel"] - R * method.correction_gain(data.dt))
 
 
+def test_goal_bodies_name_the_unmoved_object_a_pinch_heads_for_within_a_second():
+    T, dt = 200, 0.02
+    pos = np.zeros((T, 42 + 2, 3))
+    pos[:, 42] = [0.3, 0.0, 0.0]  # object 0 stays put
+    pos[:, 43] = [0.0, 0.3, 0.0]  # object 1 ...
+    pos[150:, 43, 2] = 0.1  # ... is lifted at 3 s
+    reach = np.clip(np.linspace(0, 2, T), 0, 1)[:, None] * [0.0, 0.3, 0.0]  # the left pinch reaches object 1 at 2 s
+    pos[:, 4] = pos[:, 8] = reach
+    pos[:, 21:42] = [-1.0, -1.0, 0.0]  # the right hand stays far from both
+    goal = D.goal_bodies(pos, np.ones(pos.shape[:2], bool), np.array([0, 1]), dt)
+    assert (goal[:, 1] == -1).all()
+    assert goal[0, 0] == -1 and (goal[60:150, 0] == 1).all()  # within 1 s of the reach, until object 1 moves
+    assert (goal[150:, 0] == -1).all()  # a moved (carried) object is no goal
+
+
+def test_goal_relative_denoising_moves_a_hands_target_with_the_object_it_heads_for(demos):
+    method = Ours(tiny(preset("multimodal"), goal_relative=True, lag_noise=0.0))
+    data = method.setup(demos[:2])
+    b = method.make_batch(data, np.random.default_rng(0), 64)
+    R, gain, body = b["pos"] - b["clean_pos"], method.correction_gain(data.dt), method.body
+    shift = b["target_vel"] - (b["next_vel"] - R * gain)
+    for k in range(64):
+        for h in range(2):
+            g = b["goal"][k, h]
+            want = R[k, body == 2 + g].mean(0) * gain if g >= 0 else np.zeros(3)
+            np.testing.assert_allclose(shift[k, body == h], np.broadcast_to(want, (21, 3)), atol=1e-9)
+        np.testing.assert_allclose(shift[k, body >= 2], 0.0, atol=1e-9)
+    assert (b["goal"] >= 0).any(), "the synthetic demonstrations reach for an object"
+
+
 def test_the_correction_gain_is_f_n_capped_at_one_step():
     assert Ours(preset("no_tactile")).correction_gain(0.02) == 8.0
     assert Ours(preset("no_tactile", noise_gain=80.0)).correction_gain(0.02) == 50.0
