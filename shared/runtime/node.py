@@ -32,6 +32,7 @@ import os
 import threading
 import time
 from collections.abc import Awaitable, Callable
+from time import monotonic
 from typing import Any
 
 import zenoh
@@ -42,7 +43,7 @@ from shared.ports import QueuePolicy, fifo, latest
 from shared.runtime import schemas, shm, validate
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
-from shared.runtime.stats import RateMeter, Stats
+from shared.runtime.stats import RateMeter, Stats, Tally
 from shared.wiring import Binding
 
 __all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
@@ -68,21 +69,22 @@ class Publisher:
         self.meter = node.stats.published.setdefault(key, RateMeter())
         self.shm_sent = 0  # payloads put from the shared-memory pool
         self._pool_min = shm.MIN_BYTES if msgtype in shm.POOL_TYPES else float("inf")
+        self._put, self._tick = self._pub.put, self.meter.tick  # bound once: put runs per message
 
     def put(self, msg: Any) -> None:
         pieces, size = self._write(msg)
-        if size >= self._pool_min:
-            self._put_large(pieces, size)
+        if size < self._pool_min:
+            self._put(b"".join(pieces))
         else:
-            self._pub.put(b"".join(pieces))
-        self.meter.tick(time.monotonic())
+            self._put_large(pieces, size)
+        self._tick(monotonic())
 
     def put_bytes(self, payload: bytes) -> None:
-        if len(payload) >= self._pool_min:
-            self._put_large([payload], len(payload))
+        if len(payload) < self._pool_min:
+            self._put(payload)
         else:
-            self._pub.put(payload)
-        self.meter.tick(time.monotonic())
+            self._put_large([payload], len(payload))
+        self._tick(monotonic())
 
     def _put_large(self, pieces: list, size: int) -> None:
         buf, why = shm.POOL.buffer(pieces, size)
@@ -118,12 +120,13 @@ class Subscription:
         self._is_async = inspect.iscoroutinefunction(handler)
         self._wake = asyncio.Event()
         self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}") if self._is_async else None
-        # Per key: samples that arrived, and those the queue policy discarded (Zenoh thread, under _lock).
-        self.arrived: collections.Counter[str] = collections.Counter()
+        # Per key: samples that arrived (lock-free tallies) and those the queue policy discarded (under _lock).
+        self._arrived: dict[str, Tally] = {}
         self.dropped: collections.Counter[str] = collections.Counter()
         # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
         self.refused: dict[str, dict[str, str]] = {}
-        self._keys: dict[str, tuple] = {}  # key -> what decoding needs (_key)
+        # key -> [count an arrival, take(payload) -> message or None]: one lookup per sample (_new_key)
+        self._keys: dict[str, list] = {}
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
@@ -159,11 +162,11 @@ class Subscription:
     # Zenoh thread, inline: decode, validate and handle at once.
     def _on_inline(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        with self._lock:
-            self.arrived[key] += 1
+        arrive, take = self._keys.get(key) or self._new_key(key)
+        arrive()
         if self.refused and self._refuse(key):
             return
-        msg = self._decode(key, sample.payload.to_bytes())
+        msg = take(sample.payload.to_bytes())
         if msg is not None:
             try:
                 self._handler(msg, key) if self._wants_key else self._handler(msg)
@@ -173,17 +176,16 @@ class Subscription:
     # Zenoh thread: copy (and for a fifo, decode) and hand over.
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        arrive, take = self._keys.get(key) or self._new_key(key)
+        arrive()
         payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
         if self.refused and self._refuse(key):
-            with self._lock:
-                self.arrived[key] += 1
             return
-        item = self._decode(key, payload) if self._decoded else payload
+        item = take(payload) if self._decoded else payload
+        if item is None:  # rejected on arrival (counted by take)
+            return
         with self._lock:
             queue = self._queue
-            self.arrived[key] += 1
-            if item is None:  # rejected on arrival (counted by _decode)
-                return
             if len(queue) >= self.policy.depth:
                 if self.policy.kind == "fifo":
                     self.dropped[key] += 1  # the newest is refused
@@ -217,44 +219,62 @@ class Subscription:
                     except Exception as exc:  # a handler bug must not kill the subscription
                         failed(key, exc)
                 continue
+            keys = self._keys
             for key, payload in batch:
-                msg = self._decode(key, payload)
+                msg = keys[key][1](payload)
                 if msg is not None:
                     try:
                         handler(msg, key) if wants_key else handler(msg)
                     except Exception as exc:  # a handler bug must not kill the subscription
                         failed(key, exc)
 
-    def _key(self, key: str) -> tuple:
-        """What decoding a sample on ``key`` needs, looked up on its first sample: its received
-        meter, type, size limit, decoder and whether it has a header stamp to check."""
+    def _new_key(self, key: str) -> list:
+        """The entry of a key heard for the first time; its decoder is built on its first sample
+        that is not refused (a refused key gets no received meter)."""
+        with self._lock:
+            if key not in self._keys:
+                tally = self._arrived[key] = Tally()
+                self._keys[key] = [tally.add, functools.partial(self._first_take, key)]
+            return self._keys[key]
+
+    def _first_take(self, key: str, payload: bytes) -> Any:
+        take = self._keys[key][1] = self._taker(key)
+        return take(payload)
+
+    def _taker(self, key: str) -> Callable[[bytes], Any]:
+        """``take(payload)`` for one key, built once: ticks its received meter, then checks the
+        size, decodes and validates as its type needs (validate.checker), and returns the message,
+        or None for a payload it counted as rejected."""
         msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
+        tick = self._node.stats.received_meter(key).tick
+        if msgtype == "raw":
+            def take_raw(payload: bytes) -> bytes:
+                tick(monotonic())
+                return payload
+            return take_raw
         try:
             decode, stamped = msgs.decoder(msgtype), "header" in msgs.msg_class(msgtype).__dataclass_fields__
         except msgs.MessageError:  # an unknown type: every sample is rejected, as malformed
             decode, stamped = functools.partial(msgs.deserialize, msgtype=msgtype), False
-        self._keys[key] = (self._node.stats.received_meter(key), msgtype, validate.max_payload(msgtype), decode,
-                           stamped)
-        return self._keys[key]
+        check, limit = validate.checker(msgtype), validate.max_payload(msgtype)
+        clock, reject = self._node.clock, self._node.reject
 
-    def _decode(self, key: str, payload: bytes) -> Any:
-        meter, msgtype, limit, decode, stamped = self._keys.get(key) or self._key(key)
-        meter.tick(time.monotonic())
-        if msgtype == "raw":
-            return payload
-        try:
-            if len(payload) > limit:
-                validate.check_size(len(payload), msgtype)
-            msg = decode(payload)
-            clock = self._node.clock
-            validate.check(msg, msgtype, clock.now() if stamped and clock.started else None)
-        except msgs.MessageError as exc:
-            self._node.reject(key, "malformed", str(exc))
-            return None
-        except validate.RejectedError as exc:
-            self._node.reject(key, exc.reason, exc.detail)
-            return None
-        return msg
+        def take(payload: bytes) -> Any:
+            tick(monotonic())
+            try:
+                if len(payload) > limit:
+                    validate.check_size(len(payload), msgtype)
+                msg = decode(payload)
+                if check is not None:
+                    check(msg, clock.now() if stamped and clock.started else None)
+            except msgs.MessageError as exc:
+                reject(key, "malformed", str(exc))
+                return None
+            except validate.RejectedError as exc:
+                reject(key, exc.reason, exc.detail)
+                return None
+            return msg
+        return take
 
     async def _dispatch(self) -> None:
         while True:
@@ -270,7 +290,7 @@ class Subscription:
                 await self._deliver(key, item)
 
     async def _deliver(self, key: str, item: Any) -> None:
-        msg = item if self._decoded else self._decode(key, item)
+        msg = item if self._decoded else self._keys[key][1](item)
         if msg is None:
             return
         try:
@@ -281,7 +301,7 @@ class Subscription:
     def counts(self) -> tuple[dict[str, int], dict[str, int]]:
         """(arrived, dropped by the queue policy) per key, a consistent snapshot."""
         with self._lock:
-            return dict(self.arrived), dict(self.dropped)
+            return {k: t.value for k, t in self._arrived.items()}, dict(self.dropped)
 
     def close(self) -> None:
         self._sub.undeclare()
