@@ -32,7 +32,6 @@ import os
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from time import monotonic
 from typing import Any
 
 import zenoh
@@ -40,7 +39,7 @@ import zenoh
 from shared import keys as keyreg
 from shared import msgs
 from shared.ports import QueuePolicy, fifo, latest
-from shared.runtime import schemas, shm, validate
+from shared.runtime import inbound, schemas, shm
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
 from shared.runtime.stats import RateMeter, Stats, Tally
@@ -77,14 +76,14 @@ class Publisher:
             self._put(b"".join(pieces))
         else:
             self._put_large(pieces, size)
-        self._tick(monotonic())
+        self._tick(time.monotonic())
 
     def put_bytes(self, payload: bytes) -> None:
         if len(payload) < self._pool_min:
             self._put(payload)
         else:
             self._put_large([payload], len(payload))
-        self._tick(monotonic())
+        self._tick(time.monotonic())
 
     def _put_large(self, pieces: list, size: int) -> None:
         buf, why = shm.POOL.buffer(pieces, size)
@@ -130,6 +129,7 @@ class Subscription:
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
+        self._on_inline, self._on_sample = self._inline_callback(), self._queue_callback()
         self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
 
     # Zenoh thread: a publisher's type token came or went.
@@ -159,47 +159,61 @@ class Subscription:
         self._node.reject(key, "type_mismatch", next(iter(why.values()), ""))
         return True
 
-    # Zenoh thread, inline: decode, validate and handle at once.
-    def _on_inline(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        arrive, take = self._keys.get(key) or self._new_key(key)
-        arrive()
-        if self.refused and self._refuse(key):
-            return
-        msg = take(sample.payload.to_bytes())
-        if msg is not None:
-            try:
-                self._handler(msg, key) if self._wants_key else self._handler(msg)
-            except Exception as exc:  # a handler bug must not kill the subscription
-                self._node.handler_failed(key, exc)
+    # The Zenoh callbacks run per sample: what they use is bound once, when they are built.
 
-    # Zenoh thread: copy (and for a fifo, decode) and hand over.
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        arrive, take = self._keys.get(key) or self._new_key(key)
-        arrive()
-        payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
-        if self.refused and self._refuse(key):
-            return
-        item = take(payload) if self._decoded else payload
-        if item is None:  # rejected on arrival (counted by take)
-            return
-        with self._lock:
-            queue = self._queue
-            if len(queue) >= self.policy.depth:
-                if self.policy.kind == "fifo":
-                    self.dropped[key] += 1  # the newest is refused
-                    self._node.stats.count("queue_overflow")  # the recorder reports this total
-                    return
-                self.dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
-            queue.append((key, item))
-            if self._scheduled:
+    def _inline_callback(self) -> Callable[[zenoh.Sample], None]:
+        """Zenoh thread, inline: decode, validate and handle at once."""
+        keys, new_key, refused, refuse = self._keys, self._new_key, self.refused, self._refuse
+        handler, wants_key, failed = self._handler, self._wants_key, self._node.handler_failed
+
+        def on_inline(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            arrive, take = keys.get(key) or new_key(key)
+            arrive()
+            if refused and refuse(key):
                 return
-            self._scheduled = True
-        try:
-            self._loop.call_soon_threadsafe(self._wake.set if self._is_async else self._drain)
-        except RuntimeError:  # loop closed during shutdown
-            pass
+            msg = take(sample.payload.to_bytes())
+            if msg is not None:
+                try:
+                    handler(msg, key) if wants_key else handler(msg)
+                except Exception as exc:  # a handler bug must not kill the subscription
+                    failed(key, exc)
+        return on_inline
+
+    def _queue_callback(self) -> Callable[[zenoh.Sample], None]:
+        """Zenoh thread: copy (and for a fifo, decode), queue by the policy, wake the loop once per batch."""
+        keys, new_key, refused, refuse = self._keys, self._new_key, self.refused, self._refuse
+        decoded, lock, queue_dropped = self._decoded, self._lock, self.dropped
+        depth, fifo_policy, count = self.policy.depth, self.policy.kind == "fifo", self._node.stats.count
+        wake, call_soon = self._wake.set if self._is_async else self._drain, self._loop.call_soon_threadsafe
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            arrive, take = keys.get(key) or new_key(key)
+            arrive()
+            payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
+            if refused and refuse(key):
+                return
+            item = take(payload) if decoded else payload
+            if item is None:  # rejected on arrival (counted by take)
+                return
+            with lock:
+                queue = self._queue  # _drain swaps in a new queue
+                if len(queue) >= depth:
+                    if fifo_policy:
+                        queue_dropped[key] += 1  # the newest is refused
+                        count("queue_overflow")  # the recorder reports this total
+                        return
+                    queue_dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
+                queue.append((key, item))
+                if self._scheduled:
+                    return
+                self._scheduled = True
+            try:
+                call_soon(wake)
+            except RuntimeError:  # loop closed during shutdown
+                pass
+        return on_sample
 
     def _drain(self) -> None:
         lock, handler, wants_key, failed = self._lock, self._handler, self._wants_key, self._node.handler_failed
@@ -242,39 +256,9 @@ class Subscription:
         return take(payload)
 
     def _taker(self, key: str) -> Callable[[bytes], Any]:
-        """``take(payload)`` for one key, built once: ticks its received meter, then checks the
-        size, decodes and validates as its type needs (validate.checker), and returns the message,
-        or None for a payload it counted as rejected."""
         msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
-        tick = self._node.stats.received_meter(key).tick
-        if msgtype == "raw":
-            def take_raw(payload: bytes) -> bytes:
-                tick(monotonic())
-                return payload
-            return take_raw
-        try:
-            decode, stamped = msgs.decoder(msgtype), "header" in msgs.msg_class(msgtype).__dataclass_fields__
-        except msgs.MessageError:  # an unknown type: every sample is rejected, as malformed
-            decode, stamped = functools.partial(msgs.deserialize, msgtype=msgtype), False
-        check, limit = validate.checker(msgtype), validate.max_payload(msgtype)
-        clock, reject = self._node.clock, self._node.reject
-
-        def take(payload: bytes) -> Any:
-            tick(monotonic())
-            try:
-                if len(payload) > limit:
-                    validate.check_size(len(payload), msgtype)
-                msg = decode(payload)
-                if check is not None:
-                    check(msg, clock.now() if stamped and clock.started else None)
-            except msgs.MessageError as exc:
-                reject(key, "malformed", str(exc))
-                return None
-            except validate.RejectedError as exc:
-                reject(key, exc.reason, exc.detail)
-                return None
-            return msg
-        return take
+        return inbound.taker(key, msgtype, self._node.stats.received_meter(key).tick, self._node.clock,
+                             self._node.reject)
 
     async def _dispatch(self) -> None:
         while True:
