@@ -68,6 +68,7 @@ def stages(node: Node, name: str, msgtype: str, msg: object, n: int, repeat: int
     meter = RateMeter()
     decode = msgs.decoder(msgtype)
     decoded = decode(payload)
+    check = validate.checker(msgtype)  # None: the type has nothing to check
     sample = Sample(key, payload)
     inline = node.subscribe(f"{key}/in", lambda _m: None, fifo(), msgtype=msgtype, inline=True)
     queued = node.subscribe(f"{key}/q", lambda _m: None, fifo(), msgtype=msgtype)
@@ -87,11 +88,11 @@ def stages(node: Node, name: str, msgtype: str, msg: object, n: int, repeat: int
         "publish: Publisher.put whole": lambda: pub.put(msg),
         "receive: key and payload copy": lambda: (str(sample.key_expr), sample.payload.to_bytes()),
         "receive: decode": lambda: decode(payload),
-        "receive: validate": lambda: validate.check(decoded, msgtype, time.time()),
+        "receive: validate (what the type can fail)": (lambda: check(decoded, time.time())) if check else None,
         "receive: inline callback whole": lambda: inline._on_inline(sample),
         "receive: queued callback whole (fifo, no hand-over)": queue_one,
     }
-    out = {stage: round(cost_us(func, n, repeat), 3) for stage, func in run.items()}
+    out = {stage: round(cost_us(func, n, repeat), 3) if func else 0.0 for stage, func in run.items()}
     raw.undeclare()
     return out
 

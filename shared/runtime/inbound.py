@@ -13,6 +13,8 @@ from collections.abc import Callable
 from time import monotonic
 from typing import Any
 
+import zenoh
+
 from shared import msgs
 from shared.runtime import validate
 from shared.runtime.clock import Clock
@@ -52,3 +54,14 @@ def taker(key: str, msgtype: str, tick: Callable[[float], None], clock: Clock,
             return None
         return msg
     return take
+
+
+def exact_key(key_expr: str) -> str:
+    """``key_expr`` in canonical form when it names one key (no wildcard), else "": a subscription
+    to one key need not read each sample's."""
+    if "*" in key_expr or "$" in key_expr:
+        return ""
+    try:
+        return str(zenoh.KeyExpr.autocanonize(key_expr))
+    except zenoh.ZError:  # declaring the subscriber says what is wrong with it
+        return ""

@@ -111,7 +111,7 @@ class Subscription:
             maxlen=policy.depth if policy.kind == "latest" else None)
         self._lock = threading.Lock()
         self._scheduled = False
-        self._whole_batches = policy.kind == "fifo" or policy.depth == 1
+        self._whole_batches = policy.kind == "fifo"  # keep-latest pops one at a time (no new queue per batch)
         # fifo: every sample is handled, so it is decoded on arrival (Zenoh thread) and queued decoded
         self._decoded = policy.kind == "fifo"
         self._loop = node.loop
@@ -129,6 +129,7 @@ class Subscription:
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
+        self._exact = inbound.exact_key(key_expr)  # a single key: samples need not spell theirs out
         self._on_inline, self._on_sample = self._inline_callback(), self._queue_callback()
         self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
 
@@ -164,10 +165,10 @@ class Subscription:
     def _inline_callback(self) -> Callable[[zenoh.Sample], None]:
         """Zenoh thread, inline: decode, validate and handle at once."""
         keys, new_key, refused, refuse = self._keys, self._new_key, self.refused, self._refuse
-        handler, wants_key, failed = self._handler, self._wants_key, self._node.handler_failed
+        handler, wants_key, failed, exact = self._handler, self._wants_key, self._node.handler_failed, self._exact
 
         def on_inline(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
+            key = exact or str(sample.key_expr)
             arrive, take = keys.get(key) or new_key(key)
             arrive()
             if refused and refuse(key):
@@ -182,13 +183,13 @@ class Subscription:
 
     def _queue_callback(self) -> Callable[[zenoh.Sample], None]:
         """Zenoh thread: copy (and for a fifo, decode), queue by the policy, wake the loop once per batch."""
-        keys, new_key, refused, refuse = self._keys, self._new_key, self.refused, self._refuse
+        keys, new_key, refused, refuse, exact = self._keys, self._new_key, self.refused, self._refuse, self._exact
         decoded, lock, queue_dropped = self._decoded, self._lock, self.dropped
         depth, fifo_policy, count = self.policy.depth, self.policy.kind == "fifo", self._node.stats.count
         wake, call_soon = self._wake.set if self._is_async else self._drain, self._loop.call_soon_threadsafe
 
         def on_sample(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
+            key = exact or str(sample.key_expr)
             arrive, take = keys.get(key) or new_key(key)
             arrive()
             payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
@@ -224,7 +225,7 @@ class Subscription:
                     return
                 if self._whole_batches:  # what is queued now, at once: nothing in it could still give way
                     batch, self._queue = self._queue, collections.deque(maxlen=self._queue.maxlen)
-                else:  # keep-latest(n > 1): one at a time, newer samples push out older ones meanwhile
+                else:  # keep-latest: one at a time, newer samples push out older ones meanwhile
                     batch = (self._queue.popleft(),)
             if self._decoded:
                 for key, msg in batch:
