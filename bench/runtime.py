@@ -41,13 +41,14 @@ from shared.runtime import Node, fifo, latest, open_client, open_router, shm  # 
 
 N_PING = 2000
 N_WARM = 200
-N_THROUGHPUT = 20000
-N_THROUGHPUT_LARGE = 2000
+N_THROUGHPUT = 100_000  # about a second at 4 kB: a shorter run is mostly scheduling noise
+N_THROUGHPUT_LARGE = 5000
 SIZES = (4096, 300_000)  # a 4 kB message, a camera frame
 PING_TYPE = "std_msgs/msg/String"
 BULK_TYPE = "std_msgs/msg/UInt8MultiArray"  # a generic payload (4 kB)
 IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"  # a camera frame (300 kB): the pool carries sensor types only
 IMAGE_BYTES = 64 * 1024  # from this size the bulk runs send camera frames
+STALL_S = 0.2  # a throughput run ends early when nothing arrived for this long
 
 
 def free_port() -> int:
@@ -83,22 +84,15 @@ def raw_throughput(endpoint: str, size: int, from_pool: bool = False) -> tuple[f
     shared-memory pool of the typed runtime's size and put from there (as bytes when the pool is
     full), zenoh-python's own way for a large payload to a process on the same host."""
     a, b = open_client(endpoint), open_client(endpoint)
-    count = [0]
-    done = threading.Event()
-    n = n_for(size)
-
-    def on(_s) -> None:
-        count[0] += 1
-        if count[0] == n:
-            done.set()
-
-    b.declare_subscriber("bench/raw/bulk", on)
+    arrivals = Arrivals(n_for(size))
+    n = arrivals.n
+    b.declare_subscriber("bench/raw/bulk", arrivals)
     pub = a.declare_publisher("bench/raw/bulk", congestion_control=zenoh.CongestionControl.BLOCK)
     provider = ShmProvider.default_backend(shm.POOL_BYTES) if from_pool else None
     time.sleep(0.5)
     payload = b"y" * size
     copied = 0
-    t0, cpu0 = time.perf_counter(), time.process_time()
+    arrivals.start()
     for _ in range(n):
         if provider is None:
             pub.put(payload)
@@ -111,26 +105,52 @@ def raw_throughput(endpoint: str, size: int, from_pool: bool = False) -> tuple[f
             continue
         buf[0:size] = payload
         pub.put(buf)
-    elapsed = wait_counted(count, done.is_set, t0)
-    cpu = time.process_time() - cpu0
+    while arrivals.waiting():
+        time.sleep(STALL_S)
     a.close()
     b.close()
-    print(f"raw throughput {size} B{' from a shared-memory pool' if from_pool else ''}: {count[0]}/{n} received"
+    print(f"raw throughput {size} B{' from a shared-memory pool' if from_pool else ''}: {arrivals.count}/{n} received"
           + (f", {copied} copied (pool full)" if from_pool else ""))
-    return count[0] / elapsed, cpu / max(count[0], 1) * 1e6
+    return arrivals.result()
 
 
 def n_for(size: int) -> int:
     return N_THROUGHPUT if size <= 4096 else N_THROUGHPUT_LARGE
 
 
-def wait_counted(count: list[int], done, t0: float) -> float:
-    """Seconds from ``t0`` until everything arrived or nothing more came for 0.2 s."""
-    last, t_last = -1, time.perf_counter()
-    while not done() and count[0] != last:
-        last, t_last = count[0], time.perf_counter()
-        time.sleep(0.2)
-    return (time.perf_counter() if done() else t_last) - t0
+class Arrivals:
+    """The receiving handler of a throughput run, raw and typed alike: counts deliveries (one thread
+    at a time calls it: a subscriber's callback thread, or the loop) and notes the time and the
+    process's CPU time at the last one, so the run ends when the last message arrives, not when a
+    waiter next looks."""
+
+    def __init__(self, n: int) -> None:
+        self.n, self.count = n, 0
+        self.t0 = self.cpu0 = self.t_end = self.cpu_end = self.t_seen = self.cpu_seen = 0.0
+        self._seen = -1
+
+    def __call__(self, *_args: object) -> None:
+        self.count += 1
+        if self.count == self.n:
+            self.t_end, self.cpu_end = time.perf_counter(), time.process_time()
+
+    def start(self) -> None:
+        self.t0, self.cpu0 = time.perf_counter(), time.process_time()
+
+    def waiting(self) -> bool:
+        """Whether to look again after STALL_S: not all arrived, and some arrived since the last look
+        (a stalled run ends at its last look that saw progress)."""
+        if self.count >= self.n:
+            return False
+        if self.count == self._seen:
+            return False
+        self._seen, self.t_seen, self.cpu_seen = self.count, time.perf_counter(), time.process_time()
+        return True
+
+    def result(self) -> tuple[float, float]:
+        """(messages per second, process CPU microseconds per message)"""
+        t, cpu = (self.t_end, self.cpu_end) if self.count >= self.n else (self.t_seen, self.cpu_seen)
+        return self.count / (t - self.t0), (cpu - self.cpu0) / max(self.count, 1) * 1e6
 
 
 async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
@@ -180,36 +200,25 @@ async def typed_pingpong(endpoint: str, inline: bool) -> np.ndarray:
 async def typed_throughput(endpoint: str, size: int, inline: bool) -> tuple[float, float]:
     a = Node("bench", "src", open_client(endpoint))
     b = Node("bench", "dst", open_client(endpoint))
-    count = [0]
-    n = n_for(size)
-    lock = threading.Lock()
-
-    def on(_m) -> None:
-        with lock:
-            count[0] += 1
-
+    arrivals = Arrivals(n_for(size))
     msgtype = IMAGE_TYPE if size >= IMAGE_BYTES else BULK_TYPE
-    b.subscribe("xm/bench/src/bulk", on, fifo(), msgtype=msgtype, inline=inline)
+    b.subscribe("xm/bench/src/bulk", arrivals, fifo(), msgtype=msgtype, inline=inline)
     pub = a.publisher("xm/bench/src/bulk", msgtype, block=True)
     await asyncio.sleep(0.5)
     msg = bulk_message(size)
-    t0, cpu0 = time.perf_counter(), time.process_time()
-    for i in range(n):
+    arrivals.start()
+    for i in range(arrivals.n):
         pub.put(msg)
         if i % 500 == 0:
             await asyncio.sleep(0)  # let the receiving side run, as a service loop would
-    last, t_last = -1, time.perf_counter()
-    while count[0] < n and count[0] != last:  # stop when everything arrived or nothing more comes
-        last, t_last = count[0], time.perf_counter()
-        await asyncio.sleep(0.2)
-    elapsed = (time.perf_counter() if count[0] >= n else t_last) - t0
-    cpu = time.process_time() - cpu0
-    print(f"typed{' inline' if inline else ''} throughput {size} B: {count[0]}/{n} received, {pub.shm_sent} from "
-          f"the shared-memory pool, errors {dict(a.stats.errors) | dict(b.stats.errors)}")
+    while arrivals.waiting():
+        await asyncio.sleep(STALL_S)
+    print(f"typed{' inline' if inline else ''} throughput {size} B: {arrivals.count}/{arrivals.n} received, "
+          f"{pub.shm_sent} from the shared-memory pool, errors {dict(a.stats.errors) | dict(b.stats.errors)}")
     for node in (a, b):
         await node.close()
         node.session.close()
-    return count[0] / elapsed, cpu / max(count[0], 1) * 1e6
+    return arrivals.result()
 
 
 def bulk_message(size: int) -> object:

@@ -208,13 +208,15 @@ class _Reader(_Body):
             self.g = _after(self.g, length * size) if kind == Nodetype.ARRAY else min(self.g, size)
             return var
         item = self.item_reader(sub)
-        if kind == Nodetype.SEQUENCE:
-            self.emit(f"if {count} > len(buf) - pos:")
-            self.emit(f"    raise ValueError(f'sequence of {{{count}}} items beyond the payload')")
         self.emit(f"{var} = []")
-        self.emit(f"for _ in range({count}):")
-        self.emit(f"    item, pos = {item}(buf, pos)")
-        self.emit(f"    {var}.append(item)")
+        if kind == Nodetype.SEQUENCE:  # often empty: then no loop is set up
+            self.emit(f"if {count}:")
+            self.emit(f"    if {count} > len(buf) - pos:")
+            self.emit(f"        raise ValueError(f'sequence of {{{count}}} items beyond the payload')")
+        pad = "    " if kind == Nodetype.SEQUENCE else ""
+        self.emit(f"{pad}for _ in range({count}):")
+        self.emit(f"{pad}    item, pos = {item}(buf, pos)")
+        self.emit(f"{pad}    {var}.append(item)")
         self.g = 1
         return var
 
@@ -324,6 +326,34 @@ def reader(store: Any, msgtype: str) -> Callable[[bytes], tuple[Any, int]]:
     body.emit(f"return {obj}, pos")
     src.funcs.append(body.lines)
     return src.compile("read")
+
+
+def decoder(store: Any, msgtype: str, error: type[Exception], other: Callable[[bytes], Any],
+            pad_max: int) -> Callable[[bytes], Any]:
+    """``decode(payload) -> message``: ``reader``'s code in one function with its checks around it
+    (a subscription calls it per sample). A payload that is not little-endian CDR goes to
+    ``other``; one the code cannot read, or with more than ``pad_max`` bytes after the message,
+    raises ``error`` saying why."""
+    src = _Source(store)
+    src.ns.update(LE=HEADER_LE[:2], error=error, other=other, MSGTYPE=msgtype)
+    body = _Reader(src, "def decode(buf):", 8)
+    body.emit("if buf[:2] != LE:")
+    body.emit("    return other(buf)")
+    body.emit("try:")
+    body.indent = "        "
+    body.emit("pos = 4")
+    obj = body.message(msgtype)
+    body.flush()
+    body.emit(f"msg = {obj}")
+    body.indent = "    "
+    body.emit("except Exception as exc:  # the code raises several types on truncated or garbage input")
+    body.emit("    raise error(f'payload of {len(buf)} bytes is not a valid {MSGTYPE}: {exc}') from exc")
+    body.emit(f"if pos + {pad_max} < len(buf):")
+    body.emit("    raise error(f'payload of {len(buf)} bytes is not a valid {MSGTYPE}: '")
+    body.emit("                f'{len(buf) - pos} bytes beyond the message')")
+    body.emit("return msg")
+    src.funcs.append(body.lines)
+    return src.compile("decode")
 
 
 def writer(store: Any, msgtype: str) -> Callable[[Any], tuple[list, int]]:

@@ -10,7 +10,7 @@ message are read-only views into it).
 from __future__ import annotations
 
 import sys
-from functools import cache
+from functools import cache, partial
 from pathlib import Path
 from struct import pack_into
 from typing import Any
@@ -70,12 +70,15 @@ def _writer(msgtype: str) -> Any:
 
 
 @cache
-def _reader(msgtype: str) -> Any:
-    _msgdef(msgtype)
+def _decoder_le(msgtype: str) -> Any:
+    """The generated decoder of ``msgtype`` (None: use the typestore's); it hands a payload that
+    is not little-endian to the typestore's."""
+    _msgdef(msgtype)  # an unknown type raises MessageError
     if not LITTLE_ENDIAN:
         return None
     try:
-        return cdr.reader(typestore(), msgtype)
+        return cdr.decoder(typestore(), msgtype, MessageError, partial(_deserialize_store, msgtype=msgtype),
+                           CDR_PADDING_MAX)
     except cdr.UnsupportedTypeError:
         return None
 
@@ -113,20 +116,25 @@ def serialize(msg: Any, msgtype: str | None = None) -> bytes:
 
 def deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
     """The message in a CDR payload (either byte order); MessageError if it is not one of ``msgtype``."""
-    fast = _reader(msgtype)
+    fast = _decoder_le(msgtype)
+    return fast(data) if fast is not None else _deserialize_store(data, msgtype)
+
+
+def _deserialize_store(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
+    """``deserialize`` through the typestore's codec (a big-endian payload or host, or a type the
+    generator does not handle)."""
     try:
         if len(data) < CDR_HEADER or data[0] != 0 or data[1] > 1:
             raise ValueError("invalid or unsupported CDR encapsulation")
-        if data[1] and fast is not None:
-            msg, end = fast(data)
-        else:
-            d = _msgdef(msgtype)
-            read = d.deserialize_cdr_le if data[1] else d.deserialize_cdr_be
-            msg, end = read(memoryview(data)[CDR_HEADER:], 0, d.cls, typestore())
-            end += CDR_HEADER
+        d = _msgdef(msgtype)
+        read = d.deserialize_cdr_le if data[1] else d.deserialize_cdr_be
+        msg, end = read(memoryview(data)[CDR_HEADER:], 0, d.cls, typestore())
+        end += CDR_HEADER
         if end + CDR_PADDING_MAX < len(data):
             raise ValueError(f"{len(data) - end} bytes beyond the message")
-    except Exception as exc:  # the generated code raises several types on truncated or garbage input
+    except MessageError:
+        raise
+    except Exception as exc:  # the typestore's code raises several types on truncated or garbage input
         raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
     return msg
 
@@ -134,23 +142,9 @@ def deserialize(data: bytes | bytearray | memoryview, msgtype: str) -> Any:
 @cache
 def decoder(msgtype: str) -> Any:
     """``deserialize`` for one type, looked up once (a subscription's per-key decoder): the
-    generated reader called straight for a little-endian payload."""
-    read = _reader(msgtype)
-    if read is None:
-        return lambda data: deserialize(data, msgtype)
-
-    def decode(data: bytes) -> Any:
-        if data[:2] != b"\x00\x01":
-            return deserialize(data, msgtype)  # big endian or garbage: the slow path says which
-        try:
-            msg, end = read(data)
-        except Exception as exc:  # the generated code raises several types on truncated or garbage input
-            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: {exc}") from exc
-        if end + CDR_PADDING_MAX < len(data):
-            raise MessageError(f"payload of {len(data)} bytes is not a valid {msgtype}: "
-                               f"{len(data) - end} bytes beyond the message")
-        return msg
-    return decode
+    generated decoder itself for a type it handles."""
+    fast = _decoder_le(msgtype)
+    return fast if fast is not None else partial(_deserialize_store, msgtype=msgtype)
 
 
 def schema_text(msgtype: str) -> str:

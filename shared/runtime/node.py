@@ -39,10 +39,10 @@ import zenoh
 from shared import keys as keyreg
 from shared import msgs
 from shared.ports import QueuePolicy, fifo, latest
-from shared.runtime import schemas, shm, validate
+from shared.runtime import inbound, schemas, shm
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
-from shared.runtime.stats import RateMeter, Stats
+from shared.runtime.stats import RateMeter, Stats, Tally
 from shared.wiring import Binding
 
 __all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
@@ -68,21 +68,22 @@ class Publisher:
         self.meter = node.stats.published.setdefault(key, RateMeter())
         self.shm_sent = 0  # payloads put from the shared-memory pool
         self._pool_min = shm.MIN_BYTES if msgtype in shm.POOL_TYPES else float("inf")
+        self._put, self._tick = self._pub.put, self.meter.tick  # bound once: put runs per message
 
     def put(self, msg: Any) -> None:
         pieces, size = self._write(msg)
-        if size >= self._pool_min:
-            self._put_large(pieces, size)
+        if size < self._pool_min:
+            self._put(b"".join(pieces))
         else:
-            self._pub.put(b"".join(pieces))
-        self.meter.tick(time.monotonic())
+            self._put_large(pieces, size)
+        self._tick(time.monotonic())
 
     def put_bytes(self, payload: bytes) -> None:
-        if len(payload) >= self._pool_min:
-            self._put_large([payload], len(payload))
+        if len(payload) < self._pool_min:
+            self._put(payload)
         else:
-            self._pub.put(payload)
-        self.meter.tick(time.monotonic())
+            self._put_large([payload], len(payload))
+        self._tick(time.monotonic())
 
     def _put_large(self, pieces: list, size: int) -> None:
         buf, why = shm.POOL.buffer(pieces, size)
@@ -110,7 +111,7 @@ class Subscription:
             maxlen=policy.depth if policy.kind == "latest" else None)
         self._lock = threading.Lock()
         self._scheduled = False
-        self._whole_batches = policy.kind == "fifo" or policy.depth == 1
+        self._whole_batches = policy.kind == "fifo"  # keep-latest pops one at a time (no new queue per batch)
         # fifo: every sample is handled, so it is decoded on arrival (Zenoh thread) and queued decoded
         self._decoded = policy.kind == "fifo"
         self._loop = node.loop
@@ -118,15 +119,18 @@ class Subscription:
         self._is_async = inspect.iscoroutinefunction(handler)
         self._wake = asyncio.Event()
         self._task = node.spawn(self._dispatch(), name=f"sub:{key_expr}") if self._is_async else None
-        # Per key: samples that arrived, and those the queue policy discarded (Zenoh thread, under _lock).
-        self.arrived: collections.Counter[str] = collections.Counter()
+        # Per key: samples that arrived (lock-free tallies) and those the queue policy discarded (under _lock).
+        self._arrived: dict[str, Tally] = {}
         self.dropped: collections.Counter[str] = collections.Counter()
         # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
         self.refused: dict[str, dict[str, str]] = {}
-        self._keys: dict[str, tuple] = {}  # key -> what decoding needs (_key)
+        # key -> [count an arrival, take(payload) -> message or None]: one lookup per sample (_new_key)
+        self._keys: dict[str, list] = {}
         self._types = (None if msgtype == "raw" else
                        node.session.liveliness().declare_subscriber(schemas.watch_expr(key_expr), self._on_type,
                                                                     history=True))
+        self._exact = inbound.exact_key(key_expr)  # a single key: samples need not spell theirs out
+        self._on_inline, self._on_sample = self._inline_callback(), self._queue_callback()
         self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
 
     # Zenoh thread: a publisher's type token came or went.
@@ -156,48 +160,61 @@ class Subscription:
         self._node.reject(key, "type_mismatch", next(iter(why.values()), ""))
         return True
 
-    # Zenoh thread, inline: decode, validate and handle at once.
-    def _on_inline(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        with self._lock:
-            self.arrived[key] += 1
-        if self.refused and self._refuse(key):
-            return
-        msg = self._decode(key, sample.payload.to_bytes())
-        if msg is not None:
-            try:
-                self._handler(msg, key) if self._wants_key else self._handler(msg)
-            except Exception as exc:  # a handler bug must not kill the subscription
-                self._node.handler_failed(key, exc)
+    # The Zenoh callbacks run per sample: what they use is bound once, when they are built.
 
-    # Zenoh thread: copy (and for a fifo, decode) and hand over.
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
-        if self.refused and self._refuse(key):
-            with self._lock:
-                self.arrived[key] += 1
-            return
-        item = self._decode(key, payload) if self._decoded else payload
-        with self._lock:
-            queue = self._queue
-            self.arrived[key] += 1
-            if item is None:  # rejected on arrival (counted by _decode)
+    def _inline_callback(self) -> Callable[[zenoh.Sample], None]:
+        """Zenoh thread, inline: decode, validate and handle at once."""
+        keys, new_key, refused, refuse = self._keys, self._new_key, self.refused, self._refuse
+        handler, wants_key, failed, exact = self._handler, self._wants_key, self._node.handler_failed, self._exact
+
+        def on_inline(sample: zenoh.Sample) -> None:
+            key = exact or str(sample.key_expr)
+            arrive, take = keys.get(key) or new_key(key)
+            arrive()
+            if refused and refuse(key):
                 return
-            if len(queue) >= self.policy.depth:
-                if self.policy.kind == "fifo":
-                    self.dropped[key] += 1  # the newest is refused
-                    self._node.stats.count("queue_overflow")  # the recorder reports this total
+            msg = take(sample.payload.to_bytes())
+            if msg is not None:
+                try:
+                    handler(msg, key) if wants_key else handler(msg)
+                except Exception as exc:  # a handler bug must not kill the subscription
+                    failed(key, exc)
+        return on_inline
+
+    def _queue_callback(self) -> Callable[[zenoh.Sample], None]:
+        """Zenoh thread: copy (and for a fifo, decode), queue by the policy, wake the loop once per batch."""
+        keys, new_key, refused, refuse, exact = self._keys, self._new_key, self.refused, self._refuse, self._exact
+        decoded, lock, queue_dropped = self._decoded, self._lock, self.dropped
+        depth, fifo_policy, count = self.policy.depth, self.policy.kind == "fifo", self._node.stats.count
+        wake, call_soon = self._wake.set if self._is_async else self._drain, self._loop.call_soon_threadsafe
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = exact or str(sample.key_expr)
+            arrive, take = keys.get(key) or new_key(key)
+            arrive()
+            payload = sample.payload.to_bytes()  # a copy now: a shared-memory buffer goes back to its pool at once
+            if refused and refuse(key):
+                return
+            item = take(payload) if decoded else payload
+            if item is None:  # rejected on arrival (counted by take)
+                return
+            with lock:
+                queue = self._queue  # _drain swaps in a new queue
+                if len(queue) >= depth:
+                    if fifo_policy:
+                        queue_dropped[key] += 1  # the newest is refused
+                        count("queue_overflow")  # the recorder reports this total
+                        return
+                    queue_dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
+                queue.append((key, item))
+                if self._scheduled:
                     return
-                self.dropped[queue[0][0]] += 1  # keep-latest: the oldest gives way
-            queue.append((key, item))
-            if self._scheduled:
-                return
-            self._scheduled = True
-        try:
-            self._loop.call_soon_threadsafe(self._wake.set if self._is_async else self._drain)
-        except RuntimeError:  # loop closed during shutdown
-            pass
+                self._scheduled = True
+            try:
+                call_soon(wake)
+            except RuntimeError:  # loop closed during shutdown
+                pass
+        return on_sample
 
     def _drain(self) -> None:
         lock, handler, wants_key, failed = self._lock, self._handler, self._wants_key, self._node.handler_failed
@@ -208,7 +225,7 @@ class Subscription:
                     return
                 if self._whole_batches:  # what is queued now, at once: nothing in it could still give way
                     batch, self._queue = self._queue, collections.deque(maxlen=self._queue.maxlen)
-                else:  # keep-latest(n > 1): one at a time, newer samples push out older ones meanwhile
+                else:  # keep-latest: one at a time, newer samples push out older ones meanwhile
                     batch = (self._queue.popleft(),)
             if self._decoded:
                 for key, msg in batch:
@@ -217,44 +234,32 @@ class Subscription:
                     except Exception as exc:  # a handler bug must not kill the subscription
                         failed(key, exc)
                 continue
+            keys = self._keys
             for key, payload in batch:
-                msg = self._decode(key, payload)
+                msg = keys[key][1](payload)
                 if msg is not None:
                     try:
                         handler(msg, key) if wants_key else handler(msg)
                     except Exception as exc:  # a handler bug must not kill the subscription
                         failed(key, exc)
 
-    def _key(self, key: str) -> tuple:
-        """What decoding a sample on ``key`` needs, looked up on its first sample: its received
-        meter, type, size limit, decoder and whether it has a header stamp to check."""
-        msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
-        try:
-            decode, stamped = msgs.decoder(msgtype), "header" in msgs.msg_class(msgtype).__dataclass_fields__
-        except msgs.MessageError:  # an unknown type: every sample is rejected, as malformed
-            decode, stamped = functools.partial(msgs.deserialize, msgtype=msgtype), False
-        self._keys[key] = (self._node.stats.received_meter(key), msgtype, validate.max_payload(msgtype), decode,
-                           stamped)
-        return self._keys[key]
+    def _new_key(self, key: str) -> list:
+        """The entry of a key heard for the first time; its decoder is built on its first sample
+        that is not refused (a refused key gets no received meter)."""
+        with self._lock:
+            if key not in self._keys:
+                tally = self._arrived[key] = Tally()
+                self._keys[key] = [tally.add, functools.partial(self._first_take, key)]
+            return self._keys[key]
 
-    def _decode(self, key: str, payload: bytes) -> Any:
-        meter, msgtype, limit, decode, stamped = self._keys.get(key) or self._key(key)
-        meter.tick(time.monotonic())
-        if msgtype == "raw":
-            return payload
-        try:
-            if len(payload) > limit:
-                validate.check_size(len(payload), msgtype)
-            msg = decode(payload)
-            clock = self._node.clock
-            validate.check(msg, msgtype, clock.reference() if stamped else None)
-        except msgs.MessageError as exc:
-            self._node.reject(key, "malformed", str(exc))
-            return None
-        except validate.RejectedError as exc:
-            self._node.reject(key, exc.reason, exc.detail)
-            return None
-        return msg
+    def _first_take(self, key: str, payload: bytes) -> Any:
+        take = self._keys[key][1] = self._taker(key)
+        return take(payload)
+
+    def _taker(self, key: str) -> Callable[[bytes], Any]:
+        msgtype = self.msgtype or keyreg.msgtype_of(key) or ""
+        return inbound.taker(key, msgtype, self._node.stats.received_meter(key).tick, self._node.clock,
+                             self._node.reject)
 
     async def _dispatch(self) -> None:
         while True:
@@ -270,7 +275,7 @@ class Subscription:
                 await self._deliver(key, item)
 
     async def _deliver(self, key: str, item: Any) -> None:
-        msg = item if self._decoded else self._decode(key, item)
+        msg = item if self._decoded else self._keys[key][1](item)
         if msg is None:
             return
         try:
@@ -281,7 +286,7 @@ class Subscription:
     def counts(self) -> tuple[dict[str, int], dict[str, int]]:
         """(arrived, dropped by the queue policy) per key, a consistent snapshot."""
         with self._lock:
-            return dict(self.arrived), dict(self.dropped)
+            return {k: t.value for k, t in self._arrived.items()}, dict(self.dropped)
 
     def close(self) -> None:
         self._sub.undeclare()

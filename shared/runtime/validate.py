@@ -50,7 +50,44 @@ def check_size(payload_len: int, msgtype: str) -> None:
 def check(msg: Any, msgtype: str, now: float | None) -> None:
     """Raises ``RejectedError`` for a decoded message that is not fit to use; ``now`` is the receiver's
     clock (None: not started, stamps are not checked)."""
-    path = _first_non_finite(msg, msgtype)
+    run = checker(msgtype)
+    if run is not None:
+        run(msg, now)
+
+
+Check = Callable[[Any, "float | None"], None]
+
+
+@functools.cache
+def checker(msgtype: str) -> Check | None:
+    """``check`` for one type, built once (a subscription looks it up per key): only the checks the
+    type can fail, in ``check``'s order; None when it has nothing to check (no float, no length
+    rule, no stamp), so most small messages pay nothing."""
+    try:
+        finite = _finite_checker(msgtype)
+        fields = {name for name, _ in msgs.typestore().get_msgdef(msgtype).fields}
+    except KeyError:  # a type the store does not know: walked field by field, header if it has one
+        return functools.partial(_check_any, msgtype=msgtype)
+    rule = LENGTH_RULES.get(msgtype)
+    header = "header" in fields
+    clock = msgtype == "rosgraph_msgs/msg/Clock"
+    if finite is None and rule is None and not header and not clock:
+        return None
+
+    def run(msg: Any, now: float | None) -> None:
+        if finite is not None and (path := finite(msg, "")) is not None:
+            raise RejectedError("non_finite", f"NaN or infinite value in {path}")
+        if rule is not None:
+            rule(msg)
+        if header:
+            _check_stamp(msg.header.stamp, now)
+        elif clock and msg.clock.nanosec >= 1_000_000_000:
+            raise RejectedError("bad_value", f"clock nanosec {msg.clock.nanosec} >= 1e9")
+    return run
+
+
+def _check_any(msg: Any, now: float | None, msgtype: str) -> None:
+    path = _walk_non_finite(msg, msgtype)
     if path is not None:
         raise RejectedError("non_finite", f"NaN or infinite value in {path}")
     rule = LENGTH_RULES.get(msgtype)
@@ -58,19 +95,20 @@ def check(msg: Any, msgtype: str, now: float | None) -> None:
         rule(msg)
     header = getattr(msg, "header", None)
     if header is not None:
-        stamp = header.stamp
-        if stamp.nanosec >= 1_000_000_000:
-            raise RejectedError("bad_value", f"stamp nanosec {stamp.nanosec} >= 1e9")
-        if now is not None:
-            t = stamp.sec + stamp.nanosec * 1e-9
-            if t > now + FUTURE_S:
-                raise RejectedError("future_stamp", f"stamp {t:.3f} s is {t - now:.3f} s ahead of the clock "
-                                    f"({now:.3f})")
-            if t < now - STALE_S:
-                raise RejectedError("stale_stamp", f"stamp {t:.3f} s is {now - t:.3f} s behind the clock "
-                                    f"({now:.3f})")
-    elif msgtype == "rosgraph_msgs/msg/Clock" and msg.clock.nanosec >= 1_000_000_000:
-        raise RejectedError("bad_value", f"clock nanosec {msg.clock.nanosec} >= 1e9")
+        _check_stamp(header.stamp, now)
+
+
+def _check_stamp(stamp: Any, now: float | None) -> None:
+    if stamp.nanosec >= 1_000_000_000:
+        raise RejectedError("bad_value", f"stamp nanosec {stamp.nanosec} >= 1e9")
+    if now is not None:
+        t = stamp.sec + stamp.nanosec * 1e-9
+        if t > now + FUTURE_S:
+            raise RejectedError("future_stamp", f"stamp {t:.3f} s is {t - now:.3f} s ahead of the clock "
+                                f"({now:.3f})")
+        if t < now - STALE_S:
+            raise RejectedError("stale_stamp", f"stamp {t:.3f} s is {now - t:.3f} s behind the clock "
+                                f"({now:.3f})")
 
 
 def _first_non_finite(msg: Any, msgtype: str) -> str | None:
