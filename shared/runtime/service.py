@@ -106,7 +106,7 @@ def process_age() -> float | None:
 def warm_codecs(msgtypes: set[str]) -> None:
     """Build the codecs and schema hashes of these message types now (each is cached)."""
     for msgtype in sorted(msgtypes):
-        if msgtype.startswith("xm_") or "/msg/" in msgtype:
+        if "/msg/" in msgtype:  # a registered type, not "raw"
             msgs.decoder(msgtype)
             msgs.pieces_writer(msgtype)
             type_hash(msgtype)

@@ -38,9 +38,9 @@ pytestmark = [pytest.mark.browser,
 
 PAGE_TEXT = "document.body ? document.body.innerText : ''"
 WAIT = 180  # seconds for anything the page shows: tens of seconds per DevTools call on a loaded host
-PATIENCE_S = 240.0  # one DevTools call: software WebGL on a loaded 2-core host can hold the page's thread that long
-ROW = "(label) => [...document.querySelectorAll('label')].find(l => l.textContent.trim() === label)" \
-      "?.closest('.mantine-Flex-root')"
+PATIENCE_S = 240.0  # one DevTools call: software WebGL on a loaded 2-core host may hold the page that long
+LABEL = "[...document.querySelectorAll('label')]"
+ROW = f"(l) => {LABEL}.find(e => e.textContent.trim() === l)?.closest('.mantine-Flex-root')"
 
 
 def world_session() -> object:
@@ -48,9 +48,8 @@ def world_session() -> object:
                      phase="approach", tactile_hand="right", seed_layout='{"cup": [0.1, 0.0]}')
 
 
-# Mouse events are dispatched from the page's JavaScript (as the panel's own browser test clicks):
-# the DevTools Input domain waits for the renderer to take the event, which on a loaded 2-core host
-# with software WebGL was seen to take over 90 s.
+# Mouse events are dispatched from the page's JavaScript: the DevTools Input domain waits for the
+# renderer to take the event, over 90 s on a loaded 2-core host with software WebGL.
 PRESS = """(el) => {{ if (!el) return false; el.scrollIntoView({{block: 'center'}});
   const r = el.getBoundingClientRect();
   const o = {{bubbles: true, cancelable: true, view: window, button: 0, buttons: 1,
@@ -61,8 +60,7 @@ PRESS = """(el) => {{ if (!el) return false; el.scrollIntoView({{block: 'center'
 
 
 def press(browser: Chromium, element_js: str) -> bool:
-    """Press and release the mouse on the middle of the element ``element_js`` evaluates to; False
-    when there is no such element."""
+    """Press and release the mouse on the element ``element_js`` evaluates to; False if there is none."""
     return browser.evaluate(f"({PRESS.format()})({element_js})", PATIENCE_S)
 
 
@@ -173,15 +171,13 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         type_into(browser, "teacher", "ada")
         wait_until(lambda: value_of(browser, "teacher") == "ada", WAIT, "the typed teacher")
         choose(browser, "glove hand", "left")
-        # The page sends typed values debounced: a click that overtakes them starts the session with
-        # the old ones (the line says so), and a second press starts it again with the values it has now.
+        # Typed values are sent debounced: a click that overtakes them starts with the old ones; press again.
         line = "teacher ada, glove on the left hand, 0 demonstrations"
         for _ in range(3):
             click_button(browser, "Start session")
             if wait_for(lambda: line in page_text(browser), WAIT / 3):
                 break
-        wait_until(lambda: line in page_text(browser), WAIT,
-                   lambda: f"the session line; page: {page_text(browser)[:800]}", period=0.3)
+        assert line in page_text(browser), f"the session line; page: {page_text(browser)[:800]}"
 
         # 2. two demonstrations, each one recording with a label, layout and outcome
         demos = []
@@ -406,8 +402,7 @@ def neural_simulation(browser: Chromium, session, requests: list, tmp_path: Path
 
 
 def stand_in_world(session, requests: list) -> list:
-    """The world's @cmd/reset, @cmd/mode and @cmd/outcome (the real ones:
-    tests/contract/test_pipeline_services.py); its success test reports a seated module."""
+    """The world's @cmd/reset, @cmd/mode and @cmd/outcome; its success test reports a seated module."""
     def answer(verb: str, query) -> None:
         req = json.loads((query.payload.to_bytes() if query.payload is not None else b"") or b"{}")
         requests.append((verb, req))
