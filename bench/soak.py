@@ -20,9 +20,10 @@ every key, RSS growth <= 10 %, 0 spurious brakes.
 On a host shared with other work, ``--autogroup-nice -10`` keeps that work from distorting the
 figures: the soak, the cell (every service, spare and restarted process) and its hog share the
 CPU as if they had the host to themselves. Linux schedules each session (``setsid``; every
-service is one) as an autogroup, so ``nice`` does not reach across them; the soak writes the
-value into ``/proc/<pid>/autogroup`` of each of its processes, and again for every process the
-supervisor starts later (root, or a negative value needs CAP_SYS_NICE).
+service is one) as an autogroup, so ``nice`` does not reach across them; the soak moves
+``/proc/<pid>/autogroup`` of each of its processes by that many nice values, once, and so every
+process the supervisor starts later (root, or a negative value needs CAP_SYS_NICE). A shift, not a
+value: the world's own boost over the services (``cpu_share_boost``) stays.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ from _soak_report import (  # noqa: E402
 
 from deploy.supervisor import query_json  # noqa: E402
 from shared import keys  # noqa: E402
+from shared.realtime import shift_autogroup  # noqa: E402
 from shared.recording_files import recording_segments  # noqa: E402
 from shared.runtime import open_client  # noqa: E402
 
@@ -81,24 +83,21 @@ def descendants(roots: list[int]) -> set[int]:
     return seen
 
 
-def set_autogroup_nice(pids: set[int], nice: int) -> int:
-    """Writes ``nice`` into each process's autogroup (Linux); returns how many were changed."""
-    changed = 0
-    for pid in pids:
-        path = Path(f"/proc/{pid}/autogroup")
-        try:
-            if path.read_text().split()[-1] != str(nice):
-                path.write_text(str(nice))
-                changed += 1
-        except (OSError, IndexError):
-            pass  # exited, or not Linux
-    return changed
+def shift_autogroups(pids: set[int], steps: int, done: set[int]) -> int:
+    """Moves each process's autogroup ``steps`` nice values, once per process (``done``), so a
+    service that raised its own share (the world) stays ahead of the others; returns how many moved."""
+    moved = 0
+    for pid in pids - done:
+        done.add(pid)
+        moved += shift_autogroup(pid, steps) is not None
+    return moved
 
 
-def autogroup_keeper(roots: list[int], nice: int, stop: threading.Event, result: dict) -> None:
+def autogroup_keeper(roots: list[int], steps: int, stop: threading.Event, result: dict) -> None:
     """Boosts the soak's process tree every 0.5 s, so restarted services and new spares follow."""
+    done: set[int] = set()
     while not stop.is_set():
-        result["processes_set"] += set_autogroup_nice(descendants(roots), nice)
+        result["processes_set"] += shift_autogroups(descendants(roots), steps, done)
         stop.wait(0.5)
 
 
@@ -332,8 +331,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
                         help="a service not publishing again this long after its kill is stuck")
     parser.add_argument("--autogroup-nice", type=int, metavar="N",
-                        help="run the soak, the cell and its hog in autogroups of this nice value (-20..19; "
-                        "e.g. -10 on a host shared with other work; Linux, see above)")
+                        help="move the autogroups of the soak, the cell and its hog by this many nice values "
+                        "(e.g. -10 on a host shared with other work; Linux, see above)")
     parser.add_argument("--out", default=str(ROOT / ".bench/soak.json"))
     args = parser.parse_args(argv)
 
@@ -353,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     monitor = None
     boost_stop = threading.Event()
     if args.autogroup_nice is not None:
-        report["autogroup_nice"] = {"nice": args.autogroup_nice, "processes_set": 0}
+        report["autogroup_nice"] = {"shift": args.autogroup_nice, "processes_set": 0}
         threading.Thread(target=autogroup_keeper, args=([os.getpid()], args.autogroup_nice, boost_stop,
                                                         report["autogroup_nice"]), daemon=True).start()
     try:

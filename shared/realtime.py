@@ -109,6 +109,41 @@ def raise_process_priority(what: str, log: logging.Logger, nice: int = FALLBACK_
     return raised
 
 
+def autogroup_nice(pid: int | str = "self") -> int | None:
+    """The nice value of a process's autogroup (Linux), or None where there is none to read."""
+    try:
+        return int(Path(f"/proc/{pid}/autogroup").read_text().split()[-1])  # "/autogroup-123 nice 0"
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def shift_autogroup(pid: int | str, steps: int) -> int | None:
+    """Moves a process's autogroup ``steps`` nice values (negative: a larger CPU share), clamped to
+    -20..19; returns the new value, or None where the OS refused or has no autogroups."""
+    current = autogroup_nice(pid)
+    if current is None:
+        return None
+    target = min(19, max(-20, current + steps))
+    try:
+        Path(f"/proc/{pid}/autogroup").write_text(str(target))
+    except OSError:
+        return None
+    return target
+
+
+def raise_cpu_share(what: str, log: logging.Logger, steps: int) -> None:
+    """A larger CPU share for this whole process against the host's other processes: its autogroup
+    (Linux schedules each session as one, and every service is its own session) ``steps`` nice values
+    lower, and its threads at nice ``-steps`` where autogroups are off. Logs what it got."""
+    group = shift_autogroup("self", -steps)
+    raise_process_priority(what, log, nice=-steps)
+    if group is None:
+        log.warning("%s: its autogroup keeps its CPU share (not permitted or not Linux): under CPU load it "
+                    "may fall behind the services", what)
+    else:
+        log.info("%s: autogroup at nice %d", what, group)
+
+
 def thread_schedstat() -> tuple[float, int]:
     """The calling thread's seconds spent runnable but waiting for a CPU, and how many times it has
     been put on a CPU (the kernel's schedstat; (0.0, 0) where it is not available). A thread that

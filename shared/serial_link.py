@@ -41,6 +41,9 @@ class SerialLink:
         self._on_state = on_state  # (connected, gap_seconds), on the event loop
         self._ser: serial.Serial | None = None
         self._lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self._unsent = b""  # the tail of a frame the port took in part
+        self.writes_refused = 0
         self._lost_at: float | None = time.monotonic()
         self.connects = 0
         self.disconnects = 0
@@ -70,8 +73,8 @@ class SerialLink:
             ser = serial.Serial(self.port, self.baudrate, timeout=0, write_timeout=0)
         except (serial.SerialException, OSError):
             return
-        with self._lock:
-            self._ser = ser
+        with self._lock, self._write_lock:
+            self._ser, self._unsent = ser, b""  # a frame's tail for the old port would garble the new one
         self.connects += 1
         gap = time.monotonic() - self._lost_at if self._lost_at is not None else 0.0
         if self.connects > 1:
@@ -108,15 +111,35 @@ class SerialLink:
                 log.exception("serial data handler failed", extra={"fields": {"port": self.port}})
 
     def write(self, data: bytes) -> bool:
+        """Hands ``data`` to the port without waiting; False when it could not take all of it.
+
+        A port whose buffer is full (the device or, in the sim, the world is not reading) takes what
+        fits: the rest of a frame it took in part goes out first at the next write, and a frame it
+        cannot start is dropped and counted (``writes_refused``), since the next command supersedes
+        it. pyserial's own non-blocking write retries a full port in a loop: a real-time command
+        thread spinning there kept the reading side from the CPU it needed to drain the port."""
         ser = self._ser
         if ser is None:
             return False
-        try:
-            ser.write(data)
-            return True
-        except (serial.SerialException, OSError, serial.SerialTimeoutException, TypeError, ValueError):
-            self._lose(ser, "write failed")
-            return False
+        with self._write_lock:
+            try:
+                if self._unsent:
+                    self._unsent = self._unsent[os.write(ser.fileno(), self._unsent):]
+                    if self._unsent:
+                        self.writes_refused += 1
+                        return False
+                sent = os.write(ser.fileno(), data)
+            except BlockingIOError:
+                self.writes_refused += 1
+                return False
+            except (OSError, ValueError, TypeError):  # hang-up, or closed under us
+                self._unsent = b""
+                failed = True
+            else:
+                self._unsent, failed = data[sent:], False
+        if failed:
+            self._lose(ser, "write failed")  # outside the write lock: _try_open takes both
+        return not failed
 
     def _lose(self, ser: serial.Serial, why: str) -> None:
         """Close ``ser`` if it is still the open port (any thread)."""
@@ -141,6 +164,7 @@ class SerialLink:
         return {"connected": self.connected, "connects": self.connects, "disconnects": self.disconnects,
                 "last_gap_s": round(self.last_gap_s, 4), "reads": self.reads, "bytes_read": self.bytes_read,
                 "max_read_bytes": self.max_read, "callback_errors": self.callback_errors,
+                "writes_refused": self.writes_refused,
                 "reader_priority": self.priority}
 
     def close(self) -> None:

@@ -9,6 +9,7 @@ motor efforts to MuJoCo, watchdog braking on host silence.
 from __future__ import annotations
 
 import collections
+import logging
 import os
 import subprocess
 import sys
@@ -24,6 +25,8 @@ from services.robot.safety import Limits
 from services.world.arrival_stamper import HEADER
 from services.world.pty_device import PtyDevice
 from shared.protocols import robot_board, tactile
+
+log = logging.getLogger("xm")
 
 STAMPER = Path(__file__).with_name("arrival_stamper.py")
 
@@ -151,6 +154,43 @@ class GloveDevice:
         self.pty.close()
 
 
+class HoldLog:
+    """Pure: the episodes in which the world held its clock for the robot's wire (consecutive steps
+    ``BoardDevice.step`` refused), so a pause of the whole cell can be traced to the pty. A hold of
+    ``LONG_S`` or more is logged with how old the stamper's horizon was when it began."""
+
+    LONG_S = 0.1
+
+    def __init__(self) -> None:
+        self.count = self.long = 0
+        self.longest_s = 0.0
+        self.last_long: dict | None = None
+        self._began: tuple[float, float | None] | None = None  # (wall, horizon) at the first refused step
+
+    def waiting(self, now: float, horizon: float | None) -> None:
+        if self._began is None:
+            self._began = (now, horizon)
+
+    def stepped(self, now: float, horizon: float | None) -> None:
+        if self._began is None:
+            return
+        (began, horizon0), self._began = self._began, None
+        held = now - began
+        self.count += 1
+        self.longest_s = max(self.longest_s, held)
+        if held >= self.LONG_S:
+            self.long += 1
+            self.last_long = {"held_s": round(held, 4), "at": round(began, 3),
+                              "horizon_age_s": None if horizon0 is None else round(began - horizon0, 4),
+                              "horizon_moved_s": None if horizon is None or horizon0 is None
+                              else round(horizon - horizon0, 4)}
+            log.warning("world held for the robot's wire", extra={"fields": self.last_long})
+
+    def stats(self) -> dict:
+        return {"count": self.count, f"over_{int(self.LONG_S * 1000)}ms": self.long,
+                "longest_s": round(self.longest_s, 4), "last_long": self.last_long}
+
+
 class BoardDevice:
     """SIMULATED control board on a pty.
 
@@ -184,6 +224,7 @@ class BoardDevice:
         self.horizon: float | None = None  # wall time up to which every byte the host wrote has arrived
         self._kick: tuple[float, float] | None = None  # the last command's (board time, wall stamp)
         self.waits = 0  # steps held back for the wire
+        self.holds = HoldLog()
         self._last_stamp = float("-inf")  # stamp of the latest bytes from the host
         self._batch: list = []  # frames since the last horizon, and when the last of them was read
         self._batch_upper = float("-inf")
@@ -272,7 +313,9 @@ class BoardDevice:
             self.board.receive(msg, at)
         if sim_time_of is not None and self._undecided(sim.time, sim_time_of, now):
             self.waits += 1
+            self.holds.waiting(now, self.horizon)
             return False
+        self.holds.stepped(now, self.horizon)
         self.pty.flush()
         q, qd = sim.joint_state()
         efforts, feedback = self.board.step(sim.time, q, qd, sim.physics_dt)
@@ -312,7 +355,7 @@ class BoardDevice:
                 "watchdog_brakes": self.board.counters["brake_events"],
                 "limit_brakes": self.board.counters["limit_brakes"], "last_brake": self.board.last_brake,
                 "brakes_after": self.board.brakes_after,
-                "waits_for_wire": self.waits,
+                "waits_for_wire": self.waits, "wire_holds": self.holds.stats(),
                 "wire_lag_s": None if self.horizon is None else round(time.monotonic() - self.horizon, 4),
                 "muscle_pressure_max_bar": float(self.board.pressure.max()),
                 **{f"rx_{k}": v for k, v in self.decoder.stats.items()}}

@@ -23,11 +23,34 @@ from services.world.sim import WorldSim
 from shared import msgs
 from shared.charuco import BoardSpec
 from shared.demo import HAND_NAMES
+from shared.realtime import raise_cpu_share, thread_schedstat
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
 
 SNAPSHOT_KEY = "xm/world/sim/@snapshot"
 WIRE_WAIT_S = 0.0005  # how often a step held back for the robot's pty asks again
+
+
+class GapMeter:
+    """Pure: the longest wall-time gap between two clock messages, how long after the first one it
+    began, and how much of it the world's thread spent runnable but waiting for a CPU (the kernel's
+    run delay): a world starved by the host shows here, one that stalled itself does not."""
+
+    def __init__(self) -> None:
+        self.first: float | None = None
+        self.last: tuple[float, float] | None = None  # (wall, cumulative run delay)
+        self.longest = (0.0, 0.0, 0.0)  # (gap, began after first, waited for a CPU)
+
+    def sent(self, now: float, run_delay: float) -> None:
+        if self.last is None:
+            self.first = now
+        elif now - self.last[0] > self.longest[0]:
+            self.longest = (now - self.last[0], self.last[0] - self.first, run_delay - self.last[1])
+        self.last = (now, run_delay)
+
+    def stats(self) -> dict:
+        gap, began, waited = self.longest
+        return {"longest_s": round(gap, 4), "began_after_s": round(began, 3), "waited_for_cpu_s": round(waited, 4)}
 
 
 class WorldService:
@@ -43,6 +66,10 @@ class WorldService:
         truth_rate_hz: float = 50.0
         clock_rate_hz: float = 100.0
         tick_s: float = 0.006
+        # The world stands in for physics, which never waits for a CPU: on a busy host it runs this many
+        # nice values ahead of the services (after a restart every service catches up at once, and a
+        # world that waited behind them stopped the cell's clock for a second).
+        cpu_share_boost: int = 5
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -62,6 +89,7 @@ class WorldService:
         self._last_session: tuple | None = None
         self._due = {"clock": 0.0, "truth": 0.0, "session": 0.0}
         self._repace = False  # set by a reset: pace real time from the new simulated time
+        self._clock_gaps = GapMeter()
         node.queryable("reset", self.cmd_reset)
         node.queryable("mode", self.cmd_mode)
         node.queryable("outcome", self.cmd_outcome)
@@ -70,6 +98,8 @@ class WorldService:
         self._calib_key: tuple | None = None
         self._calib_poses: list[np.ndarray] = []
         node.health_extra = self._health
+        if params.cpu_share_boost > 0:
+            raise_cpu_share("world", node.log, params.cpu_share_boost)
 
     # --- control queryables -------------------------------------------------------------
     def cmd_reset(self, req: dict) -> dict:
@@ -125,6 +155,7 @@ class WorldService:
 
     def _health(self) -> dict:
         return {"sim_time": self.sim.time, "realtime_ratio": round(self._rt_ratio, 3),
+                "clock_gap": self._clock_gaps.stats(),
                 "devices": {**{f"glove/{g.hand}": g.stats() for g in self.gloves},
                             **({"robot": self.board.stats()} if self.board else {})}}
 
@@ -178,6 +209,7 @@ class WorldService:
         if t >= due["clock"]:
             due["clock"] = t + 1.0 / self.p.clock_rate_hz - 1e-9
             self.clock_pub.put(msgs.make("rosgraph_msgs/msg/Clock", clock=msgs.stamp(t)))
+            self._clock_gaps.sent(time.monotonic(), thread_schedstat()[0])
         forces = hands = None
         for i, glove in enumerate(self.gloves):  # each module at its own registers' frame period
             if glove.due(t):

@@ -115,3 +115,4 @@ def test_one_command_after_a_real_silence_still_brakes(tmp_path):
     deliveries = prompt(range(21)) + probes(0.0802, 0.11) + prompt(range(21, 60), delay=0.03)
     device = run(tmp_path, deliveries, until=0.25)
     assert device.board.counters["brake_events"] == 1 and device.board.last_brake["last_command_sequence"] == 20
+

@@ -68,3 +68,30 @@ def test_the_simulated_device_queues_what_the_pty_cannot_take_and_counts_only_fi
     finally:
         port.close()
         dev.close()
+
+
+def test_a_full_port_refuses_a_frame_at_once_and_never_garbles_one(tmp_path):
+    """Nobody reads the device: writes fill the pty, then are refused and counted without waiting (a
+    real-time command thread must not spin on a full port). Once the device drains, what it got is
+    whole frames, in order: the tail of a frame the port took in part went out first."""
+
+    async def go() -> None:
+        dev = PtyDevice(tmp_path / "dev")
+        link = SerialLink(str(tmp_path / "dev"), lambda data: None, retry_s=0.02)
+        runner = asyncio.ensure_future(link.run())
+        await wait_until_async(lambda: link.connected, TIMEOUT, "the link to connect")
+        frame = lambda i: b"<" + bytes([i % 256]) * 997 + b">"  # noqa: E731
+        accepted = [i for i in range(200) if link.write(frame(i))]
+        assert link.writes_refused > 0 and len(accepted) < 200
+        assert link.stats()["writes_refused"] == link.writes_refused
+        got = bytearray()
+        await wait_until_async(lambda: got.extend(dev.read()) or link.write(frame(1000)), TIMEOUT,
+                               "the port to take a frame again")
+        await wait_until_async(lambda: got.extend(dev.read()) or got.endswith(frame(1000)), TIMEOUT,
+                               "the last frame at the device")
+        assert bytes(got) == b"".join(frame(i) for i in [*accepted, 1000])  # whole, in order, no refused part
+        link.close()
+        runner.cancel()
+        dev.close()
+
+    asyncio.run(go())
