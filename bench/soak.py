@@ -407,6 +407,9 @@ def main(argv: list[str] | None = None) -> int:
                     kill["t"] = round(kill.pop("t_kill_mono") - t0, 1)
                     service, instance = kill["service"].split("/")
                     kill["ready_after_start_s"] = ready_after_start(tmp / "run" / "logs" / f"{service}-{instance}.log")
+                    if service == "world":  # the new world's own account: its clock's longest gap, CPU wait
+                        h = monitor.health(f"xm/{service}/{instance}/@health", 1.0)
+                        kill["world_clock_gap"] = h[0].get("clock_gap") if h else None
                     report["kills"].append(kill)
                     save(Path(args.out), {**report, "partial": True, "rss": dict(rss)})  # kept if the run dies
                     print(f"[{kill['t']:7.1f} s] kill -9 {kill['service']}: "
