@@ -36,6 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ANIPOSE_PYTHON = ROOT / ".cache" / "anipose-venv" / "bin" / "python"
 TASK = "assembly"  # the held-out sessions' task (the shipped network's objects)
 THRESHOLD = 0.3  # confidence below which a 2-D detection counts as none (xm detector eval's)
+ERROR_KEYS = ("hand", "obj", "obj_k", "obj_near", "near_all", "cover_h", "cover_o")  # what errors() returns
+NEAR_BANDS = ((0.0, 0.03), (0.03, 0.06), (0.06, np.inf))  # object keypoint to nearest hand keypoint (m)
 BONES = [(0, int(c[0])) for c in CHAINS] + [(int(a), int(b)) for c in CHAINS
                                              for a, b in zip(c[:-1], c[1:], strict=True)]
 
@@ -166,17 +168,47 @@ def first_frames(s: Session, n: int) -> Session:
 
 def errors(recs: list[Reconstruction], s: Session) -> dict:
     """Per keypoint errors (m) of what recon reported, and the shares reported."""
-    hand, obj, obj_k, cover_h, cover_o = [], [], [], [], []
+    hand, obj, obj_k, obj_near, cover_h, cover_o, near_all = [], [], [], [], [], [], []
     for r, truth, present in zip(recs, s.truth, s.present, strict=True):
         nh = r.hands.size // 3
         hm = r.hand_mask.ravel().astype(bool) & present[:nh]
         om = r.object_mask.astype(bool)
+        near = hand_distance(truth[nh:], truth[:nh][present[:nh]])
         hand += list(np.linalg.norm(r.hands.reshape(-1, 3) - truth[:nh], axis=1)[hm])
         obj += list(np.linalg.norm(r.objects - truth[nh:], axis=1)[om])
         obj_k += list(np.flatnonzero(om))
+        obj_near += list(near[om])
+        near_all += list(near)
         cover_h.append(hm.sum() / max(present[:nh].sum(), 1))
         cover_o.append(om.mean())
-    return {"hand": hand, "obj": obj, "obj_k": obj_k, "cover_h": cover_h, "cover_o": cover_o}
+    return {"hand": hand, "obj": obj, "obj_k": obj_k, "obj_near": obj_near, "near_all": near_all,
+            "cover_h": cover_h, "cover_o": cover_o}
+
+
+def hand_distance(objects: np.ndarray, hands: np.ndarray) -> np.ndarray:
+    """Per true object keypoint (K,3): the distance (m) to the nearest true keypoint of a hand in
+    the cell (inf without one)."""
+    if not len(hands):
+        return np.full(len(objects), np.inf)
+    return np.linalg.norm(objects[:, None] - hands[None], axis=-1).min(axis=1)
+
+
+def by_hand_distance(err: dict) -> dict | None:
+    """The object error split by how far the nearest hand is from the true keypoint: per band its
+    reported keypoints, their mean / median error, their share of the error sum, and the share of
+    the band's keypoints reported."""
+    if not err.get("obj"):
+        return None
+    e, d, d_all = np.asarray(err["obj"]), np.asarray(err["obj_near"]), np.asarray(err["near_all"])
+    out = {}
+    for lo, hi in NEAR_BANDS:
+        sel, sel_all = (d >= lo) & (d < hi), (d_all >= lo) & (d_all < hi)
+        name = f"{100 * lo:.0f}-{100 * hi:.0f} cm" if np.isfinite(hi) else f">= {100 * lo:.0f} cm"
+        out[name] = {"reported": int(sel.sum()), "mean_mm": mm(e[sel]),
+                     "median_mm": round(1000 * float(np.median(e[sel])), 2) if sel.any() else None,
+                     "share_of_error_sum": round(float(e[sel].sum() / e.sum()), 3),
+                     "coverage": round(float(sel.sum() / max(sel_all.sum(), 1)), 3)}
+    return out
 
 
 def geometry(recs: list[Reconstruction], uvs: list, P: np.ndarray) -> tuple[list, list]:
@@ -267,6 +299,7 @@ def summary(err: dict, reproj: list, rays: list) -> dict:
             "object_mean_error_mm": mm(err["obj"]),
             "object_median_error_mm": round(1000 * float(np.median(err["obj"])), 2) if err["obj"] else None,
             "object_mean_error_mm_per_keypoint": per_keypoint(err),
+            "object_error_by_hand_distance": by_hand_distance(err),
             "reprojection_px": round(float(np.mean(reproj)), 2) if reproj else None,
             "ray_deviation_mm": mm(rays),
             "coverage": {"hands": round(float(np.mean(err["cover_h"])), 3),

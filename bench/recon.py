@@ -157,17 +157,19 @@ def run_images(args: argparse.Namespace) -> dict:
     from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, LearnedDetector  # torch/onnx: this row only
 
     det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR, object_views=args.object_views,
-                          object_reuse=not args.no_object_reuse)
+                          object_reuse=not args.no_object_reuse,
+                          object_present_confidence=args.object_present_confidence)
     stage_keys = ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect", "cpu_reconstruct")
     times = {k: [] for k in stage_keys}
     load_before = images.load_average()
-    seeds = list(IMAGE_SESSIONS[:args.image_sessions])
+    seeds = [int(v) for v in args.image_seeds.split(",")] if args.image_seeds else \
+        list(IMAGE_SESSIONS[:args.image_sessions])
     sessions = images.run_sessions(det, seeds, "assembly", args.frames, args.rate, 256, 192, times)
     load_after = images.load_average()
     P = np.stack([projection(c.K, c.world_T_cam) for c in camera_specs(256, 192)])
 
     def pooled(select, which: str) -> dict:
-        err = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
+        err = {k: [] for k in images.ERROR_KEYS}
         reproj, rays = [], []
         for s in sessions[:select]:
             recs = getattr(s, which)
@@ -187,7 +189,9 @@ def run_images(args: argparse.Namespace) -> dict:
            if det.object_meta else None,
            "object_stage": {"views_per_object": args.object_views, "resting_reused": not args.no_object_reuse,
                             "crops_per_frame_set": round(det.object_crops / max(len(times["detect"]), 1), 2),
-                            "objects_cropped": det.schedule.refreshed, "objects_reused": det.schedule.reused}
+                            "objects_cropped": det.schedule.refreshed, "objects_reused": det.schedule.reused,
+                            "present_confidence": det.object_present_confidence,
+                            "crops_dropped_as_missed": det.object_crops_missed}
            if det.object_meta else None,
            "sessions": [f"assembly:{s}" for s in seeds], "frames_per_session": args.frames, "size": "256x192",
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}
@@ -203,7 +207,7 @@ def run_images(args: argparse.Namespace) -> dict:
     print("simulated, live:", images.dump(out["simulated_live"]))
     n_off = min(args.offline_sessions, len(sessions))
     if n_off:
-        errs = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
+        errs = {k: [] for k in images.ERROR_KEYS}
         live_same = {k: [] for k in errs}
         seconds = 0.0
         for s in sessions[:n_off]:
@@ -236,7 +240,7 @@ def run_images(args: argparse.Namespace) -> dict:
                 row[f"{name}_coverage"] = round(float(np.mean(cover)), 3)
                 row[f"{name}_seconds"] = round(float(sum(res[f"seconds_{i}"][0 if name == "ransac" else 1]
                                                          for i in range(n_an))), 1)
-            ours = {k: [] for k in ("hand", "obj", "obj_k", "cover_h", "cover_o")}
+            ours = {k: [] for k in images.ERROR_KEYS}
             for s in cut:
                 for k, v in images.errors(s.live, s).items():
                     ours[k] += v
@@ -247,6 +251,16 @@ def run_images(args: argparse.Namespace) -> dict:
                 "ours_live_hand_mean_error_mm"], 2)
             out["aniposelib"] = row
         print("aniposelib:", images.dump(out["aniposelib"]))
+    return out
+
+
+def merged(kept: dict, new: dict) -> dict:
+    """``kept`` (the file as it was) updated with what this run measured, ``new``: its keys replace
+    theirs, dictionaries key by key, so the parts skipped this run and the keys other benches
+    added to the file stay."""
+    out = dict(kept)
+    for k, v in new.items():
+        out[k] = merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
 
 
@@ -264,8 +278,14 @@ def main() -> None:
                         help="views the object stage crops per object, its best (0: every view)")
     parser.add_argument("--no-object-reuse", action="store_true",
                         help="crop every object on every frame set (default: a resting object every other one)")
+    parser.add_argument("--object-present-confidence", type=float, default=None,
+                        help="the object stage's crops with a weaker mean confidence are dropped (default: the "
+                             "detector's, object_crops.PRESENT_CONFIDENCE; 0: off)")
     parser.add_argument("--image-sessions", type=int, default=len(IMAGE_SESSIONS),
                         help="rendered sessions for the learned detector (0: none)")
+    parser.add_argument("--image-seeds", default="",
+                        help="WorldSim seeds of the rendered sessions instead (e.g. the validation sessions 7311,7313 "
+                             "on which recon's confidence thresholds are chosen)")
     parser.add_argument("--offline-sessions", type=int, default=2,
                         help="of those, refined offline (about a minute per session and hand)")
     parser.add_argument("--anipose-sessions", type=int, default=1, help="of those, triangulated by aniposelib")
@@ -290,24 +310,23 @@ def main() -> None:
         print(json.dumps(row))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # the parts skipped this run keep what an earlier run of this bench measured
     kept = json.loads(out.read_text()) if out.exists() else {}
-    out.write_text(json.dumps({
+    out.write_text(json.dumps(merged(kept, {
         "sessions": [f"{task}:{seed}" for seed, task in SESSIONS[:args.sessions]], "frames_per_session": args.frames,
         "rate_hz": args.rate, "detections": {"pixel_noise_px": args.noise, "dropout": args.dropout,
                                              "outliers": args.outliers, "occlusion": "the world's estimate"},
         "targets": {"hand_mean_error_mm": 8.0, "hand_mean_error_mm_offline": 5.0, "object_mean_error_mm": 3.0,
                     "detect_plus_reconstruct_ms": 50.0, "aniposelib_over_ours": 1.3,
                     "thesis": {"reprojection_px": 1.8, "ray_deviation_mm": 0.2}},
-        "images": learned or kept.get("images"),
-        "live": live or kept.get("live"),
+        "images": learned or {},
+        "live": live or {},
         "rows": rows or kept.get("rows", []),
         "note": "errors in mm against truth on the keypoints each method reports (coverage: their share); "
                 "stage times are wall-clock medians per 7-camera frame set on a shared 2-core machine "
                 "(reconstruct_cpu_ms: the process's CPU time for triangulation and fits, less at the "
                 "mercy of neighbours); "
                 "in rows, 'detect' is the simulated detector; in images, the learned one. ray_deviation_mm: the mean "
-                "distance from a triangulated point to the rays of its inlier views"}, indent=1) + "\n")
+                "distance from a triangulated point to the rays of its inlier views"}), indent=1) + "\n")
     print(f"wrote {out}")
 
 

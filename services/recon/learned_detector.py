@@ -157,10 +157,14 @@ class LearnedDetector:
     full-image pixels, N = len(self.names)."""
 
     def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2,
-                 object_views: int = object_crops.VIEWS, object_reuse: bool = True) -> None:
+                 object_views: int = object_crops.VIEWS, object_reuse: bool = True,
+                 object_present_confidence: float | None = None) -> None:
         """``object_views``: views the object stage crops per object (its best; 0: every view);
         ``object_reuse``: a resting object's detections stand in for its crops on every other frame
-        set (object_crops.ObjectSchedule; False: every object is cropped on every frame set)."""
+        set (object_crops.ObjectSchedule; False: every object is cropped on every frame set);
+        ``object_present_confidence``: a crop whose peaks of its object have a lower mean
+        confidence is dropped (default: ``present_confidence`` in objects.json, else
+        ``object_crops.PRESENT_CONFIDENCE``; 0: off)."""
         folder = Path(folder)
         self.meta = load_meta(folder)
         self.names: list[str] = list(self.meta["keypoints"])
@@ -194,9 +198,13 @@ class LearnedDetector:
                                         runtime, threads)
             self.object_size = int(self.object_meta["input_size"])
             self.object_half_m = float(self.object_meta.get("half_size_m", object_crops.HALF_SIZE_M))
+        self.object_present_confidence = float(object_present_confidence if object_present_confidence is not None
+                                               else (self.object_meta or {}).get("present_confidence",
+                                                                                 object_crops.PRESENT_CONFIDENCE))
         self.object_views = object_views
         self.schedule = object_crops.ObjectSchedule(len(self.object_slices), reuse=object_reuse)
         self.object_crops = 0  # crops the object stage ran, over all frame sets
+        self.object_crops_missed = 0  # of those, dropped as too weak to show their object
         self.times: dict[str, float] = {}  # seconds of the last detect(), per stage
 
     def reset(self) -> None:
@@ -353,6 +361,10 @@ class LearnedDetector:
             inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
             uv[c, sl] = local + offset
             conf[c, sl] = np.where(inside, np.clip(k[rows], 0.0, 1.0), 0.0)
+            if conf[c, sl].mean() < self.object_present_confidence:
+                # the crop missed its object (its centre was off): its peaks lie on whatever it shows
+                conf[c, sl] = 0.0
+                self.object_crops_missed += 1
         for o in np.flatnonzero(chosen.any(axis=0)):
             sl, views_o = self.object_slices[o], np.flatnonzero(chosen[:, o])
             pts, mask, _ = triangulate_robust(P[views_o], uv[views_o, sl], conf[views_o, sl])

@@ -36,6 +36,10 @@ EXTENT_M = 0.03  # an object's radius when its keypoints are not known yet (the 
 HAND_RADIUS_M = 0.06  # a hand's radius as an occluder, around its centre (palm and curled fingers)
 IN_FRONT_M = 0.03  # a hand whose centre is at most this behind the object's still covers it (it holds it)
 MIN_VISIBLE = 0.05  # an object fully behind a hand still ranks its views by size
+# A crop whose peaks of its own object's keypoints have a lower mean confidence missed the object
+# (the first stage's centre of it was off by about a half side or more) and says nothing of it.
+# Chosen on validation sessions 7311 and 7313 (bench/recon.py --object-present-confidence).
+PRESENT_CONFIDENCE = 0.6
 MIN_EXTENT_M = 0.005  # triangulated keypoints closer than this to their mean say nothing of the object's extent
 
 

@@ -68,7 +68,8 @@ def test_object_centres_ignore_exchanged_keypoints_and_need_two_views():
     assert found.tolist() == [True, False]
 
 
-def object_stage(tmp_path, peak_offset_px: float, keypoints: list[str] | None = None, **options) -> LearnedDetector:
+def object_stage(tmp_path, peak_offset_px: float, keypoints: list[str] | None = None, amplitude: float = 1.0,
+                 **options) -> LearnedDetector:
     names = keypoint_names("assembly")
     torch.save(UNet(len(names)).state_dict(), tmp_path / "weights.pt")
     (tmp_path / "meta.json").write_text(json.dumps({"task": "assembly", "keypoints": names, "input_size": [32, 24]}))
@@ -77,7 +78,8 @@ def object_stage(tmp_path, peak_offset_px: float, keypoints: list[str] | None = 
                                                        "keypoints": keypoints or names[NH:]}))
     det = LearnedDetector(tmp_path, runtime="torch", **options)
     ys, xs = np.mgrid[:32, :32]
-    target = np.exp(-((xs - 15.5 - peak_offset_px) ** 2 + (ys - 15.5) ** 2) / (2 * 1.5**2)).astype(np.float32)
+    target = amplitude * np.exp(-((xs - 15.5 - peak_offset_px) ** 2 + (ys - 15.5) ** 2) / (2 * 1.5**2))
+    target = target.astype(np.float32)
     det.batches = []  # crops per network call
 
     def run(batch: np.ndarray) -> np.ndarray:
@@ -122,6 +124,25 @@ def test_the_object_stage_clears_views_whose_window_misses_the_object(tmp_path):
     conf = np.ones(uv.shape[:2])
     det._refine_objects(views, [v.image for v in views], (uv.copy(), conf.copy()), uv, conf)
     assert (conf[:, NH:] == 0).all() and (conf[:, :NH] == 1).all() and np.isfinite(uv).all()
+
+
+@pytest.mark.parametrize("threshold, kept", [(None, False), (0.4, True), (0.0, True)])
+def test_weak_object_crops_are_dropped_as_missed(tmp_path, threshold, kept):
+    P = rig()
+    truth, _ = project(P, objects_on_the_table())
+    det = object_stage(tmp_path, 0.0, amplitude=0.5, object_views=0, object_present_confidence=threshold)
+    assert det.object_present_confidence == (object_crops.PRESENT_CONFIDENCE if threshold is None else threshold)
+    views = [View(f"cam{i}", CameraModel(P[i], W, H, (0, 0, W, H)), np.zeros((H, W, 3), np.uint8))
+             for i in range(len(P))]
+    uv = np.zeros((len(P), len(det.names), 2))
+    uv[:, NH:] = truth
+    conf = np.ones(uv.shape[:2])
+    det._refine_objects(views, [v.image for v in views], (uv.copy(), conf.copy()), uv, conf)
+    assert det.object_crops > 0 and np.isfinite(uv).all()
+    if kept:
+        assert np.all(conf[:, NH:] > 0.4) and det.object_crops_missed == 0
+    else:  # peaks of 0.5 under the default 0.6: every crop missed its object
+        assert np.all(conf[:, NH:] == 0.0) and det.object_crops_missed == det.object_crops
 
 
 def test_object_stage_weights_for_other_keypoints_are_refused(tmp_path):

@@ -136,6 +136,7 @@ def learned(monkeypatch):
 
     class LearnedDetector:
         names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + names_
+        object_crops, object_crops_missed = 4, 1
 
         def detect(self, views):
             seen_views.append([v.camera for v in views])
@@ -178,6 +179,7 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     np.testing.assert_allclose(hands, points[:42], atol=1e-3)
     assert np.isfinite(np.asarray(scene.object_keypoints)).all()
     assert node.health_extra()["partial_frame_sets"] == 1
+    assert (node.health_extra()["object_crops"], node.health_extra()["object_crops_missed"]) == (4, 1)
 
 
 def test_learned_weights_of_other_keypoints_are_refused(learned):
