@@ -68,6 +68,9 @@ GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 
 # below half of that. In the loop the nets predict 3.5-5 kPa while their pinch is on the lens and
 # pass 10 kPa only about 1.5 s later, when the hand has moved on without the module
 LEARNED_GRASP_KPA = 3.0
+# the robot reads no touch: the net's own predicted touch is given back to it on both hands, as the
+# neural simulation gives it back on the gloved hands of its start state (services/policy/runner.py)
+ROBOT_GLOVE = np.array([True, True])
 EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
 LEAD_IN_FRAME_SETS = 5  # reconstructed objects: frame sets recon sees before the robot starts
 LOOKAHEAD_S = 9.0  # neural simulation that decides the grasping hand and the gripper's finger order
@@ -133,6 +136,17 @@ def observed_hands(hands: np.ndarray, g: int, pads: np.ndarray, observing: bool,
     out = hands.copy()
     out[g] += miss
     return out, True
+
+
+def own_hand_mask(runner: PolicyRunner, g: int, observing: bool) -> np.ndarray:
+    """(2,21) visibility of the hands given back to the policy: they are its own prediction, not an
+    observation, so they carry its predicted visibility as in the neural simulation (trained on
+    demonstrations that hide the lens and thumb under the holding hand, the net predicts grasping
+    touch only where it predicts them hidden); the grasping hand observed at the gripper is seen."""
+    seen = runner.predicted["mask"][:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND).copy()
+    if observing:
+        seen[g] = True
+    return seen
 
 
 def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
@@ -234,7 +248,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                    knots: int = 20, horizon_s: float = 1.0, grasp_kpa: float | None = LEARNED_GRASP_KPA,
                    feedback: bool = False, anchors: ContactAnchors | None = None,
                    horizon_dt: float | None = None, catch_m: float | None = None, observer=None,
-                   start_hands: np.ndarray | None = None, task: str = "assembly") -> ExecutionResult:
+                   start_hands: np.ndarray | None = None, task: str = "assembly",
+                   glove: np.ndarray | None = ROBOT_GLOVE) -> ExecutionResult:
     """Runs one validation layout (``assembly_protocol(seed)[demo]``) with the robot in the loop.
 
     ``task``: "assembly" or "latch" (the same layouts; the latch's snap-fit engages only at 5 N).
@@ -260,6 +275,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     ``observer``: a CellObserver (evaluation/reconstructed.py): the policy and the anchors see the
     objects as recon reconstructs them from rendered frame sets at the camera rate, and between
     frame sets the policy runs on its own object predictions; None: the world's truth every step.
+    ``glove``: (2,) the hands on which the policy is given its own predicted touch (None: on neither).
     ``start_hands``: the policy's initial hands (default the teacher's true start pose). Success and
     the recorded distances are always measured on the world's truth."""
     if task not in ASSEMBLY_TASKS:
@@ -273,7 +289,7 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
     opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=ROBOT.execution_point_map, contact_slots=8,
                                                    point_weights={ROLES.press_point: PRESS_WEIGHT}))
     board = BoardSim(sim.joint_names)
-    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
+    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model, glove)
     dt = runner.dt if model is None else model.dt
     opt_dt = horizon_s / knots
     steps = int(round(seconds / dt))
@@ -337,6 +353,8 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                                               observing, catch_m)
             if anchors is not None:
                 anchor_state.observed_hand = observing
+        if model is not None and k:
+            hand_mask = own_hand_mask(runner, g, observing)
         stepped = runner.step(SceneObs(hands, hand_mask, seen_objects, seen_mask))
         hands = stepped[:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND, 3)
         predicted_objects = stepped[2 * KEYPOINTS_PER_HAND:]

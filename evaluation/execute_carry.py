@@ -46,6 +46,7 @@ from evaluation.execute import (
     LOOKAHEAD_S,
     LOST_M,
     ROBOT,
+    ROBOT_GLOVE,
     ROLES,
     THUMB,
     TOUCH_RAMP_S,
@@ -53,6 +54,7 @@ from evaluation.execute import (
     gripper_flipped,
     hand_point_names,
     observed_hands,
+    own_hand_mask,
     physics_step,
     receding_solve,
     sample_trajectory,
@@ -122,7 +124,7 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
     robot = load_robot(ROBOT.name)
     opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=ROBOT.execution_point_map, contact_slots=8))
     board = BoardSim(sim.joint_names)
-    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
+    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model, ROBOT_GLOVE)
     dt = runner.dt if model is None else model.dt
     opt_dt = horizon_s / knots
     steps = int(round((seconds or SECONDS[task]) / dt))
@@ -167,6 +169,8 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
         if feedback and k:
             # the robot's pads are where the policy's (lowered) pinch would be: observed back at the hand's height
             hands, observing = observed_hands(hands, g, pads + [0.0, 0.0, depth], observing, catch_m)
+        if model is not None and k:
+            hand_mask = own_hand_mask(runner, g, observing)
         stepped = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))
         hands = stepped[:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND, 3)
         if k % plan_every == 0:
