@@ -46,7 +46,6 @@ from evaluation.execute import (
     LOOKAHEAD_S,
     LOST_M,
     ROBOT,
-    ROBOT_GLOVE,
     ROLES,
     THUMB,
     TOUCH_RAMP_S,
@@ -124,7 +123,7 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
     robot = load_robot(ROBOT.name)
     opt = TrajectoryOptimizer(robot, TrajoptConfig(knots=knots, point_map=ROBOT.execution_point_map, contact_slots=8))
     board = BoardSim(sim.joint_names)
-    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model, ROBOT_GLOVE)
+    runner = TeacherReplay(sim.teacher) if model is None else PolicyRunner(model)
     dt = runner.dt if model is None else model.dt
     opt_dt = horizon_s / knots
     steps = int(round((seconds or SECONDS[task]) / dt))
