@@ -65,7 +65,7 @@ THUMB, INDEX = TACTILE_REGIONS.index("thumb"), TACTILE_REGIONS.index("index")
 THUMB_TIP, INDEX_TIP = FINGERTIPS["thumb"], FINGERTIPS["index"]
 GRASP_KPA = 10.0  # the teacher's grasp reads 2 x 20 kPa on thumb and index; 10 kPa = a quarter of it
 # the learned policy alone: its predicted grasping touch shuts the gripper above 3 kPa and lets go
-# below half of that. In the loop the net predicts 12-22 kPa at most, a quarter to a half of its
+# below half of that. In the loop the net predicts 11-20 kPa at most, a quarter to a half of its
 # open loop: the loop shows it the lens its demonstrations hide under the holding hand
 LEARNED_GRASP_KPA = 3.0
 EFFORT_N_PER_KPA = 0.1  # kPa over a ~1 cm^2 fingertip -> N
@@ -133,17 +133,6 @@ def observed_hands(hands: np.ndarray, g: int, pads: np.ndarray, observing: bool,
     out = hands.copy()
     out[g] += miss
     return out, True
-
-
-def own_hand_mask(runner: PolicyRunner, g: int, observing: bool) -> np.ndarray:
-    """(2,21) visibility of the hands given back to the policy: they are its own prediction, not an
-    observation, so they carry its predicted visibility as in the neural simulation (trained on
-    demonstrations that hide the lens and thumb under the holding hand, the net predicts grasping
-    touch only where it predicts them hidden); the grasping hand observed at the gripper is seen."""
-    seen = runner.predicted["mask"][:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND).copy()
-    if observing:
-        seen[g] = True
-    return seen
 
 
 def grasping_hand(hands: np.ndarray, lens: np.ndarray) -> str:
@@ -352,8 +341,6 @@ def execute_layout(model, seed: int, demo: int, seconds: float = 9.0, plan_perio
                                               observing, catch_m)
             if anchors is not None:
                 anchor_state.observed_hand = observing
-        if model is not None and k:
-            hand_mask = own_hand_mask(runner, g, observing)
         stepped = runner.step(SceneObs(hands, hand_mask, seen_objects, seen_mask))
         hands = stepped[:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND, 3)
         predicted_objects = stepped[2 * KEYPOINTS_PER_HAND:]

@@ -53,7 +53,6 @@ from evaluation.execute import (
     gripper_flipped,
     hand_point_names,
     observed_hands,
-    own_hand_mask,
     physics_step,
     receding_solve,
     sample_trajectory,
@@ -168,8 +167,6 @@ def execute_carry(model, task: str, seed: int, demo: int, anchors: CarryAnchors 
         if feedback and k:
             # the robot's pads are where the policy's (lowered) pinch would be: observed back at the hand's height
             hands, observing = observed_hands(hands, g, pads + [0.0, 0.0, depth], observing, catch_m)
-        if model is not None and k:
-            hand_mask = own_hand_mask(runner, g, observing)
         stepped = runner.step(SceneObs(hands, hand_mask, objects, obj_mask))
         hands = stepped[:2 * KEYPOINTS_PER_HAND].reshape(2, KEYPOINTS_PER_HAND, 3)
         if k % plan_every == 0:

@@ -20,7 +20,6 @@ from evaluation.execute import (
     hand_point_names,
     learned_squeeze,
     observed_hands,
-    own_hand_mask,
 )
 from learning.ours import Ours
 from learning.presets import preset
@@ -71,22 +70,6 @@ def test_the_policy_is_fed_its_own_next_hands(monkeypatch):
     for k in range(1, len(seen)):
         np.testing.assert_allclose(seen[k], returned[k - 1])
     assert np.abs(seen[-1] - seen[0]).max() > 1e-6  # the hands moved
-
-
-def test_the_hands_given_back_carry_the_predicted_visibility_unless_observed_at_the_gripper():
-    """The hands given back are the policy's own prediction, not an observation: the net's own
-    predicted visibility (the neural simulation's), except the grasping hand once observed."""
-    mask = np.ones(42 + 8, bool)
-    mask[[4, 21 + 8, 21 + 9]] = False  # a thumb point of the left hand, two of the right
-
-    class Runner:
-        predicted = {"mask": mask}
-
-    seen = own_hand_mask(Runner(), 1, observing=False)
-    np.testing.assert_array_equal(seen.ravel(), mask[:42])
-    seen = own_hand_mask(Runner(), 1, observing=True)
-    assert seen[1].all() and not seen[0, 4] and seen[0].sum() == 20
-    assert not Runner.predicted["mask"][21 + 8]  # the runner's own prediction is left as it was
 
 
 def test_hand_feedback_moves_the_grasping_hand_onto_the_gripper(monkeypatch):
