@@ -81,11 +81,21 @@ def simulate(model: Policy, start_state: Demo | dict, steps: int,
 
 
 class PolicyRunner:
-    """The policy as the service runs it: observations in, next positions and horizons out."""
+    """The policy as the service runs it: observations in, next positions and horizons out.
 
-    def __init__(self, model: Policy) -> None:
+    The running state is the neural simulation's (7.6.1) with observations merged in: each step's
+    predicted state (positions, masks, touch, memory, time window) is what the next step starts
+    from, and an observation replaces what it observed. Touch the scene does not read (no glove, or
+    a robot) stays the net's own prediction, fed back on the hands ``glove`` marks, as the neural
+    simulation feeds it back on the gloved hands of its start state; training gives the net touch
+    only on gloved hands (``tmask``), so without a glove reading the net gets none unless ``glove``
+    says where its prediction stands in for one."""
+
+    def __init__(self, model: Policy, glove: np.ndarray | None = None) -> None:
         self.model = model
-        self.state: dict | None = None
+        self.glove = np.zeros(2, bool) if glove is None else np.asarray(glove, bool).reshape(2)
+        self.state: dict | None = None  # the state the last step started from (horizons roll from it)
+        self.predicted: dict | None = None  # the last step's next state (the next step starts from it)
         self.efforts = np.zeros((2, len(TACTILE_REGIONS)))  # predicted tactile, kPa (7.2.10)
         self.horizon_tactile = np.zeros((0, 2, len(TACTILE_REGIONS)))  # of the last horizon()
         self.scene: SceneObs | None = None
@@ -95,10 +105,12 @@ class PolicyRunner:
         return cls(Policy.load(str(path)))
 
     def reset(self) -> None:
-        self.state = None
+        self.state = self.predicted = None
 
     def observe(self, scene: SceneObs) -> dict:
-        """Merges an observation into the running state (occluded or NaN points keep their prediction)."""
+        """Merges an observation into the running state: observed points replace the predicted ones
+        (occluded or NaN points keep their prediction), the masks are the observation's, touch a
+        glove read replaces the predicted touch."""
         m = self.model
         if scene.objects.shape != (m.K, 3) or scene.hands.shape != (2, KEYPOINTS_PER_HAND, 3):
             raise PolicyInputError(f"scene has hands {scene.hands.shape} and objects {scene.objects.shape}; "
@@ -107,20 +119,22 @@ class PolicyRunner:
         mask = np.concatenate([np.asarray(scene.hand_mask, bool).ravel(), np.asarray(scene.object_mask, bool)])
         finite = np.isfinite(pos).all(-1)
         mask &= finite
+        seen = mask if m.cfg.masks else np.ones_like(mask)
         if self.state is None:
             if not finite.all():
                 raise PolicyInputError(f"first scene has NaN keypoints at {np.flatnonzero(~finite).tolist()}; "
                                        f"cannot start from it")
-            start = {"pos": pos, "vel": np.zeros_like(pos), "mask": mask if m.cfg.masks else np.ones_like(mask),
-                     "tactile": np.zeros((2, len(TACTILE_REGIONS))), "tmask": np.zeros((2, len(TACTILE_REGIONS)), bool)}
+            regions = len(TACTILE_REGIONS)
+            start = {"pos": pos, "vel": np.zeros_like(pos), "mask": seen, "tactile": np.zeros((2, regions)),
+                     "tmask": np.repeat(self.glove[:, None], regions, axis=1)}
             if m.cfg.memory:
                 start["H"] = m.initial_memory()
             self.state = m.start_window(start)
         else:
-            prev = self.state["pos"]
-            merged = np.where(mask[:, None], pos, prev)
-            self.state = dict(self.state, pos=merged, vel=(merged - prev) / m.dt,
-                              mask=mask if m.cfg.masks else np.ones_like(mask))
+            base = self.predicted if self.predicted is not None else self.state
+            merged = np.where(mask[:, None], pos, base["pos"])
+            self.state = dict(base, pos=merged, vel=(merged - self.state["pos"]) / m.dt, mask=seen)
+        self.predicted = None
         if scene.tactile is not None and scene.tactile_mask is not None:
             t, tm = np.asarray(scene.tactile, float), np.asarray(scene.tactile_mask, bool)
             tm &= np.isfinite(t)
@@ -135,18 +149,21 @@ class PolicyRunner:
         once per network sample period."""
         if scene_obs is None and self.state is None:
             raise PolicyInputError("no scene observed yet")
-        state = self.observe(scene_obs) if scene_obs is not None else self.state
-        nxt = self.model.step(state)
+        if scene_obs is not None:
+            self.observe(scene_obs)
+        elif self.predicted is not None:
+            self.state, self.predicted = self.predicted, None
+        nxt = self.model.step(self.state)
         self._check(nxt["pos"])
-        carried = {k: nxt[k] for k in ("H", "window_pos", "window_mask") if k in nxt}  # memory, window history
-        self.state = dict(state, **carried)
+        self.predicted = nxt
         self.efforts = nxt["tactile"]
         return nxt["pos"]
 
     def horizon(self, scene_obs: SceneObs | None, steps: int, dt: float | None = None) -> np.ndarray:
         """Rollout of ``steps`` samples from the latest observation (steps, P, 3), ``dt`` apart
         (default the sample period; the trajectory optimizer's knot spacing costs fewer network
-        passes for the same look-ahead); the running memory is not advanced by the look-ahead."""
+        passes for the same look-ahead); after a step its first sample is that step's prediction.
+        The running state is not advanced by the look-ahead."""
         if scene_obs is not None:
             self.observe(scene_obs)
         if self.state is None:

@@ -141,7 +141,7 @@ def test_the_runner_carries_the_window_history_from_step_to_step(window_method):
         runner.step(SceneObs(demo.hands[t], demo.hand_mask[t].astype(bool), demo.objects[t],
                              demo.object_mask[t].astype(bool), None, None))
         states.append(runner.state["pos"].copy())
-    history = runner.state["window_pos"]
+    history = runner.predicted["window_pos"]  # what the next step starts from
     assert history.shape == (15, method.net.layout.P, 3)
     np.testing.assert_array_equal(history[:13], np.repeat(states[:1], 13, axis=0))  # padded with the first scene
     np.testing.assert_array_equal(history[13:], states[1:])  # then each stepped sample
