@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 import viser
 
-from services.panel import executions, view
+from services.panel import executions, page, view
 from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
@@ -100,6 +100,7 @@ class PanelService:
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
+        page.hold_clicks(self.server)  # a press must not overtake the typed values (services/panel/page.py)
         self._build_scene()
         self._build_gui()
         recordings = recordings_directory(params.recordings, self.deployment)
