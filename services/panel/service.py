@@ -67,6 +67,9 @@ class PanelService:
         # service's) is missing, while the policy service runs the naive fallback ("": never).
         first_network: str = ""
         first_preset: str = "no_tactile"
+        # its optimizer steps (its own cosine schedule), fewer than the preset's 8000 so that it is served
+        # within 15 minutes beside the running cell (docs/panel.md, first run)
+        first_steps: int = 5000
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -115,7 +118,7 @@ class PanelService:
         self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)
         self.learn.on_models.append(self.neural.set_models)
         if params.first_network:
-            self.learn.start_first(Path(params.first_network), params.first_preset)
+            self.learn.start_first(Path(params.first_network), params.first_preset, params.first_steps)
         # state: robot/<model>/state (ports.py)
         for port in ("state", "scene", "plan", "trajectory", "session", "tactile_mesh"):
             node.input(port, self._keeper(port))
