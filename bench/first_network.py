@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         steps_per_s = (training[-1]["step"] - training[0]["step"]) / (training[-1]["t"] - training[0]["t"])
     res = {
         "target_s": TARGET_S, "threads": args.threads, "preset": args.preset, "train_args": args.train_args,
-        "steps": max((s["step"] for s in samples), default=None),
+        "steps_budget": args.steps, "steps_reached": max((s["step"] for s in samples), default=None),
         "served": served_at is not None,
         "seconds_job_to_served": None if served_at is None or t_job is None else round(served_at - t_job, 1),
         "train_seconds": info.get("seconds"), "seconds_to_best": info.get("seconds_to_best"),
