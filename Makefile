@@ -10,6 +10,8 @@ DEPLOYMENT ?= deploy/sim.toml
 # fallback, which replays the job's training demonstrations (runs/policy/demos/, written first); the
 # policy service switches to the network once it is written. `make policy` trains it in the terminal.
 POLICY_PRESET ?= no_tactile
+# its optimizer steps: the panel's first_steps, fewer than the preset's (docs/panel.md, first run)
+POLICY_STEPS ?= 5000
 POLICY := runs/policy/policy.pt
 # The keypoint network recon runs ships in models/detector/ (ONNX graphs + their JSON): `make detector`
 # regenerates it: labels rendered from the simulated rig, then training of the first stage (whole
@@ -56,7 +58,7 @@ policy: $(POLICY)
 
 # trained again when the checkpoint's configs change (a checkpoint of other configs does not load)
 $(POLICY): $(STAMP) services/policy/config.py
-	$(BIN)/xm train --teacher 0 --preset $(POLICY_PRESET) --out $(dir $(POLICY))
+	$(BIN)/xm train --teacher 0 --preset $(POLICY_PRESET) --steps $(POLICY_STEPS) --out $(dir $(POLICY))
 
 detector: $(STAMP)
 	$(BIN)/xm detector label --out runs/detector/labels

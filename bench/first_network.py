@@ -37,7 +37,7 @@ TARGET_S = 15 * 60
 TICK = os.sysconf("SC_CLK_TCK")
 
 
-def deployment(tmp: Path, threads: int, preset: str, train_args: str) -> tuple[Path, str, Path]:
+def deployment(tmp: Path, threads: int, preset: str, steps: int | None, train_args: str) -> tuple[Path, str, Path]:
     """deploy/sim.toml with everything private to ``tmp``; the first network trains into tmp/policy."""
     text = (ROOT / "deploy/sim.toml").read_text()
     router = free_endpoint()
@@ -49,6 +49,7 @@ def deployment(tmp: Path, threads: int, preset: str, train_args: str) -> tuple[P
     text = re.sub(r'directory = "[^"]*"', f'directory = "{tmp}/recordings"', text)
     text = re.sub(r'first_network = "[^"]*"',
                   f'first_network = "{checkpoint}"\nfirst_preset = "{preset}"\ntrain_threads = {threads}\n'
+                  + (f"first_steps = {steps}\n" if steps is not None else "") +
                   f'models = "{tmp}/models"\ntrain_args = "{train_args}"', text)
     path = tmp / "sim.toml"
     path.write_text(text)
@@ -96,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--threads", type=int, default=1, help="torch threads of the job (the panel's train_threads)")
     parser.add_argument("--preset", default="no_tactile", help="the job's preset (the panel's first_preset)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="the job's optimizer steps (the panel's first_steps; default: the panel's default)")
     parser.add_argument("--train-args", default="", help="more `xm train` options (the panel's train_args)")
     parser.add_argument("--timeout-min", type=float, default=40.0)
     parser.add_argument("--sample-s", type=float, default=5.0)
@@ -106,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     samples: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="xm-first-") as tmp_name:
         tmp = Path(tmp_name)
-        dep, router, checkpoint = deployment(tmp, args.threads, args.preset, args.train_args)
+        dep, router, checkpoint = deployment(tmp, args.threads, args.preset, args.steps, args.train_args)
         partial = checkpoint.parent / ".job.partial"
         t_up = time.monotonic()
         with xm_up(dep, tmp / "up.log") as proc:
@@ -145,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         steps_per_s = (training[-1]["step"] - training[0]["step"]) / (training[-1]["t"] - training[0]["t"])
     res = {
         "target_s": TARGET_S, "threads": args.threads, "preset": args.preset, "train_args": args.train_args,
+        "steps_budget": args.steps, "steps_reached": max((s["step"] for s in samples), default=None),
         "served": served_at is not None,
         "seconds_job_to_served": None if served_at is None or t_job is None else round(served_at - t_job, 1),
         "train_seconds": info.get("seconds"), "seconds_to_best": info.get("seconds_to_best"),

@@ -121,14 +121,18 @@ class Trainer:
         return self._launch(preset, lambda partial: [str(recordings.resolve()), "--out", str(partial),
                                                      *(["--steps", str(steps)] if steps else [])])
 
-    def start_first(self, checkpoint: Path, preset: str, teacher: int = 0) -> Job:
-        """The first network of a fresh install: `xm train --teacher SEED --out DIR` into the directory of
-        the checkpoint the policy service waits for. `xm train` writes the demonstrations there first
-        (the policy's naive fallback replays them meanwhile) and the checkpoint last, in one rename."""
+    def start_first(self, checkpoint: Path, preset: str, steps: int = 0, teacher: int = 0) -> Job:
+        """The first network of a fresh install: `xm train --teacher SEED --out DIR [--steps N]` into the
+        directory of the checkpoint the policy service waits for. `xm train` writes the demonstrations
+        there first (the policy's naive fallback replays them meanwhile) and the checkpoint last, in one
+        rename. ``steps`` 0: the preset's budget."""
         out = checkpoint.parent
         if checkpoint.name != "policy.pt":
             raise JobError(f"first network: `xm train` writes policy.pt, the policy service waits for {checkpoint}")
-        return self._launch(preset, lambda _partial: ["--teacher", str(teacher), "--out", str(out)],
+        if steps < 0:
+            raise JobError(f"first network: steps must be >= 0 (0: the preset's), got {steps}")
+        return self._launch(preset, lambda _partial: ["--teacher", str(teacher), "--out", str(out),
+                                                      *(["--steps", str(steps)] if steps else [])],
                             final=out, name=f"first-network-{preset}")
 
     def _launch(self, preset: str, args: Callable[[Path], list[str]], final: Path | None = None,

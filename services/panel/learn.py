@@ -87,17 +87,17 @@ class Learn:
         self.job_md.content = (f"training **{job.name}** on {n_train} train and {n_val} validation recordings: "
                                "starting...")
 
-    def start_first(self, checkpoint: Path, preset: str) -> None:
+    def start_first(self, checkpoint: Path, preset: str, steps: int = 0) -> None:
         """The first network of a fresh install (the checkpoint the policy service waits for), trained
         from the world's scripted teacher as the page's job when it is missing or does not load (one
-        of other configs); a failure is shown in the job line."""
+        of other configs), in ``steps`` optimizer steps (0: the preset's); a failure is shown in the job line."""
         def start() -> None:
             problem = checkpoint_problem(checkpoint)
             if not problem:
                 return
             log.info("training the first network: %s", problem)
             try:
-                job = self.trainer.start_first(checkpoint, preset)
+                job = self.trainer.start_first(checkpoint, preset, steps)
             except (JobError, OSError) as exc:
                 self.count("train_refused")
                 self.job_md.content = f"**first network not started**: {exc}"

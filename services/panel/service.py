@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 import viser
 
-from services.panel import executions, view
+from services.panel import executions, page, view
 from services.panel.alerts import Alert, Alerts
 from services.panel.execute import Execute
 from services.panel.jobs import Trainer
@@ -67,6 +67,9 @@ class PanelService:
         # service's) is missing, while the policy service runs the naive fallback ("": never).
         first_network: str = ""
         first_preset: str = "no_tactile"
+        # its optimizer steps (its own cosine schedule), fewer than the preset's 8000 so that it is served
+        # within 15 minutes beside the running cell (docs/panel.md, first run)
+        first_steps: int = 5000
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.fps <= 0 or params.tactile_hz <= 0:
@@ -100,6 +103,7 @@ class PanelService:
         if self.server.get_port() != params.port:  # viser silently moves to the next free port
             self.server.stop()
             raise EndpointError(port_message(params.host, params.port, "taken while starting"))
+        page.hold_clicks(self.server)  # a press must not overtake the typed values (services/panel/page.py)
         self._build_scene()
         self._build_gui()
         recordings = recordings_directory(params.recordings, self.deployment)
@@ -114,7 +118,7 @@ class PanelService:
         self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)
         self.learn.on_models.append(self.neural.set_models)
         if params.first_network:
-            self.learn.start_first(Path(params.first_network), params.first_preset)
+            self.learn.start_first(Path(params.first_network), params.first_preset, params.first_steps)
         # state: robot/<model>/state (ports.py)
         for port in ("state", "scene", "plan", "trajectory", "session", "tactile_mesh"):
             node.input(port, self._keeper(port))

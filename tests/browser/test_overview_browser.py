@@ -19,7 +19,7 @@ from learning.ours import train
 from learning.presets import preset
 from services.world.teacher import generate_demo
 from tests.browser._cdp import Chromium, find_chromium
-from tests.browser.test_teaching_browser import PATIENCE_S, WAIT, click_button, page_text, press, viewport
+from tests.browser._page import PATIENCE_S, WAIT, click_button, page_text, press, viewport
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
 from tests.contract.test_pipeline_services import _scene_msg
 

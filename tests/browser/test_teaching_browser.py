@@ -21,7 +21,6 @@ import threading
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -29,6 +28,7 @@ from services.policy.simulation import Simulator, scene_from_request
 from shared import msgs
 from shared.kinematics import load_robot
 from tests.browser._cdp import Chromium, find_chromium
+from tests.browser._page import PATIENCE_S, WAIT, choose, click_button, key, page_text, type_into, value_of, viewport
 from tests.conftest import ROOT, ServiceProcess, free_port, query_json, wait_for, wait_until, write_deployment
 from tests.unit.panel_recordings import write_demo
 
@@ -36,83 +36,10 @@ CHROMIUM = find_chromium()
 pytestmark = [pytest.mark.browser,
               pytest.mark.skipif(CHROMIUM is None, reason="needs /usr/bin/chromium (apt-get install chromium)")]
 
-PAGE_TEXT = "document.body ? document.body.innerText : ''"
-WAIT = 180  # seconds for anything the page shows: tens of seconds per DevTools call on a loaded host
-PATIENCE_S = 240.0  # one DevTools call: software WebGL on a loaded 2-core host may hold the page that long
-LABEL = "[...document.querySelectorAll('label')]"
-ROW = f"(l) => {LABEL}.find(e => e.textContent.trim() === l)?.closest('.mantine-Flex-root')"
-
 
 def world_session() -> object:
     return msgs.make("xm_msgs/msg/Session", header=msgs.header(time.time()), task="pick_place", demo=0,
                      phase="approach", tactile_hand="right", seed_layout='{"cup": [0.1, 0.0]}')
-
-
-# Mouse events are dispatched from the page's JavaScript: the DevTools Input domain waits for the
-# renderer to take the event, over 90 s on a loaded 2-core host with software WebGL.
-PRESS = """(el) => {{ if (!el) return false; el.scrollIntoView({{block: 'center'}});
-  const r = el.getBoundingClientRect();
-  const o = {{bubbles: true, cancelable: true, view: window, button: 0, buttons: 1,
-             clientX: r.x + r.width / 2, clientY: r.y + r.height / 2}};
-  for (const [T, kind] of [[PointerEvent, 'pointerdown'], [MouseEvent, 'mousedown'], [PointerEvent, 'pointerup'],
-                           [MouseEvent, 'mouseup'], [MouseEvent, 'click']]) el.dispatchEvent(new T(kind, o));
-  return true; }}"""
-
-
-def press(browser: Chromium, element_js: str) -> bool:
-    """Press and release the mouse on the element ``element_js`` evaluates to; False if there is none."""
-    return browser.evaluate(f"({PRESS.format()})({element_js})", PATIENCE_S)
-
-
-def button(text: str) -> str:
-    return f"[...document.querySelectorAll('button')].find(b => b.textContent.trim() === {text!r})"
-
-
-def click_button(browser: Chromium, text: str) -> None:
-    wait_until(lambda: press(browser, button(text)), WAIT, f"a button {text!r}")
-
-
-def field(label: str) -> str:
-    return f"({ROW})({label!r})?.querySelector('input:not([type=hidden])')"
-
-
-def type_into(browser: Chromium, label: str, text: str) -> None:
-    """Replace the text of the field labelled ``label`` as typing does (React hears an input event)."""
-    wait_until(lambda: browser.evaluate(f"!!{field(label)}", PATIENCE_S), WAIT, f"a field labelled {label!r}")
-    browser.evaluate(f"(() => {{ const e = {field(label)}; e.focus(); Object.getOwnPropertyDescriptor("
-                     f"HTMLInputElement.prototype, 'value').set.call(e, {text!r}); "
-                     "e.dispatchEvent(new Event('input', {bubbles: true})); })()", PATIENCE_S)
-
-
-def choose(browser: Chromium, label: str, option: str) -> None:
-    """Open the dropdown labelled ``label`` and click ``option`` in its list."""
-    wait_until(lambda: press(browser, field(label)), WAIT, f"a dropdown labelled {label!r}")
-    wait_until(lambda: press(browser, f"[...document.querySelectorAll('[role=option]')].find(o => "
-                                      f"o.textContent.trim() === {option!r})"), WAIT, f"option {option!r} of {label!r}")
-    wait_until(lambda: browser.evaluate(f"{field(label)}.value", PATIENCE_S) == option, WAIT,
-               f"{label!r} showing {option!r}")
-
-
-def key(browser: Chromium, label: str, name: str) -> None:
-    """A key pressed on the slider labelled ``label`` (Home, End, ArrowLeft, ...), as the keyboard does."""
-    thumb = f"({ROW})({label!r})?.querySelector('[role=slider]')"
-    wait_until(lambda: browser.evaluate(f"(() => {{ const e = {thumb}; if (!e) return false; e.dispatchEvent("
-                                        f"new KeyboardEvent('keydown', {{key: {name!r}, code: {name!r}, bubbles: true, "
-                                        "cancelable: true})); return true; })()", PATIENCE_S), WAIT,
-               f"the slider labelled {label!r}")
-
-
-def value_of(browser: Chromium, label: str) -> str:
-    return browser.evaluate(f"{field(label)}?.value ?? ''", PATIENCE_S)
-
-
-def page_text(browser: Chromium) -> str:
-    return browser.evaluate(PAGE_TEXT, PATIENCE_S)
-
-
-def viewport(shot: Path) -> np.ndarray:
-    """The 3D view, clear of the GUI panel on the right and the notifications."""
-    return cv2.imread(str(shot)).astype(float)[150:-150, 100:600]
 
 
 def sidecar(path: Path) -> dict:
@@ -171,21 +98,14 @@ def test_teaching_session_library_and_review_in_headless_chromium(router, tmp_pa
         type_into(browser, "teacher", "ada")
         wait_until(lambda: value_of(browser, "teacher") == "ada", WAIT, "the typed teacher")
         choose(browser, "glove hand", "left")
-        # Typed values are sent debounced: a click that overtakes them starts with the old ones; press again.
-        line = "teacher ada, glove on the left hand, 0 demonstrations"
-        for _ in range(3):
-            click_button(browser, "Start session")
-            if wait_for(lambda: line in page_text(browser), WAIT / 3):
-                break
-        assert line in page_text(browser), f"the session line; page: {page_text(browser)[:800]}"
+        click_button(browser, "Start session")  # at once: the press follows the typed and chosen values
+        wait_until(lambda: "teacher ada, glove on the left hand, 0 demonstrations" in page_text(browser), WAIT,
+                   lambda: f"the session line; page: {page_text(browser)[:800]}", period=0.3)
 
         # 2. two demonstrations, each one recording with a label, layout and outcome
         demos = []
         for label, outcome in (("first grasp", "success"), ("second grasp", "failure")):
             type_into(browser, "next label", label)
-            # The page sends typed text on its own schedule: the click must not overtake it.
-            wait_until(lambda lb=label: query_json(session, "xm/panel/main/@health")[0]["next_label"] == lb, WAIT,
-                       f"the panel holding the label {label!r}")
             n = len(requests)
             click_button(browser, "Start recording")
             wait_until(lambda n=n: len(requests) > n, WAIT, "the start query")

@@ -108,7 +108,12 @@ def test_the_first_network_is_trained_in_place_demonstrations_first(library, tmp
     checkpoint = tmp_path / "policy" / "policy.pt"
     with pytest.raises(JobError, match="writes policy.pt"):
         trainer.start_first(tmp_path / "policy" / "net.pt", "single_state")
-    job = trainer.start_first(checkpoint, "single_state")
+    with pytest.raises(JobError, match="steps must be >= 0"):
+        trainer.start_first(checkpoint, "single_state", steps=-1)
+    job = trainer.start_first(checkpoint, "single_state", steps=4000)
+    cmd = list(job.process.args)  # the first network's own budget; the extra args (a tiny one here) come after
+    assert cmd[cmd.index("--teacher"):cmd.index("--teacher") + 6] == ["--teacher", "0", "--out", str(checkpoint.parent),
+                                                                      "--steps", "4000"]
     with pytest.raises(JobBusyError, match="a training job is running"):  # the page's Train waits for it
         trainer.start(library, "single_state", steps=3)
     wait_until(lambda: trainer.poll().state != "running", 300, lambda: (job.partial / "train.log").read_text())
