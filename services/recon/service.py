@@ -177,8 +177,8 @@ class ReconService:
             out["partial_frame_sets"] = self.buffer.released_partial
             out["late_images"] = self.buffer.dropped_stale
             out["timeline_restarts"] = self.buffer.restarts
-            out["object_crops"] = self.learned.object_crops
-            out["object_crops_missed"] = self.learned.object_crops_missed  # too weak to show their object
+            out["object_crops"] = getattr(self.learned, "object_crops", 0)  # a detector without an object stage
+            out["object_crops_missed"] = getattr(self.learned, "object_crops_missed", 0)  # too weak to show it
         return out
 
     def on_info(self, msg, key: str) -> None:
