@@ -67,8 +67,7 @@ class WorldService:
         clock_rate_hz: float = 100.0
         tick_s: float = 0.006
         # The world stands in for physics, which never waits for a CPU: on a busy host it runs this many
-        # nice values ahead of the services (after a restart every service catches up at once, and a
-        # world that waited behind them stopped the cell's clock for a second).
+        # nice values ahead of the services, whose schedules all follow its clock.
         cpu_share_boost: int = 5
 
     def __init__(self, node: Node, params: Params) -> None:
