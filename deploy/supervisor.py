@@ -31,6 +31,7 @@ import zenoh
 from deploy.certs import check_cert
 from deploy.hosts import HostError, load_hosts, router_config
 from shared.config import ConfigError, Deployment, load_deployment
+from shared.realtime import autogroup_nice, can_lower_nice, shift_autogroup
 from shared.runtime import EndpointError, Node, open_client, open_router
 from shared.runtime.logs import fields, setup_logging
 from shared.runtime.service import STANDBY_READY
@@ -41,6 +42,10 @@ BACKOFF_MAX_S = 20.0
 HEALTHY_AFTER_S = 30.0  # a run this long resets the backoff
 STOP_GRACE_S = 5.0
 SPARE_DELAY_S = 5.0  # a new spare starts this long after the last was taken: its imports would slow the recovery
+# A spare imports and waits with its autogroup this many nice values up: its start-up (seconds of
+# imports, a renderer, a network) takes CPU only the running cell leaves. The supervisor moves it
+# back as it hands over, so only where it may lower nice values (CAP_SYS_NICE).
+SPARE_NICE_SHIFT = 15
 
 
 def backoff_delay(consecutive_failures: int) -> float:
@@ -64,6 +69,7 @@ class Child:
     spare: asyncio.subprocess.Process | None = None  # imported, waiting on stdin (--standby)
     spare_log_tasks: list[asyncio.Task] = field(default_factory=list)
     spare_ready_pid: int | None = None  # the spare that said it finished importing and preparing
+    spare_shift: int = 0  # nice values the spare's autogroup was moved up while it waits
 
     @property
     def name(self) -> str:
@@ -85,6 +91,7 @@ class Supervisor:
         self.quiet = quiet
         self.standby = standby
         self._spare_tasks: set[asyncio.Task] = set()
+        self._spare_nice = can_lower_nice()  # spares wait at a small CPU share only where it can be given back
         wanted = start_order(deployment)  # the deployment's order; services hosting devices (world) first
         self.router_config: dict | None = None
         if host is not None:  # one host of a multi-host deployment: its services, its router's TLS links and ACL
@@ -173,6 +180,9 @@ class Supervisor:
         spare = child.spare
         if spare is not None and spare.returncode is None:
             child.spare, child.proc, child.log_tasks = None, spare, child.spare_log_tasks
+            if child.spare_shift:  # its full CPU share before it starts working
+                shift_autogroup(spare.pid, -child.spare_shift)
+                child.spare_shift = 0
             try:
                 spare.stdin.write(b"go\n")
                 await spare.stdin.drain()
@@ -210,6 +220,11 @@ class Supervisor:
         if self._stopping or (child.spare is not None and child.spare.returncode is None):
             return
         child.spare, child.spare_log_tasks = await self._spawn(child, spare=True)
+        child.spare_shift = 0
+        before = autogroup_nice(child.spare.pid)
+        if self._spare_nice and before is not None:
+            after = shift_autogroup(child.spare.pid, SPARE_NICE_SHIFT)
+            child.spare_shift = 0 if after is None else after - before
 
     async def _pump(self, child: Child, stream: asyncio.StreamReader, logfile, spare_pid: int | None = None) -> None:
         prefix = f"{child.name:<16}| "

@@ -131,6 +131,21 @@ def shift_autogroup(pid: int | str, steps: int) -> int | None:
     return target
 
 
+CAP_SYS_NICE = 23  # linux/capability.h
+
+
+def can_lower_nice(status: Path = Path("/proc/self/status")) -> bool:
+    """Whether this process may lower nice values (CAP_SYS_NICE in its effective set): raising a
+    nice value is always allowed, taking it back needs this."""
+    try:
+        for line in status.read_text().splitlines():
+            if line.startswith("CapEff:"):
+                return bool(int(line.split()[1], 16) >> CAP_SYS_NICE & 1)
+    except (OSError, ValueError, IndexError):
+        pass
+    return False
+
+
 def raise_cpu_share(what: str, log: logging.Logger, steps: int) -> None:
     """A larger CPU share for this whole process against the host's other processes: its autogroup
     (Linux schedules each session as one, and every service is its own session) ``steps`` nice values

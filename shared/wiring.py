@@ -54,6 +54,7 @@ class BoundOutput:
     port: str
     msgtype: str
     keys: dict[str, str]  # fan-out item (or "") -> key
+    on_change: bool = False  # a state (also published when it changes): late subscribers may ask for its latest
 
 
 @dataclass(frozen=True)
@@ -122,7 +123,7 @@ def _resolve(inp: Input, remap: str | list[str] | None, robot: str, where: str) 
 
 def _bound_output(out: Output, service: str, instance: str) -> BoundOutput:
     items = out.each or ("",)
-    return BoundOutput(out.port, out.msgtype, {e: out.key_for(service, instance, e) for e in items})
+    return BoundOutput(out.port, out.msgtype, {e: out.key_for(service, instance, e) for e in items}, out.on_change)
 
 
 def bind(deployment: Deployment, service: str, instance: str) -> Binding:

@@ -88,7 +88,9 @@ class Recording:
         self._pending: collections.deque[tuple[str, bytes, int]] = collections.deque()
         self._types: dict[str, str | None] = {}  # key -> its type; "" internal, None unregistered
         try:
-            self.sub: Subscription = node.subscribe(pattern, self._arrived, fifo(), msgtype="raw", inline=True)
+            # history: a recording starts with each state's latest message (the session label)
+            self.sub: Subscription = node.subscribe(pattern, self._arrived, fifo(), msgtype="raw", inline=True,
+                                                    history=True)
         except Exception:
             self.writer.close()
             path.unlink(missing_ok=True)

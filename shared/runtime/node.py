@@ -43,6 +43,7 @@ from shared.runtime import inbound, schemas, shm
 from shared.runtime.clock import Clock
 from shared.runtime.logs import RateLimitedLog, fields
 from shared.runtime.stats import RateMeter, Stats, Tally
+from shared.runtime.zsession import declare_publisher, declare_subscriber
 from shared.wiring import Binding
 
 __all__ = ["Node", "Publisher", "QueuePolicy", "RateMeter", "Subscription", "fifo", "latest"]
@@ -57,12 +58,12 @@ class Publisher:
     process's shared-memory pool (shared/runtime/shm.py), as bytes when the pool is unavailable or
     full (counted)."""
 
-    def __init__(self, node: Node, key: str, msgtype: str, block: bool = False) -> None:
+    def __init__(self, node: Node, key: str, msgtype: str, block: bool = False, cache_last: bool = False) -> None:
         self.key = key
         self.msgtype = msgtype
         self._node = node
         congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self._pub = node.session.declare_publisher(key, congestion_control=congestion)
+        self._pub = declare_publisher(node.session, key, congestion, cache_last)
         self._type_token = node.session.liveliness().declare_token(schemas.token_key(key, msgtype))
         self._write = msgs.pieces_writer(msgtype)
         self.meter = node.stats.published.setdefault(key, RateMeter())
@@ -97,7 +98,7 @@ class Publisher:
 
 class Subscription:
     def __init__(self, node: Node, key_expr: str, msgtype: str | None,
-                 handler: Callable[..., Any], policy: QueuePolicy, inline: bool = False) -> None:
+                 handler: Callable[..., Any], policy: QueuePolicy, inline: bool = False, history: bool = False) -> None:
         if inline and inspect.iscoroutinefunction(handler):
             raise TypeError(f"subscription to {key_expr}: an inline handler must be a plain function, not a coroutine")
         self.key_expr = key_expr
@@ -131,7 +132,7 @@ class Subscription:
                                                                     history=True))
         self._exact = inbound.exact_key(key_expr)  # a single key: samples need not spell theirs out
         self._on_inline, self._on_sample = self._inline_callback(), self._queue_callback()
-        self._sub = node.session.declare_subscriber(key_expr, self._on_inline if inline else self._on_sample)
+        self._sub = declare_subscriber(node.session, key_expr, self._on_inline if inline else self._on_sample, history)
 
     # Zenoh thread: a publisher's type token came or went.
     def _on_type(self, sample: zenoh.Sample) -> None:
@@ -366,18 +367,20 @@ class Node:
             self.stats.count("task_crash")
             self.set_status("error", f"task {task.get_name()} crashed: {task.exception()!r}")
 
-    def publisher(self, topic_or_key: str, msgtype: str | None = None, block: bool = False) -> Publisher:
+    def publisher(self, topic_or_key: str, msgtype: str | None = None, block: bool = False,
+                  cache_last: bool = False) -> Publisher:
         key = topic_or_key if topic_or_key.startswith("xm/") else self.key(topic_or_key)
         msgtype = msgtype or keyreg.msgtype_of(key)
         if msgtype is None:
             raise ValueError(f"key {key} is declared by no services/*/ports.py; declare it or pass msgtype")
-        return Publisher(self, key, msgtype, block)
+        return Publisher(self, key, msgtype, block, cache_last)
 
     def subscribe(self, key_expr: str, handler: Callable[..., Any], policy: QueuePolicy | None = None,
-                  msgtype: str | None = None, inline: bool = False) -> Subscription:
+                  msgtype: str | None = None, inline: bool = False, history: bool = False) -> Subscription:
         """Handler gets ``(msg)`` or ``(msg, key)``; msgtype defaults to the registry's; "raw" gives bytes.
-        ``inline``: the handler runs on Zenoh's thread as each sample arrives (module docstring)."""
-        sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1), inline)
+        ``inline``: the handler runs on Zenoh's thread as each sample arrives (module docstring);
+        ``history``: first the latest sample of each state output (``on_change`` ports) it matches."""
+        sub = Subscription(self, key_expr, msgtype, handler, policy or latest(1), inline, history)
         self._subs.append(sub)
         self._closers.append(sub.close)
         return sub
@@ -392,7 +395,7 @@ class Node:
         bound = self._binding().output(port)
         if each not in bound.keys:
             raise KeyError(f"output {port!r} has no key for {each!r} (it has: {', '.join(bound.keys)})")
-        return self.publisher(bound.keys[each], bound.msgtype)
+        return self.publisher(bound.keys[each], bound.msgtype, cache_last=bound.on_change)
 
     def _binding(self) -> Binding:
         if self.ports is None:

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 import socket
+from collections.abc import Callable
+from typing import Any
 
 import zenoh
+import zenoh.ext
 
 
 class EndpointError(RuntimeError):
@@ -62,3 +65,26 @@ def open_router(endpoint: str, extra: dict | None = None) -> zenoh.Session:
 def open_client(endpoint: str) -> zenoh.Session:
     parse_tcp(endpoint)
     return zenoh.open(_config("client", connect=[endpoint]))
+
+
+def declare_publisher(session: zenoh.Session, key: str, congestion: zenoh.CongestionControl,
+                      cache_last: bool = False) -> Any:
+    """A publisher on ``key``; with ``cache_last`` its latest sample stays with it, for subscribers
+    that ask for history when they start (a state such as the session label reaches a recorder that
+    starts between two of its messages). Zenoh's cache needs its samples ordered: by sequence numbers
+    here (miss detection), which leaves the session's own timestamping off."""
+    if not cache_last:
+        return session.declare_publisher(key, congestion_control=congestion)
+    return zenoh.ext.declare_advanced_publisher(session, key, congestion_control=congestion,
+                                                cache=zenoh.ext.CacheConfig(max_samples=1),
+                                                sample_miss_detection=zenoh.ext.MissDetectionConfig())
+
+
+def declare_subscriber(session: zenoh.Session, key_expr: str, callback: Callable[[zenoh.Sample], None],
+                       history: bool = False) -> Any:
+    """A subscriber on ``key_expr``; with ``history`` it first gets the latest sample each matching
+    ``cache_last`` publisher holds, then the live ones."""
+    if not history:
+        return session.declare_subscriber(key_expr, callback)
+    return zenoh.ext.declare_advanced_subscriber(session, key_expr, callback,
+                                                 history=zenoh.ext.HistoryConfig(max_samples=1))

@@ -297,3 +297,32 @@ def test_cli_errors_are_clear_and_exit_2(tmp_path, capsys):
     (tmp_path / "exists.mcap").write_bytes(b"")
     assert record_main(["--router", nobody, "-o", str(tmp_path / "exists.mcap")]) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_a_recording_starts_with_the_latest_state_published_before_it(router, tmp_path):
+    """The world's session label is a state (an ``on_change`` port, cached by its publisher): a
+    recording started between two of its messages holds it from its start; a stream's old
+    samples (the clock) are not replayed."""
+    import zenoh
+
+    from shared.runtime.zsession import declare_publisher
+
+    svc, session = start_recorder(router, tmp_path)
+    label = msgs.serialize(msgs.make("xm_msgs/msg/Session", header=msgs.header(3.0), task="assembly", demo=4,
+                                     phase="demo", tactile_hand="right", seed_layout="{}"))
+    pub = declare_publisher(session, "xm/world/sim/session", zenoh.CongestionControl.DROP, cache_last=True)
+    try:
+        pub.put(label)
+        session.put("xm/clock", clock(1.0))
+        out = tmp_path / "s.mcap"
+        assert query_json(session, f"{REC}/@cmd/start", {"path": str(out)})[0]["ok"], svc.output()
+        assert wait_for(lambda: health(session)["messages"].get("xm/world/sim/session") == 1, 10), health(session)
+        session.put("xm/clock", clock(2.0))
+        assert wait_for(lambda: health(session)["messages"].get("xm/clock") == 1, 10), health(session)
+        assert query_json(session, f"{REC}/@cmd/stop", {})[0]["ok"]
+        stored = list(read_messages(out))
+        assert [s.data for s in stored if s.key == "xm/world/sim/session"] == [label]
+        assert [s.data for s in stored if s.key == "xm/clock"] == [clock(2.0)]
+    finally:
+        pub.undeclare()
+        assert svc.stop() in (0, -15), svc.output()

@@ -7,6 +7,8 @@ import signal
 
 import pytest
 
+from deploy.supervisor import SPARE_NICE_SHIFT
+from shared.realtime import autogroup_nice, can_lower_nice
 from tests.conftest import free_endpoint, query_json, wait_for, write_deployment, xm_up
 
 pytestmark = pytest.mark.slow
@@ -45,9 +47,13 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
             first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
             assert first, (tmp_path / "up.log").read_text()
             assert first["spare_pid"] != first["pid"]
+            if can_lower_nice():  # the spare waits at a small CPU share, and gets the service's back
+                assert autogroup_nice(first["spare_pid"]) == SPARE_NICE_SHIFT
             os.kill(first["pid"], signal.SIGKILL)
             after = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c["state"] == "ok" and c, 30)
             assert after and after["pid"] == first["spare_pid"], ((tmp_path / "up.log").read_text(), after)
+            if can_lower_nice():
+                assert autogroup_nice(after["pid"]) == 0  # a new session's autogroup starts at 0
             health = wait_for(lambda: query_json(sup.session, "xm/recorder/main/@health"), 10)
             assert health and health[0]["pid"] == first["spare_pid"] and health[0]["status"] == "ok"
             again = wait_for(lambda: (c := child()) and c["spare_pid"] not in (None, first["spare_pid"]) and c, 30)

@@ -137,3 +137,14 @@ def test_lock_memory_locks_pages_touched_later_or_says_why_not():
         assert "memory stays pageable" in out.stderr
         return
     assert int(after) - int(before) >= 8 << 10  # kB: the 8 MiB buffer touched after the call
+
+
+def test_can_lower_nice_reads_cap_sys_nice_from_the_effective_set(tmp_path):
+    from shared.realtime import can_lower_nice
+
+    status = tmp_path / "status"
+    status.write_text("Name:\tx\nCapEff:\t0000000000800000\n")  # bit 23 only
+    assert can_lower_nice(status)
+    status.write_text("Name:\tx\nCapEff:\t00000000007fffff\n")  # every bit below it
+    assert not can_lower_nice(status)
+    assert not can_lower_nice(tmp_path / "missing")
