@@ -41,6 +41,8 @@ MIN_VISIBLE = 0.05  # an object fully behind a hand still ranks its views by siz
 # Chosen on validation sessions 7311 and 7313 (bench/recon.py --object-present-confidence).
 PRESENT_CONFIDENCE = 0.6
 MIN_EXTENT_M = 0.005  # triangulated keypoints closer than this to their mean say nothing of the object's extent
+PEAK_CONFIDENCE = 0.3  # a crop's peak this confident places its keypoint for re-centring
+RECENTRE_MIN = 0.15  # a re-centred crop moved less than this many half sides (the trained jitter) is not redone
 
 
 def object_slices(names: list[str], first: int) -> list[tuple[str, slice]]:
@@ -70,6 +72,28 @@ def object_centres(P: np.ndarray, uv: np.ndarray, conf: np.ndarray, objects: lis
                 seen[c, o] = True
     points, mask, _ = triangulate_robust(P, med, seen.astype(float), gate_px=CENTRE_GATE_PX)
     return points, mask.astype(bool)
+
+
+def recentred(uv: np.ndarray, conf: np.ndarray, centre: np.ndarray, half: float,
+              threshold: float = PEAK_CONFIDENCE, min_move: float = RECENTRE_MIN) -> np.ndarray | None:
+    """Where to crop an object again in one view: the median of its crop's confident peaks ``uv``
+    (k,2) (the centre the object stage was trained around), or None when fewer than ``MIN_PEAKS``
+    are confident or it lies within ``min_move`` half sides of the crop's ``centre``."""
+    ok = np.asarray(conf) >= threshold
+    if ok.sum() < min(MIN_PEAKS, len(ok)):
+        return None
+    new = np.median(np.asarray(uv, float)[ok], axis=0)
+    return new if np.linalg.norm(new - np.asarray(centre, float)) >= min_move * half else None
+
+
+def disagreement(uv_a: np.ndarray, conf_a: np.ndarray, uv_b: np.ndarray, conf_b: np.ndarray,
+                 threshold: float = PEAK_CONFIDENCE) -> float:
+    """The median distance (pixels) between two crops' peaks (k,2) of one object's keypoints, over
+    those confident in both; inf when none is."""
+    ok = (np.asarray(conf_a) >= threshold) & (np.asarray(conf_b) >= threshold)
+    if not ok.any():
+        return float("inf")
+    return float(np.median(np.linalg.norm(np.asarray(uv_a, float)[ok] - np.asarray(uv_b, float)[ok], axis=1)))
 
 
 def view_scores(P: np.ndarray, focal: np.ndarray, windows: np.ndarray, centres: np.ndarray, wanted: np.ndarray,
@@ -156,8 +180,10 @@ class ObjectSchedule:
     def reset(self) -> None:
         self.held = [None] * len(self.held)
 
-    def plan(self, centres: np.ndarray, found: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(refresh (O,), reuse (O,)) for this frame set's first-stage centres (O,3) and ``found`` (O,)."""
+    def plan(self, centres: np.ndarray, found: np.ndarray,
+             busy: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(refresh (O,), reuse (O,)) for this frame set's first-stage centres (O,3) and ``found`` (O,);
+        a ``busy`` object (O,) (a hand at it: it may move) is cropped every frame set."""
         O = len(self.held)
         refresh, reuse = np.zeros(O, bool), np.zeros(O, bool)
         resting = []
@@ -165,7 +191,8 @@ class ObjectSchedule:
             held = self.held[o]
             if not found[o]:
                 self.held[o] = None
-            elif not self.reuse_resting or held is None or np.linalg.norm(centres[o] - held.centre) > self.rest_m:
+            elif (not self.reuse_resting or held is None or (busy is not None and busy[o])
+                  or np.linalg.norm(centres[o] - held.centre) > self.rest_m):
                 refresh[o] = True
             elif held.age >= self.max_age:
                 resting.append(o)
