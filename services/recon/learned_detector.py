@@ -158,17 +158,17 @@ class LearnedDetector:
 
     def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2,
                  object_views: int = object_crops.VIEWS, object_reuse: bool = True,
-                 object_present_confidence: float | None = None, object_recentre: int = 0,
-                 object_recentre_below: float = 1.0, object_verify_shift: float = 0.0,
-                 object_verify_px: float = 1.0, object_verify_average: bool = True,
-                 object_verify_below: float = 1.01, object_verify_recentre: bool = False,
-                 object_busy_m: float = 0.0) -> None:
+                 object_present_confidence: float | None = None,
+                 object_verify_shift: float = object_crops.VERIFY_SHIFT,
+                 object_busy_m: float = object_crops.BUSY_M) -> None:
         """``object_views``: views the object stage crops per object (its best; 0: every view);
         ``object_reuse``: a resting object's detections stand in for its crops on every other frame
         set (object_crops.ObjectSchedule; False: every object is cropped on every frame set);
         ``object_present_confidence``: a crop whose peaks of its object have a lower mean
         confidence is dropped (default: ``present_confidence`` in objects.json, else
-        ``object_crops.PRESENT_CONFIDENCE``; 0: off)."""
+        ``object_crops.PRESENT_CONFIDENCE``; 0: off); ``object_verify_shift``: a kept crop under
+        ``object_crops.TRUSTED`` is checked by a twin shifted this many half sides (0: off);
+        ``object_busy_m``: an object a hand's centre is this near is never reused (0: off)."""
         folder = Path(folder)
         self.meta = load_meta(folder)
         self.names: list[str] = list(self.meta["keypoints"])
@@ -206,15 +206,11 @@ class LearnedDetector:
                                                else (self.object_meta or {}).get("present_confidence",
                                                                                  object_crops.PRESENT_CONFIDENCE))
         self.object_views = object_views
-        self.object_recentre, self.object_recentre_below = object_recentre, object_recentre_below
-        self.object_verify_shift, self.object_verify_px = object_verify_shift, object_verify_px
-        self.object_verify_average = object_verify_average
-        self.object_verify_below, self.object_verify_recentre = object_verify_below, object_verify_recentre
-        self.object_crops_unsteady = 0
-        self.object_busy_m = object_busy_m
+        self.object_verify_shift, self.object_busy_m = object_verify_shift, object_busy_m
         self.schedule = object_crops.ObjectSchedule(len(self.object_slices), reuse=object_reuse)
         self.object_crops = 0  # crops the object stage ran, over all frame sets
         self.object_crops_missed = 0  # of those, dropped as too weak to show their object
+        self.object_crops_unsteady = 0  # of those, dropped as their peaks followed a shifted twin crop
         self.times: dict[str, float] = {}  # seconds of the last detect(), per stage
 
     def reset(self) -> None:
@@ -312,8 +308,10 @@ class LearnedDetector:
         resolution (largest projection, least covered by the ``hands``' centres in front of it),
         all crops in one network call; the crop network's peaks of its keypoints replace the first
         stage's there, and its other views get confidence 0 (the first stage's object peaks are
-        mostly on a neighbouring keypoint). An object with fewer than two usable views keeps the
-        first stage's peaks."""
+        mostly on a neighbouring keypoint). A crop too weak to show its object, or whose peaks
+        follow a shifted twin of it (``_verify``), gets confidence 0. An object with fewer than two
+        usable views keeps the first stage's peaks. An object a hand's centre (``hands``) is
+        within ``object_busy_m`` of is cropped on every frame set (it may be moving)."""
         geometry = geometry or _geometry(views)
         if geometry is None:
             return
@@ -353,47 +351,13 @@ class LearnedDetector:
         if not jobs:
             return
         uv_job, conf_job = self._object_peaks(images, windows, jobs)
-        for _ in range(self.object_recentre):
-            # coarse to fine: a crop whose confident peaks centre elsewhere is cropped again there,
-            # and the more confident of the two crops stands
-            again = []
-            for j, (c, o, cen, h) in enumerate(jobs):
-                if conf_job[j].mean() >= self.object_recentre_below:
-                    continue
-                new = object_crops.recentred(uv_job[j], conf_job[j], cen, h)
-                if new is not None:
-                    again.append((j, (c, o, new, h)))
-            if not again:
-                break
-            uv2, conf2 = self._object_peaks(images, windows, [job for _, job in again])
-            for (j, job), u, k in zip(again, uv2, conf2, strict=True):
-                if k.mean() > conf_job[j].mean():
-                    jobs[j], uv_job[j], conf_job[j] = job, u, k
-        if self.object_verify_shift > 0:
-            kept = [j for j in range(len(jobs))
-                    if self.object_present_confidence <= conf_job[j].mean() < self.object_verify_below]
-            step = self.object_verify_shift * np.array([1.0, 1.0]) / np.sqrt(2.0)
-            twins = []
-            for j in kept:
-                c, o, cen, h = jobs[j]
-                if self.object_verify_recentre:
-                    ok = conf_job[j] >= object_crops.PEAK_CONFIDENCE
-                    cen = np.median(uv_job[j][ok], axis=0) if ok.sum() >= 2 else cen
-                twins.append((c, o, cen + step * h, h))
-            if twins:
-                uv2, conf2 = self._object_peaks(images, windows, twins)
-                for j, u, k in zip(kept, uv2, conf2, strict=True):
-                    if object_crops.disagreement(uv_job[j], conf_job[j], u, k) > self.object_verify_px:
-                        conf_job[j] = np.zeros_like(conf_job[j])
-                        self.object_crops_unsteady += 1
-                    elif self.object_verify_average:
-                        uv_job[j] = 0.5 * (uv_job[j] + u)
+        unsteady = self._verify(images, windows, jobs, uv_job, conf_job) if self.object_verify_shift > 0 else set()
         for o in np.flatnonzero(chosen.any(axis=0)):
             conf[:, self.object_slices[o]] = 0.0  # only the cropped views speak for a cropped object
-        for (c, o, _, _), u, k in zip(jobs, uv_job, conf_job, strict=True):
+        for j, ((c, o, _, _), u, k) in enumerate(zip(jobs, uv_job, conf_job, strict=True)):
             sl = self.object_slices[o]
             uv[c, sl], conf[c, sl] = u, k
-            if k.mean() < self.object_present_confidence:
+            if j not in unsteady and k.mean() < self.object_present_confidence:
                 # the crop missed its object (its centre was off): its peaks lie on whatever it shows
                 conf[c, sl] = 0.0
                 self.object_crops_missed += 1
@@ -403,6 +367,28 @@ class LearnedDetector:
             self.schedule.store(o, centres[o], {cameras[c]: (uv[c, sl].copy(), conf[c, sl].copy()) for c in views_o},
                                 pts[mask.astype(bool)] if mask.sum() >= 2 else None)
 
+    def _verify(self, images: list[np.ndarray], windows: np.ndarray, jobs: list[tuple[int, int, np.ndarray, float]],
+                uv_job: list[np.ndarray], conf_job: list[np.ndarray]) -> set[int]:
+        """In place: each crop kept but not trusted (mean confidence between the present and the
+        trusted thresholds) is cropped again shifted diagonally by ``object_verify_shift`` half
+        sides, all in one network call; where the two crops' peaks lie more than
+        ``object_crops.VERIFY_PX`` apart the crop is dropped (its peaks followed the crop, not the
+        object), else its peaks are the two crops' mean. Returns the dropped crops' indices."""
+        todo = [j for j, k in enumerate(conf_job) if self.object_present_confidence <= k.mean() < object_crops.TRUSTED]
+        dropped: set[int] = set()
+        if not todo:
+            return dropped
+        step = self.object_verify_shift * np.array([1.0, 1.0]) / np.sqrt(2.0)
+        uv2, conf2 = self._object_peaks(images, windows, [(c, o, cen + step * h, h)
+                                                          for c, o, cen, h in (jobs[j] for j in todo)])
+        for j, u, k in zip(todo, uv2, conf2, strict=True):
+            if object_crops.disagreement(uv_job[j], conf_job[j], u, k) > object_crops.VERIFY_PX:
+                conf_job[j] = np.zeros_like(conf_job[j])
+                dropped.add(j)
+            else:
+                uv_job[j] = 0.5 * (uv_job[j] + u)
+        self.object_crops_unsteady += len(dropped)
+        return dropped
 
     def _object_peaks(self, images: list[np.ndarray], windows: np.ndarray,
                       jobs: list[tuple[int, int, np.ndarray, float]]) -> tuple[list[np.ndarray], list[np.ndarray]]:

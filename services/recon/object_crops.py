@@ -14,7 +14,13 @@ projection of its last keypoints, inside the window, least covered by a hand in 
 ``choose_views`` keeps the top ``VIEWS``), and a resting object's detections are reused on every
 other frame set (``ObjectSchedule``: an object whose first-stage centre stays within ``REST_M``
 of where it was at its last refresh rests; at most one resting object is refreshed per frame set,
-the stalest first). Every crop of a frame set goes through the network in one batch.
+the stalest first; an object a hand is near is cropped every frame set). Every crop of a frame set
+goes through the network in one batch.
+
+A crop whose centre misses its object still gets confident peaks on whatever it shows, at about the
+same place in every view (the views' crops are centred on one wrong 3-D point), so they triangulate.
+Such peaks follow the crop: a crop that is not clearly on its object is checked by a twin shifted
+by a fraction of its side (``disagreement``).
 """
 
 from __future__ import annotations
@@ -41,8 +47,18 @@ MIN_VISIBLE = 0.05  # an object fully behind a hand still ranks its views by siz
 # Chosen on validation sessions 7311 and 7313 (bench/recon.py --object-present-confidence).
 PRESENT_CONFIDENCE = 0.6
 MIN_EXTENT_M = 0.005  # triangulated keypoints closer than this to their mean say nothing of the object's extent
-PEAK_CONFIDENCE = 0.3  # a crop's peak this confident places its keypoint for re-centring
-RECENTRE_MIN = 0.15  # a re-centred crop moved less than this many half sides (the trained jitter) is not redone
+# A crop that passes PRESENT_CONFIDENCE but not TRUSTED is cropped again VERIFY_SHIFT half sides
+# off (diagonally): peaks on the object stay where they are in the image, peaks the network puts on
+# whatever a crop that missed shows follow the crop. More than VERIFY_PX apart: dropped. All chosen
+# on validation sessions 7311 and 7313 (bench/recon.py --object-verify-shift).
+TRUSTED = 0.8  # the board's and camera module's crops this confident were on their object there
+VERIFY_SHIFT = 0.3  # within what the object stage was trained on (0.15 half sides per axis)
+VERIFY_PX = 1.0  # full-image pixels, median over the keypoints confident in both crops
+PEAK_CONFIDENCE = 0.3  # a peak this confident places its keypoint
+# A hand this near an object's first-stage centre may be moving it: the object is cropped on every
+# frame set rather than resting (a held board moves 2 cm between frame sets while its first-stage
+# centre, placed from 7 input pixels, moves less than REST_M).
+BUSY_M = 0.10
 
 
 def object_slices(names: list[str], first: int) -> list[tuple[str, slice]]:
@@ -72,18 +88,6 @@ def object_centres(P: np.ndarray, uv: np.ndarray, conf: np.ndarray, objects: lis
                 seen[c, o] = True
     points, mask, _ = triangulate_robust(P, med, seen.astype(float), gate_px=CENTRE_GATE_PX)
     return points, mask.astype(bool)
-
-
-def recentred(uv: np.ndarray, conf: np.ndarray, centre: np.ndarray, half: float,
-              threshold: float = PEAK_CONFIDENCE, min_move: float = RECENTRE_MIN) -> np.ndarray | None:
-    """Where to crop an object again in one view: the median of its crop's confident peaks ``uv``
-    (k,2) (the centre the object stage was trained around), or None when fewer than ``MIN_PEAKS``
-    are confident or it lies within ``min_move`` half sides of the crop's ``centre``."""
-    ok = np.asarray(conf) >= threshold
-    if ok.sum() < min(MIN_PEAKS, len(ok)):
-        return None
-    new = np.median(np.asarray(uv, float)[ok], axis=0)
-    return new if np.linalg.norm(new - np.asarray(centre, float)) >= min_move * half else None
 
 
 def disagreement(uv_a: np.ndarray, conf_a: np.ndarray, uv_b: np.ndarray, conf_b: np.ndarray,
