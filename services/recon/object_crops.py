@@ -52,11 +52,11 @@ MIN_EXTENT_M = 0.005  # triangulated keypoints closer than this to their mean sa
 # whatever a crop that missed shows follow the crop. More than VERIFY_PX apart: dropped. All chosen
 # on validation sessions 7311 and 7313 (bench/recon.py --object-verify-shift).
 TRUSTED = 0.8  # on sessions 7311 and 7313, 1 of 204 crops this confident had its peaks over 3 px off
-VERIFY_SHIFT = 0.3  # within what the object stage was trained on (0.15 half sides per axis)
+VERIFY_SHIFT = 0.3  # 0.21 half sides per axis: 1.4 standard deviations of the training crops' jitter
 VERIFY_PX = 1.0  # full-image pixels, median over the keypoints confident in both crops
 PEAK_CONFIDENCE = 0.3  # a peak this confident places its keypoint
 # A hand this near an object's first-stage centre may be moving it: the object is cropped on every
-# frame set rather than resting (a held board moves 2 cm between frame sets while its first-stage
+# frame set rather than resting (a held board can move 2 cm between frame sets while its first-stage
 # centre, placed from 7 input pixels, moves less than REST_M).
 BUSY_M = 0.10
 

@@ -352,3 +352,22 @@ def test_the_object_stage_crops_the_best_views_and_reuses_a_resting_objects_dete
     det.reset()
     frame_set()
     assert det.batches[-1] == 6
+
+
+@pytest.mark.parametrize("hand_at_board", [False, True])
+def test_an_object_a_hand_is_at_is_cropped_on_every_frame_set(tmp_path, hand_at_board):
+    P = rig()
+    pts = objects_on_the_table()
+    truth, _ = project(P, pts)
+    det = object_stage(tmp_path, peak_offset_px=0.0)
+    views = full_views(P, det)
+    first = np.zeros((len(P), len(det.names), 2))
+    first[:, NH:] = truth
+    conf = np.ones(first.shape[:2])
+    board = pts[:5].mean(axis=0)
+    hands = (np.array([board + [0.05, -0.05, 0.0], [0.5, 0.5, 0.3]]), np.array([hand_at_board, False]))
+    for _ in range(2):
+        det._refine_objects(views, [v.image for v in views], (first.copy(), conf.copy()), first.copy(), conf.copy(),
+                            hands=hands)
+    # both resting: reused on the second frame set; the board with a hand 7 cm away is cropped again
+    assert det.batches == ([6, 3] if hand_at_board else [6])
