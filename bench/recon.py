@@ -158,7 +158,8 @@ def run_images(args: argparse.Namespace) -> dict:
 
     det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR, object_views=args.object_views,
                           object_reuse=not args.no_object_reuse,
-                          object_present_confidence=args.object_present_confidence)
+                          object_present_confidence=args.object_present_confidence,
+                          object_verify_shift=args.object_verify_shift, object_busy_m=args.object_busy_m)
     stage_keys = ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect", "cpu_reconstruct")
     times = {k: [] for k in stage_keys}
     load_before = images.load_average()
@@ -191,7 +192,10 @@ def run_images(args: argparse.Namespace) -> dict:
                             "crops_per_frame_set": round(det.object_crops / max(len(times["detect"]), 1), 2),
                             "objects_cropped": det.schedule.refreshed, "objects_reused": det.schedule.reused,
                             "present_confidence": det.object_present_confidence,
-                            "crops_dropped_as_missed": det.object_crops_missed}
+                            "crops_dropped_as_missed": det.object_crops_missed,
+                            "verify_shift_half_sides": det.object_verify_shift,
+                            "crops_dropped_as_unsteady": det.object_crops_unsteady,
+                            "busy_m": det.object_busy_m}
            if det.object_meta else None,
            "sessions": [f"assembly:{s}" for s in seeds], "frames_per_session": args.frames, "size": "256x192",
            "learned_live": pooled(len(sessions), "live"), "simulated_live": pooled(len(sessions), "sim_live")}
@@ -281,6 +285,11 @@ def main() -> None:
     parser.add_argument("--object-present-confidence", type=float, default=None,
                         help="the object stage's crops with a weaker mean confidence are dropped (default: the "
                              "detector's, object_crops.PRESENT_CONFIDENCE; 0: off)")
+    parser.add_argument("--object-verify-shift", type=float, default=0.3,
+                        help="a kept object-stage crop under object_crops.TRUSTED is checked by a twin shifted this "
+                             "many half sides (0: off)")
+    parser.add_argument("--object-busy-m", type=float, default=0.1,
+                        help="an object a hand's centre is this near is cropped every frame set (0: off)")
     parser.add_argument("--image-sessions", type=int, default=len(IMAGE_SESSIONS),
                         help="rendered sessions for the learned detector (0: none)")
     parser.add_argument("--image-seeds", default="",

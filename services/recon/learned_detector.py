@@ -158,13 +158,17 @@ class LearnedDetector:
 
     def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2,
                  object_views: int = object_crops.VIEWS, object_reuse: bool = True,
-                 object_present_confidence: float | None = None) -> None:
+                 object_present_confidence: float | None = None,
+                 object_verify_shift: float = object_crops.VERIFY_SHIFT,
+                 object_busy_m: float = object_crops.BUSY_M) -> None:
         """``object_views``: views the object stage crops per object (its best; 0: every view);
         ``object_reuse``: a resting object's detections stand in for its crops on every other frame
         set (object_crops.ObjectSchedule; False: every object is cropped on every frame set);
         ``object_present_confidence``: a crop whose peaks of its object have a lower mean
         confidence is dropped (default: ``present_confidence`` in objects.json, else
-        ``object_crops.PRESENT_CONFIDENCE``; 0: off)."""
+        ``object_crops.PRESENT_CONFIDENCE``; 0: off); ``object_verify_shift``: a kept crop under
+        ``object_crops.TRUSTED`` is checked by a twin shifted this many half sides (0: off);
+        ``object_busy_m``: an object a hand's centre is this near is never reused (0: off)."""
         folder = Path(folder)
         self.meta = load_meta(folder)
         self.names: list[str] = list(self.meta["keypoints"])
@@ -202,9 +206,11 @@ class LearnedDetector:
                                                else (self.object_meta or {}).get("present_confidence",
                                                                                  object_crops.PRESENT_CONFIDENCE))
         self.object_views = object_views
+        self.object_verify_shift, self.object_busy_m = object_verify_shift, object_busy_m
         self.schedule = object_crops.ObjectSchedule(len(self.object_slices), reuse=object_reuse)
         self.object_crops = 0  # crops the object stage ran, over all frame sets
         self.object_crops_missed = 0  # of those, dropped as too weak to show their object
+        self.object_crops_unsteady = 0  # of those, dropped as their peaks followed a shifted twin crop
         self.times: dict[str, float] = {}  # seconds of the last detect(), per stage
 
     def reset(self) -> None:
@@ -302,15 +308,21 @@ class LearnedDetector:
         resolution (largest projection, least covered by the ``hands``' centres in front of it),
         all crops in one network call; the crop network's peaks of its keypoints replace the first
         stage's there, and its other views get confidence 0 (the first stage's object peaks are
-        mostly on a neighbouring keypoint). An object with fewer than two usable views keeps the
-        first stage's peaks."""
+        mostly on a neighbouring keypoint). A crop too weak to show its object, or whose peaks
+        follow a shifted twin of it (``_verify``), gets confidence 0. An object with fewer than two
+        usable views keeps the first stage's peaks. An object a hand's centre (``hands``) is
+        within ``object_busy_m`` of is cropped on every frame set (it may be moving)."""
         geometry = geometry or _geometry(views)
         if geometry is None:
             return
         P, calibrated, focal = geometry
         uv0, conf0 = first
         centres, found = object_crops.object_centres(P, uv0, conf0 * calibrated[:, None], self.object_slices)
-        refresh, reuse = self.schedule.plan(centres, found)
+        busy = None
+        if hands is not None and self.object_busy_m > 0 and np.any(hands[1]):
+            gap = np.linalg.norm(centres[:, None] - np.asarray(hands[0])[None, np.asarray(hands[1], bool)], axis=-1)
+            busy = gap.min(axis=1) < self.object_busy_m
+        refresh, reuse = self.schedule.plan(centres, found, busy)
         cameras = [v.camera for v in views]
         for o in np.flatnonzero(reuse):
             sl = self.object_slices[o]
@@ -333,35 +345,19 @@ class LearnedDetector:
                        | np.any(local > windows[:, None, 2:] + half[..., None], axis=-1))
         for c, o in zip(*np.nonzero(misses & refresh[None, :]), strict=True):
             conf[c, self.object_slices[o]] = 0.0  # its crop shows none of this window: the view does not see it
-        size, base = self.object_size, self.object_slices[0].start
-        crops, where = [], []
-        for c in range(len(views)):
-            x0, y0 = windows[c, :2].astype(int)
-            img = None
-            for o in np.flatnonzero(chosen[c]):
-                if img is None:
-                    img = images[c].astype(np.float32) / 255.0
-                M = hand_crops.crop_matrix(centre[c, o] - (x0, y0), half[c, o], size, mirror=False)
-                crops.append(cv2.warpAffine(img, M, (size, size), flags=cv2.INTER_LINEAR,
-                                            borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
-                where.append((c, o, M, (x0, y0)))
+        jobs = [(c, o, centre[c, o], half[c, o]) for c in range(len(views)) for o in np.flatnonzero(chosen[c])]
         for o in np.flatnonzero(refresh & (chosen.sum(axis=0) < 2)):
             self.schedule.forget(o)  # no crops: the first stage's peaks stand, and it is tried again next time
-        if not crops:
+        if not jobs:
             return
-        self.object_crops += len(crops)
-        uv_crop, conf_crop = peaks(self._run_object(np.ascontiguousarray(np.stack(crops))))
+        uv_job, conf_job = self._object_peaks(images, windows, jobs)
+        unsteady = self._verify(images, windows, jobs, uv_job, conf_job) if self.object_verify_shift > 0 else set()
         for o in np.flatnonzero(chosen.any(axis=0)):
             conf[:, self.object_slices[o]] = 0.0  # only the cropped views speak for a cropped object
-        for (c, o, M, offset), u, k in zip(where, uv_crop, conf_crop, strict=True):
+        for j, ((c, o, _, _), u, k) in enumerate(zip(jobs, uv_job, conf_job, strict=True)):
             sl = self.object_slices[o]
-            rows = slice(sl.start - base, sl.stop - base)  # the cropped object's channels
-            local = hand_crops.to_image(u[rows], M)
-            h, w = images[c].shape[:2]
-            inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
-            uv[c, sl] = local + offset
-            conf[c, sl] = np.where(inside, np.clip(k[rows], 0.0, 1.0), 0.0)
-            if conf[c, sl].mean() < self.object_present_confidence:
+            uv[c, sl], conf[c, sl] = u, k
+            if j not in unsteady and k.mean() < self.object_present_confidence:
                 # the crop missed its object (its centre was off): its peaks lie on whatever it shows
                 conf[c, sl] = 0.0
                 self.object_crops_missed += 1
@@ -370,6 +366,56 @@ class LearnedDetector:
             pts, mask, _ = triangulate_robust(P[views_o], uv[views_o, sl], conf[views_o, sl])
             self.schedule.store(o, centres[o], {cameras[c]: (uv[c, sl].copy(), conf[c, sl].copy()) for c in views_o},
                                 pts[mask.astype(bool)] if mask.sum() >= 2 else None)
+
+    def _verify(self, images: list[np.ndarray], windows: np.ndarray, jobs: list[tuple[int, int, np.ndarray, float]],
+                uv_job: list[np.ndarray], conf_job: list[np.ndarray]) -> set[int]:
+        """In place: each crop kept but not trusted (mean confidence between the present and the
+        trusted thresholds) is cropped again shifted diagonally by ``object_verify_shift`` half
+        sides, all in one network call; where the two crops' peaks lie more than
+        ``object_crops.VERIFY_PX`` apart the crop is dropped (its peaks followed the crop, not the
+        object), else its peaks are the two crops' mean. Returns the dropped crops' indices."""
+        todo = [j for j, k in enumerate(conf_job) if self.object_present_confidence <= k.mean() < object_crops.TRUSTED]
+        dropped: set[int] = set()
+        if not todo:
+            return dropped
+        step = self.object_verify_shift * np.array([1.0, 1.0]) / np.sqrt(2.0)
+        uv2, conf2 = self._object_peaks(images, windows, [(c, o, cen + step * h, h)
+                                                          for c, o, cen, h in (jobs[j] for j in todo)])
+        for j, u, k in zip(todo, uv2, conf2, strict=True):
+            if object_crops.disagreement(uv_job[j], conf_job[j], u, k) > object_crops.VERIFY_PX:
+                conf_job[j] = np.zeros_like(conf_job[j])
+                dropped.add(j)
+            else:
+                uv_job[j] = 0.5 * (uv_job[j] + u)
+        self.object_crops_unsteady += len(dropped)
+        return dropped
+
+    def _object_peaks(self, images: list[np.ndarray], windows: np.ndarray,
+                      jobs: list[tuple[int, int, np.ndarray, float]]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The object stage on crops ``jobs`` (view, object, centre in full-image pixels, half side
+        in pixels), in one network call: per crop its object's peaks (k,2) in full-image pixels and
+        their confidences (k,), 0 where a peak lies outside the view's window."""
+        size, base = self.object_size, self.object_slices[0].start
+        crops, Ms, scaled = [], [], {}
+        for c, _, cen, h in jobs:
+            if c not in scaled:
+                scaled[c] = images[c].astype(np.float32) / 255.0
+            M = hand_crops.crop_matrix(cen - windows[c, :2], h, size, mirror=False)
+            crops.append(cv2.warpAffine(scaled[c], M, (size, size), flags=cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0)).transpose(2, 0, 1))
+            Ms.append(M)
+        self.object_crops += len(crops)
+        uv_crop, conf_crop = peaks(self._run_object(np.ascontiguousarray(np.stack(crops))))
+        uv_out, conf_out = [], []
+        for (c, o, _, _), M, u, k in zip(jobs, Ms, uv_crop, conf_crop, strict=True):
+            sl = self.object_slices[o]
+            rows = slice(sl.start - base, sl.stop - base)  # the cropped object's channels
+            local = hand_crops.to_image(u[rows], M)
+            h, w = images[c].shape[:2]
+            inside = np.all((local >= -0.5) & (local <= np.array([w, h]) - 0.5), axis=1)
+            uv_out.append(local + windows[c, :2])
+            conf_out.append(np.where(inside, np.clip(k[rows], 0.0, 1.0), 0.0))
+        return uv_out, conf_out
 
 
 def _geometry(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

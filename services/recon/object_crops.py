@@ -14,7 +14,13 @@ projection of its last keypoints, inside the window, least covered by a hand in 
 ``choose_views`` keeps the top ``VIEWS``), and a resting object's detections are reused on every
 other frame set (``ObjectSchedule``: an object whose first-stage centre stays within ``REST_M``
 of where it was at its last refresh rests; at most one resting object is refreshed per frame set,
-the stalest first). Every crop of a frame set goes through the network in one batch.
+the stalest first; an object a hand is near is cropped every frame set). Every crop of a frame set
+goes through the network in one batch.
+
+A crop whose centre misses its object still gets confident peaks on whatever it shows, at about the
+same place in every view (the views' crops are centred on one wrong 3-D point), so they triangulate.
+Such peaks follow the crop: a crop that is not clearly on its object is checked by a twin shifted
+by a fraction of its side (``disagreement``).
 """
 
 from __future__ import annotations
@@ -41,6 +47,18 @@ MIN_VISIBLE = 0.05  # an object fully behind a hand still ranks its views by siz
 # Chosen on validation sessions 7311 and 7313 (bench/recon.py --object-present-confidence).
 PRESENT_CONFIDENCE = 0.6
 MIN_EXTENT_M = 0.005  # triangulated keypoints closer than this to their mean say nothing of the object's extent
+# A crop that passes PRESENT_CONFIDENCE but not TRUSTED is cropped again VERIFY_SHIFT half sides
+# off (diagonally): peaks on the object stay where they are in the image, peaks the network puts on
+# whatever a crop that missed shows follow the crop. More than VERIFY_PX apart: dropped. All chosen
+# on validation sessions 7311 and 7313 (bench/recon.py --object-verify-shift).
+TRUSTED = 0.8  # on sessions 7311 and 7313, 1 of 204 crops this confident had its peaks over 3 px off
+VERIFY_SHIFT = 0.3  # 0.21 half sides per axis: 1.4 standard deviations of the training crops' jitter
+VERIFY_PX = 1.0  # full-image pixels, median over the keypoints confident in both crops
+PEAK_CONFIDENCE = 0.3  # a peak this confident places its keypoint
+# A hand this near an object's first-stage centre may be moving it: the object is cropped on every
+# frame set rather than resting (a held board can move 2 cm between frame sets while its first-stage
+# centre, placed from 7 input pixels, moves less than REST_M).
+BUSY_M = 0.10
 
 
 def object_slices(names: list[str], first: int) -> list[tuple[str, slice]]:
@@ -70,6 +88,16 @@ def object_centres(P: np.ndarray, uv: np.ndarray, conf: np.ndarray, objects: lis
                 seen[c, o] = True
     points, mask, _ = triangulate_robust(P, med, seen.astype(float), gate_px=CENTRE_GATE_PX)
     return points, mask.astype(bool)
+
+
+def disagreement(uv_a: np.ndarray, conf_a: np.ndarray, uv_b: np.ndarray, conf_b: np.ndarray,
+                 threshold: float = PEAK_CONFIDENCE) -> float:
+    """The median distance (pixels) between two crops' peaks (k,2) of one object's keypoints, over
+    those confident in both; inf when none is."""
+    ok = (np.asarray(conf_a) >= threshold) & (np.asarray(conf_b) >= threshold)
+    if not ok.any():
+        return float("inf")
+    return float(np.median(np.linalg.norm(np.asarray(uv_a, float)[ok] - np.asarray(uv_b, float)[ok], axis=1)))
 
 
 def view_scores(P: np.ndarray, focal: np.ndarray, windows: np.ndarray, centres: np.ndarray, wanted: np.ndarray,
@@ -156,8 +184,10 @@ class ObjectSchedule:
     def reset(self) -> None:
         self.held = [None] * len(self.held)
 
-    def plan(self, centres: np.ndarray, found: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(refresh (O,), reuse (O,)) for this frame set's first-stage centres (O,3) and ``found`` (O,)."""
+    def plan(self, centres: np.ndarray, found: np.ndarray,
+             busy: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(refresh (O,), reuse (O,)) for this frame set's first-stage centres (O,3) and ``found`` (O,);
+        a ``busy`` object (O,) (a hand at it: it may move) is cropped every frame set."""
         O = len(self.held)
         refresh, reuse = np.zeros(O, bool), np.zeros(O, bool)
         resting = []
@@ -165,7 +195,8 @@ class ObjectSchedule:
             held = self.held[o]
             if not found[o]:
                 self.held[o] = None
-            elif not self.reuse_resting or held is None or np.linalg.norm(centres[o] - held.centre) > self.rest_m:
+            elif (not self.reuse_resting or held is None or (busy is not None and busy[o])
+                  or np.linalg.norm(centres[o] - held.centre) > self.rest_m):
                 refresh[o] = True
             elif held.age >= self.max_age:
                 resting.append(o)

@@ -179,6 +179,7 @@ class ReconService:
             out["timeline_restarts"] = self.buffer.restarts
             out["object_crops"] = getattr(self.learned, "object_crops", 0)  # a detector without an object stage
             out["object_crops_missed"] = getattr(self.learned, "object_crops_missed", 0)  # too weak to show it
+            out["object_crops_unsteady"] = getattr(self.learned, "object_crops_unsteady", 0)  # peaks followed the crop
         return out
 
     def on_info(self, msg, key: str) -> None:

@@ -130,7 +130,8 @@ def test_the_object_stage_clears_views_whose_window_misses_the_object(tmp_path):
 def test_weak_object_crops_are_dropped_as_missed(tmp_path, threshold, kept):
     P = rig()
     truth, _ = project(P, objects_on_the_table())
-    det = object_stage(tmp_path, 0.0, amplitude=0.5, object_views=0, object_present_confidence=threshold)
+    det = object_stage(tmp_path, 0.0, amplitude=0.5, object_views=0, object_present_confidence=threshold,
+                       object_verify_shift=0.0)  # the stub's peaks follow the crop: no twin check here
     assert det.object_present_confidence == (object_crops.PRESENT_CONFIDENCE if threshold is None else threshold)
     views = [View(f"cam{i}", CameraModel(P[i], W, H, (0, 0, W, H)), np.zeros((H, W, 3), np.uint8))
              for i in range(len(P))]
@@ -143,6 +144,82 @@ def test_weak_object_crops_are_dropped_as_missed(tmp_path, threshold, kept):
         assert np.all(conf[:, NH:] > 0.4) and det.object_crops_missed == 0
     else:  # peaks of 0.5 under the default 0.6: every crop missed its object
         assert np.all(conf[:, NH:] == 0.0) and det.object_crops_missed == det.object_crops
+
+
+def test_disagreement_is_the_median_distance_over_keypoints_confident_in_both():
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    b = a + [[0.5, 0.0], [0.0, 2.0], [9.0, 9.0]]
+    assert object_crops.disagreement(a, np.ones(3), b, np.ones(3)) == pytest.approx(2.0)
+    assert object_crops.disagreement(a, np.ones(3), b, np.array([1.0, 0.1, 0.1])) == pytest.approx(0.5)
+    assert object_crops.disagreement(a, np.zeros(3), b, np.ones(3)) == np.inf
+
+
+def dot_images(P: np.ndarray, point: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """One bright blur (sigma 1 px) per view at ``point``'s projection; and those pixels (C,2)."""
+    pix, _ = project(P, point[None])
+    ys, xs = np.mgrid[:H, :W]
+    images = []
+    for u, v in pix[:, 0]:
+        blob = 255.0 * np.exp(-((xs - u) ** 2 + (ys - v) ** 2) / 2.0)
+        images.append(np.repeat(blob[..., None], 3, axis=2).astype(np.uint8))
+    return images, pix[:, 0]
+
+
+def image_tied(det: LearnedDetector, amplitude: float) -> None:
+    """The object stage stand-in puts every peak on the crop's bright spot (its intensity centroid),
+    wherever the crop lies: peaks on something in the image, as on an object the crop shows."""
+    ys, xs = np.mgrid[:32, :32]
+
+    def run(batch: np.ndarray) -> np.ndarray:
+        det.batches.append(len(batch))
+        out = np.zeros((len(batch), 8, 32, 32), np.float32)
+        for i, crop in enumerate(batch):
+            w = crop[0]
+            if w.sum() > 1e-3:
+                cx, cy = (xs * w).sum() / w.sum(), (ys * w).sum() / w.sum()
+                out[i] = amplitude * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 1.5**2))
+        return out
+    det._run_object = run
+
+
+@pytest.mark.parametrize("tied", ["image", "crop"])
+def test_a_crop_whose_peaks_follow_a_shifted_twin_is_dropped(tmp_path, tied):
+    P = rig()
+    truth, _ = project(P, objects_on_the_table())
+    board = objects_on_the_table()[:5].mean(axis=0) + [0.01, 0.005, 0.0]  # off the crop's centre
+    images, spot = dot_images(P, board)
+    det = object_stage(tmp_path, peak_offset_px=0.0, amplitude=0.7)  # kept (>= 0.6), not trusted (< 0.8)
+    if tied == "image":
+        image_tied(det, 0.7)
+    views = [View(f"cam{i}", CameraModel(P[i], W, H, (0, 0, W, H)), images[i]) for i in range(len(P))]
+    first = np.zeros((len(P), len(det.names), 2))
+    first[:, NH:] = truth
+    conf = np.ones(first.shape[:2])
+    uv = first.copy()
+    det._refine_objects(views, images, (first.copy(), conf.copy()), uv, conf)
+    # the crops, then in one call the twins of those kept but not trusted (the image-tied stand-in
+    # sees nothing in the camera module's crops: confidence 0, no twin)
+    assert det.batches == ([6, 3] if tied == "image" else [6, 6])
+    cropped = conf[:, NH:NH + 5].any(axis=1)
+    if tied == "image":
+        assert cropped.sum() == 3 and det.object_crops_unsteady == 0
+        assert np.abs(uv[cropped, NH:NH + 5] - spot[cropped, None]).max() < 0.5
+        assert np.allclose(conf[cropped, NH:NH + 5], 0.7, atol=0.01)
+    else:  # the peaks sit at the crop's centre wherever it is: the twin's lie 0.3 half sides off
+        assert not cropped.any() and det.object_crops_unsteady == 6 and det.object_crops_missed == 0
+
+
+def test_trusted_crops_are_not_checked_by_a_twin(tmp_path):
+    P = rig()
+    truth, _ = project(P, objects_on_the_table())
+    det = object_stage(tmp_path, peak_offset_px=0.0, amplitude=0.9)
+    views = full_views(P, det)
+    first = np.zeros((len(P), len(det.names), 2))
+    first[:, NH:] = truth
+    conf = np.ones(first.shape[:2])
+    det._refine_objects(views, [v.image for v in views], (first.copy(), conf.copy()), first.copy(), conf)
+    assert det.batches == [6] and det.object_crops_unsteady == 0
+    assert (conf[:, NH:] > 0.8).sum(axis=0).tolist() == [3] * 8
 
 
 def test_object_stage_weights_for_other_keypoints_are_refused(tmp_path):
@@ -238,6 +315,10 @@ def test_schedule_crops_moving_objects_every_time_and_resting_ones_in_turn():
     assert refresh[0] and not reuse[0]
     refresh, reuse = s.plan(centres, np.array([True, False]))  # the camera module is lost
     assert s.held[1] is None and not refresh[1] and not reuse[1]
+    s.store(0, centres[0], {}, None)
+    assert s.plan(centres, found)[1][0]  # the board rests again
+    refresh, reuse = s.plan(centres, found, busy=np.array([True, False]))  # a hand is at it: it may move
+    assert refresh[0] and not reuse[0]
     every = object_crops.ObjectSchedule(2, reuse=False)
     for o in range(2):
         every.store(o, centres[o], {}, None)
@@ -271,3 +352,22 @@ def test_the_object_stage_crops_the_best_views_and_reuses_a_resting_objects_dete
     det.reset()
     frame_set()
     assert det.batches[-1] == 6
+
+
+@pytest.mark.parametrize("hand_at_board", [False, True])
+def test_an_object_a_hand_is_at_is_cropped_on_every_frame_set(tmp_path, hand_at_board):
+    P = rig()
+    pts = objects_on_the_table()
+    truth, _ = project(P, pts)
+    det = object_stage(tmp_path, peak_offset_px=0.0)
+    views = full_views(P, det)
+    first = np.zeros((len(P), len(det.names), 2))
+    first[:, NH:] = truth
+    conf = np.ones(first.shape[:2])
+    board = pts[:5].mean(axis=0)
+    hands = (np.array([board + [0.05, -0.05, 0.0], [0.5, 0.5, 0.3]]), np.array([hand_at_board, False]))
+    for _ in range(2):
+        det._refine_objects(views, [v.image for v in views], (first.copy(), conf.copy()), first.copy(), conf.copy(),
+                            hands=hands)
+    # both resting: reused on the second frame set; the board with a hand 7 cm away is cropped again
+    assert det.batches == ([6, 3] if hand_at_board else [6])

@@ -136,7 +136,7 @@ def learned(monkeypatch):
 
     class LearnedDetector:
         names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + names_
-        object_crops, object_crops_missed = 4, 1
+        object_crops, object_crops_missed, object_crops_unsteady = 4, 1, 2
 
         def detect(self, views):
             seen_views.append([v.camera for v in views])
@@ -179,7 +179,8 @@ def test_learned_path_reconstructs_from_images_skipping_corrupt_and_late_cameras
     np.testing.assert_allclose(hands, points[:42], atol=1e-3)
     assert np.isfinite(np.asarray(scene.object_keypoints)).all()
     assert node.health_extra()["partial_frame_sets"] == 1
-    assert (node.health_extra()["object_crops"], node.health_extra()["object_crops_missed"]) == (4, 1)
+    health = node.health_extra()
+    assert (health["object_crops"], health["object_crops_missed"], health["object_crops_unsteady"]) == (4, 1, 2)
 
 
 def test_learned_weights_of_other_keypoints_are_refused(learned):
