@@ -42,10 +42,12 @@ BACKOFF_MAX_S = 20.0
 HEALTHY_AFTER_S = 30.0  # a run this long resets the backoff
 STOP_GRACE_S = 5.0
 SPARE_DELAY_S = 5.0  # a new spare starts this long after the last was taken: its imports would slow the recovery
-# A spare imports and waits with its autogroup this many nice values up: its start-up (seconds of
-# imports, a renderer, a network) takes CPU only the running cell leaves. The supervisor moves it
-# back as it hands over, so only where it may lower nice values (CAP_SYS_NICE).
+# A spare starts with its autogroup this many nice values up, so its start-up (seconds of imports,
+# a renderer, a network) takes only CPU the cell leaves while it recovers from the kill; after
+# SPARE_QUIET_S it is moved back (on a loaded host it would not be ready for the next kill), or
+# as it hands over. Only where the supervisor may lower nice values (CAP_SYS_NICE).
 SPARE_NICE_SHIFT = 15
+SPARE_QUIET_S = 20.0
 
 
 def backoff_delay(consecutive_failures: int) -> float:
@@ -225,6 +227,14 @@ class Supervisor:
         if self._spare_nice and before is not None:
             after = shift_autogroup(child.spare.pid, SPARE_NICE_SHIFT)
             child.spare_shift = 0 if after is None else after - before
+            asyncio.get_running_loop().call_later(SPARE_QUIET_S, self._spare_full_share, child, child.spare)
+
+    @staticmethod
+    def _spare_full_share(child: Child, spare: asyncio.subprocess.Process) -> None:
+        """The spare's autogroup back where it was (once; a spare that took over already is)."""
+        if child.spare is spare and child.spare_shift and spare.returncode is None:
+            shift_autogroup(spare.pid, -child.spare_shift)
+            child.spare_shift = 0
 
     async def _pump(self, child: Child, stream: asyncio.StreamReader, logfile, spare_pid: int | None = None) -> None:
         prefix = f"{child.name:<16}| "

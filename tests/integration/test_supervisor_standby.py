@@ -44,11 +44,12 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
     child = sup.child
     with xm_up(dep, tmp_path / "up.log", "--standby"):
         try:
+            spare = wait_for(lambda: (c := child()) and c["spare_pid"], 60)
+            if can_lower_nice():  # a new spare starts at a small CPU share, and gets the service's back
+                assert spare and autogroup_nice(spare) == SPARE_NICE_SHIFT
             first = wait_for(lambda: (c := child()) and c["spare_ready"] and c["state"] == "ok" and c, 60)
             assert first, (tmp_path / "up.log").read_text()
             assert first["spare_pid"] != first["pid"]
-            if can_lower_nice():  # the spare waits at a small CPU share, and gets the service's back
-                assert autogroup_nice(first["spare_pid"]) == SPARE_NICE_SHIFT
             os.kill(first["pid"], signal.SIGKILL)
             after = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c["state"] == "ok" and c, 30)
             assert after and after["pid"] == first["spare_pid"], ((tmp_path / "up.log").read_text(), after)
