@@ -83,21 +83,32 @@ def descendants(roots: list[int]) -> set[int]:
     return seen
 
 
-def shift_autogroups(pids: set[int], steps: int, done: set[int]) -> int:
-    """Moves each process's autogroup ``steps`` nice values, once per process (``done``), so a
-    service that raised its own share (the world) stays ahead of the others; returns how many moved."""
+def autogroup_id(pid: int) -> str | None:
+    """A process's autogroup ("/autogroup-123"), shared by every process of its session."""
+    try:
+        return Path(f"/proc/{pid}/autogroup").read_text().split()[0]
+    except (OSError, IndexError):
+        return None
+
+
+def shift_autogroups(pids: set[int], steps: int, done: set[str]) -> int:
+    """Moves each autogroup of these processes ``steps`` nice values, once per autogroup (``done``:
+    a service's child process shares its group), so a service that raised its own share (the world)
+    stays ahead of the others; returns how many moved."""
     moved = 0
-    for pid in pids - done:
-        done.add(pid)
-        moved += shift_autogroup(pid, steps) is not None
+    for pid in pids:
+        group = autogroup_id(pid)
+        if group is not None and group not in done:
+            done.add(group)
+            moved += shift_autogroup(pid, steps) is not None
     return moved
 
 
 def autogroup_keeper(roots: list[int], steps: int, stop: threading.Event, result: dict) -> None:
     """Boosts the soak's process tree every 0.5 s, so restarted services and new spares follow."""
-    done: set[int] = set()
+    done: set[str] = set()
     while not stop.is_set():
-        result["processes_set"] += shift_autogroups(descendants(roots), steps, done)
+        result["groups_set"] += shift_autogroups(descendants(roots), steps, done)
         stop.wait(0.5)
 
 
@@ -352,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     monitor = None
     boost_stop = threading.Event()
     if args.autogroup_nice is not None:
-        report["autogroup_nice"] = {"shift": args.autogroup_nice, "processes_set": 0}
+        report["autogroup_nice"] = {"shift": args.autogroup_nice, "groups_set": 0}
         threading.Thread(target=autogroup_keeper, args=([os.getpid()], args.autogroup_nice, boost_stop,
                                                         report["autogroup_nice"]), daemon=True).start()
     try:

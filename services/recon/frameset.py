@@ -57,6 +57,11 @@ class FrameSetBuffer:
             self._done.discard(min(self._done))
         return out
 
+    @property
+    def released(self) -> bool:
+        """Whether a frame set of the current timeline has been released."""
+        return bool(self._done)
+
     def flush(self) -> list[tuple[float, dict]]:
         """Every pending frame set, oldest first (the end of a recording)."""
         out = [(s, self.pending.pop(s)) for s in sorted(self.pending)]

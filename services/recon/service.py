@@ -116,7 +116,7 @@ class ReconService:
         self.scene_pub = node.output("scene")
         self.mesh_pub = node.output("tactile_mesh")
         node.health_extra = self._health
-        node.input("info", self.on_info)
+        self.info_subs = node.input("info", self.on_info)
         if self.layout is not None:
             node.input("tactile", self.on_tactile)
         if params.detector == "simulated":
@@ -222,8 +222,15 @@ class ReconService:
     def on_image(self, msg, key: str) -> None:
         self._add(msgs.stamp_seconds(msg.header.stamp), key.split("/")[2], bytes(msg.data))
 
+    def announced_cameras(self) -> set[str]:
+        """Cameras whose CameraInfo publisher is live (its type token), known before their first message."""
+        return {key.split("/")[2] for sub in self.info_subs for key in list(sub.publishers)}
+
     def _add(self, stamp: float, item: str, payload: object) -> None:
-        expected = set(self.cameras) | {info_key(c) for c in self.cameras}
+        # Until a first frame set is out, the cameras announced count too: a restarted recon's first
+        # set is not released with the one camera whose CameraInfo came first (then lost: too few views).
+        cameras = set(self.cameras) | (self.announced_cameras() if not self.buffer.released else set())
+        expected = cameras | {info_key(c) for c in cameras}
         for set_stamp, items in self.buffer.add(stamp, item, payload, expected):
             self._detect_images(set_stamp, items)
 

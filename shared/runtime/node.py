@@ -125,6 +125,7 @@ class Subscription:
         self.dropped: collections.Counter[str] = collections.Counter()
         # Keys whose publisher declares another type or schema (shared/runtime/schemas.py): token -> why.
         self.refused: dict[str, dict[str, str]] = {}
+        self.publishers: dict[str, set[str]] = {}  # key -> type tokens of its live publishers (any type)
         # key -> [count an arrival, take(payload) -> message or None]: one lookup per sample (_new_key)
         self._keys: dict[str, list] = {}
         self._types = (None if msgtype == "raw" else
@@ -143,6 +144,7 @@ class Subscription:
         expected = self.msgtype or keyreg.msgtype_of(declared.key)
         why = schemas.mismatch(declared, expected) if expected else None
         with self._lock:
+            schemas.track(self.publishers, declared.key, token, gone=sample.kind == zenoh.SampleKind.DELETE)
             if sample.kind == zenoh.SampleKind.DELETE or why is None:
                 gone = self.refused.get(declared.key, {})
                 gone.pop(token, None)

@@ -59,3 +59,14 @@ def mismatch(declared: Declared, expected: str) -> str | None:
         return (f"publisher on {declared.key} sends {declared.msgtype} with schema {declared.schema}; this "
                 f"subscriber's {expected} has schema {type_hash(expected)} (different .msg definitions)")
     return None
+
+
+def track(publishers: dict[str, set[str]], key: str, token: str, gone: bool) -> None:
+    """Keeps ``publishers`` (key -> the type tokens of its live publishers) up to date with one token."""
+    live = publishers.setdefault(key, set())
+    if gone:
+        live.discard(token)
+    else:
+        live.add(token)
+    if not live:
+        del publishers[key]

@@ -35,9 +35,11 @@ class FakeNode:
         self.log = logging.getLogger("test-recon")
         self.status, self.message = "starting", ""
         self.health_extra = None
+        self.publishers: dict[str, set[str]] = {}  # live publishers the info subscription knows of
 
-    def input(self, port: str, handler) -> None:
+    def input(self, port: str, handler) -> list:
         self.handlers[port] = handler
+        return [SimpleNamespace(publishers=self.publishers)]
 
     def output(self, port: str):
         return SimpleNamespace(put=self.outputs.setdefault(port, []).append)
@@ -209,6 +211,21 @@ def test_each_image_is_read_with_the_window_of_its_own_frame_set(learned):
     # (its image is in before its CameraInfo, while it still holds 1.0's)
     assert windows[-2:] == [[(20, 10, 32, 24)] * 7, [(8, 4, 32, 24)] * 7]
     assert not [k for k in node.stats.errors if k.startswith("corrupt_jpeg")]
+
+
+def test_a_restarted_recon_waits_for_every_announced_camera_in_its_first_frame_set(learned):
+    """A recon started while camhub runs knows the cameras from their publishers' tokens: its first
+    frame set is not released with the one camera whose CameraInfo came first."""
+    _, seen_views = learned
+    node = FakeNode()
+    ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    specs = camera_specs(64, 48)
+    node.publishers.update({f"xm/camhub/{s.name}/info": {"token"} for s in specs})
+    for spec in specs:
+        node.handlers["image"](_jpeg(spec, 1.0), f"xm/camhub/{spec.name}/image")
+        node.handlers["info"](_info(spec, 1.0), f"xm/camhub/{spec.name}/info")
+    assert len(node.published) == 1 and seen_views == [[s.name for s in specs]]
+    assert node.stats.errors["too_few_cameras"] == 0
 
 
 def test_a_spare_loads_the_network_before_it_takes_over(learned):

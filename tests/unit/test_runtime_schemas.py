@@ -85,3 +85,15 @@ def test_a_publisher_of_the_same_type_with_another_schema_is_refused(router):
         other_build.close()
 
     asyncio.run(go())
+
+
+def test_track_keeps_each_key_while_one_of_its_publishers_lives():
+    from shared.runtime.schemas import track
+
+    live: dict[str, set[str]] = {}
+    track(live, "xm/camhub/cam0/info", "t1", gone=False)
+    track(live, "xm/camhub/cam0/info", "t2", gone=False)  # a restarted publisher before the old one's token went
+    track(live, "xm/camhub/cam0/info", "t1", gone=True)
+    assert live == {"xm/camhub/cam0/info": {"t2"}}
+    track(live, "xm/camhub/cam0/info", "t2", gone=True)
+    assert live == {}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 from bench.soak import descendants, unplanned_exits
+from tests.conftest import wait_for
 
 
 def test_exits_beyond_the_soaks_kills_are_unplanned(tmp_path):
@@ -40,3 +41,27 @@ def test_a_brake_is_put_on_the_host_only_when_its_gap_ends_at_a_probe_stall():
     assert [e["host_stall_near"] for e in events] == [True, False, False]
     assert events[0]["hypervisor_steal_near"] and not events[1]["hypervisor_steal_near"]
     assert all(isinstance(j, int) for j in steal_jiffies())
+
+
+def test_the_boost_moves_each_autogroup_once_however_many_processes_share_it():
+    import subprocess
+    import sys
+
+    from bench.soak import shift_autogroups
+    from shared.realtime import autogroup_nice
+
+    # a session (one autogroup) of two processes: a service and its child
+    child = "subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])"
+    leader = subprocess.Popen([sys.executable, "-c", f"import subprocess, sys, time; {child}; time.sleep(60)"],
+                              start_new_session=True)
+    try:
+        assert wait_for(lambda: len(descendants([leader.pid])) == 2, 10)
+        if autogroup_nice(leader.pid) is None:
+            return  # no autogroups on this kernel
+        done: set[str] = set()
+        assert shift_autogroups(descendants([leader.pid]), 2, done) == 1
+        assert shift_autogroups(descendants([leader.pid]), 2, done) == 0
+        assert autogroup_nice(leader.pid) == 2
+    finally:
+        os.killpg(leader.pid, 9)
+        leader.wait()
