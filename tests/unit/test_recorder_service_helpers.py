@@ -53,8 +53,9 @@ class FakeNode:
         self.handler = None
         self.failed: list = []
 
-    def subscribe(self, _pattern, handler, _policy, msgtype=None, inline=False):
+    def subscribe(self, _pattern, handler, _policy, msgtype=None, inline=False, history=False):
         assert msgtype == "raw" and inline  # stamped on Zenoh's thread, no loop hop per message
+        assert history  # a recording starts with each state's latest message
         self.handler = handler
         return self
 
