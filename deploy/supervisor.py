@@ -181,10 +181,8 @@ class Supervisor:
     async def _start_child(self, child: Child) -> None:
         spare = child.spare
         if spare is not None and spare.returncode is None:
+            self._spare_full_share(child, spare)  # its full CPU share before it starts working
             child.spare, child.proc, child.log_tasks = None, spare, child.spare_log_tasks
-            if child.spare_shift:  # its full CPU share before it starts working
-                shift_autogroup(spare.pid, -child.spare_shift)
-                child.spare_shift = 0
             try:
                 spare.stdin.write(b"go\n")
                 await spare.stdin.drain()
@@ -231,7 +229,7 @@ class Supervisor:
 
     @staticmethod
     def _spare_full_share(child: Child, spare: asyncio.subprocess.Process) -> None:
-        """The spare's autogroup back where it was (once; a spare that took over already is)."""
+        """The spare's autogroup back where it was, once (at takeover or SPARE_QUIET_S after its start)."""
         if child.spare is spare and child.spare_shift and spare.returncode is None:
             shift_autogroup(spare.pid, -child.spare_shift)
             child.spare_shift = 0
