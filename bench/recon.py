@@ -159,7 +159,8 @@ def run_images(args: argparse.Namespace) -> dict:
     det = LearnedDetector(args.weights or DEFAULT_WEIGHTS_DIR, object_views=args.object_views,
                           object_reuse=not args.no_object_reuse,
                           object_present_confidence=args.object_present_confidence,
-                          object_verify_shift=args.object_verify_shift, object_busy_m=args.object_busy_m)
+                          object_verify_shift=args.object_verify_shift, object_busy_m=args.object_busy_m,
+                          threads=args.threads)
     stage_keys = ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect", "cpu_reconstruct")
     times = {k: [] for k in stage_keys}
     load_before = images.load_average()
@@ -278,6 +279,7 @@ def main() -> None:
     parser.add_argument("--outliers", type=float, default=0.03)
     parser.add_argument("--out", default=".bench/recon.json")
     parser.add_argument("--weights", default="", help="the learned detector's (default: the shipped models/detector)")
+    parser.add_argument("--threads", type=int, default=2, help="the detector's intra-op threads (recon's)")
     parser.add_argument("--object-views", type=int, default=3,
                         help="views the object stage crops per object, its best (0: every view)")
     parser.add_argument("--no-object-reuse", action="store_true",

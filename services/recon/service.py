@@ -15,6 +15,7 @@ is ``degraded`` with the file and the problem, and ``bad_cellmap`` is counted.""
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import importlib
 import time
@@ -130,6 +131,8 @@ class ReconService:
             # Images and CameraInfos come through separate subscriptions, whose handlers may run a
             # frame set apart under load: a set is released incomplete only once two newer ones began.
             self.buffer = FrameSetBuffer(late_after=2)
+            self.ready: tuple[float, dict] | None = None  # the newest released frame set not yet detected
+            self.frame_sets_behind = 0  # released sets a newer one replaced before recon got to them
             if self.learned is not None:
                 node.input("image", self.on_image)
                 node.set_status("ok")
@@ -175,6 +178,7 @@ class ReconService:
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
             out["partial_frame_sets"] = self.buffer.released_partial
+            out["frame_sets_behind"] = self.frame_sets_behind
             out["late_images"] = self.buffer.dropped_stale
             out["timeline_restarts"] = self.buffer.restarts
             out["object_crops"] = getattr(self.learned, "object_crops", 0)  # a detector without an object stage
@@ -231,8 +235,24 @@ class ReconService:
         # set is not released with the one camera whose CameraInfo came first (then lost: too few views).
         cameras = set(self.cameras) | (self.announced_cameras() if not self.buffer.released else set())
         expected = cameras | {info_key(c) for c in cameras}
-        for set_stamp, items in self.buffer.add(stamp, item, payload, expected):
-            self._detect_images(set_stamp, items)
+        released = self.buffer.add(stamp, item, payload, expected)
+        if not released:
+            return
+        scheduled = self.ready is not None
+        self.frame_sets_behind += len(released) - 1 + scheduled
+        self.ready = released[-1]
+        if not scheduled:
+            _after_queued(self._detect_ready)
+
+    def _detect_ready(self) -> None:
+        """Detects the newest released frame set. Run after the samples already queued on the loop
+        were added: a recon slower than the cameras skips to the newest set instead of working
+        through a backlog (whose queues would then drop images and CameraInfos apart)."""
+        (stamp, items), self.ready = self.ready, None
+        try:
+            self._detect_images(stamp, items)
+        except Exception as exc:  # as a handler's: counted and logged, the next frame set goes on
+            self.node.handler_failed("xm/camhub/main/image", exc)
 
     def _detect_images(self, stamp: float, items: dict[str, object]) -> None:
         t0 = time.perf_counter()
@@ -291,3 +311,12 @@ class ReconService:
         for hand, why in skipped.items():  # keypoints missing, or a bad glove frame
             self.node.stats.count(f"tactile_mesh_{why}", hand)
         self.mesh_pub.put(msg)
+
+
+def _after_queued(fn) -> None:
+    """Calls ``fn`` on the running loop after the callbacks already due there (the subscriptions'
+    queued samples); at once where no loop runs (the service driven directly, as in unit tests)."""
+    try:
+        asyncio.get_running_loop().call_soon(fn)
+    except RuntimeError:
+        fn()

@@ -4,6 +4,7 @@ path's fitted scene (services/recon/service.py, frameset.py)."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import sys
 import types
@@ -46,6 +47,9 @@ class FakeNode:
 
     def set_status(self, status: str, message: str = "") -> None:
         self.status, self.message = status, message
+
+    def handler_failed(self, key: str, exc: Exception) -> None:
+        raise exc
 
 
 def _info(spec, stamp: float, roi: tuple[int, int, int, int] = (0, 0, 0, 0)):
@@ -240,3 +244,25 @@ def test_a_spare_loads_the_network_before_it_takes_over(learned):
     assert len(built) == 1 and service.learned is built[0], "the prepared network, not a second load"
     ReconService(FakeNode(), params)
     assert len(built) == 2, "a prepared network serves one start only"
+
+
+def test_a_recon_behind_the_cameras_detects_the_newest_frame_set_and_counts_the_ones_it_skipped(learned):
+    """On the loop, detection waits for the samples already queued: three complete sets handed in
+    one batch (recon was busy while they came) give one detection, of the newest set."""
+    _, seen_views = learned
+    node = FakeNode()
+    service = ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    specs = camera_specs(64, 48)
+
+    async def batch() -> None:
+        for stamp in (1.0, 2.0, 3.0):
+            for spec in specs:
+                node.handlers["image"](_jpeg(spec, stamp), f"xm/camhub/{spec.name}/image")
+                node.handlers["info"](_info(spec, stamp), f"xm/camhub/{spec.name}/info")
+        assert node.published == [], "detection waits until the queued samples are in"
+        await asyncio.sleep(0)
+
+    asyncio.run(batch())
+    assert len(node.published) == 1 and len(seen_views) == 1
+    assert msgs.stamp_seconds(node.published[0].header.stamp) == 3.0
+    assert service._health()["frame_sets_behind"] == 2
