@@ -87,15 +87,38 @@ class Recording:
         # (key, payload, receive time in ns): appended on Zenoh's thread, taken on the loop
         self._pending: collections.deque[tuple[str, bytes, int]] = collections.deque()
         self._types: dict[str, str | None] = {}  # key -> its type; "" internal, None unregistered
+        # States (on_change outputs: the session label) come through subscriptions with history, so a
+        # recording starts with each one's latest message; every other key through a plain one (Zenoh's
+        # advanced subscriber, which history needs, lost a share of recon's messages under load).
+        self._states = [spec.key for spec in keys.PATTERNS if spec.on_change and keys.key_matches(pattern, spec.key)]
+        self._is_state: dict[str, bool] = {}
+        self._recorded: dict[str, bool] = {}
         try:
-            # history: a recording starts with each state's latest message (the session label)
-            self.sub: Subscription = node.subscribe(pattern, self._arrived, fifo(), msgtype="raw", inline=True,
-                                                    history=True)
+            self.subs: list[Subscription] = [node.subscribe(pattern, self._arrived_stream, fifo(), msgtype="raw",
+                                                            inline=True)]
+            self.subs += [node.subscribe(state, self._arrived_state, fifo(), msgtype="raw", inline=True,
+                                         history=True) for state in self._states]
         except Exception:
             self.writer.close()
             path.unlink(missing_ok=True)
             raise
         self._drainer = node.spawn(self._drain_loop(), name="recorder-write")
+
+    def _arrived_stream(self, payload: bytes, key: str) -> None:
+        """Zenoh's thread: a stream's message (a state's comes through its own subscription)."""
+        state = self._is_state.get(key)
+        if state is None:
+            state = self._is_state[key] = any(keys.key_matches(s, key) for s in self._states)
+        if not state:
+            self._arrived(payload, key)
+
+    def _arrived_state(self, payload: bytes, key: str) -> None:
+        """Zenoh's thread: a state's message, recorded when the recording's pattern takes its key."""
+        recorded = self._recorded.get(key)
+        if recorded is None:
+            recorded = self._recorded[key] = keys.key_matches(self.pattern, key)
+        if recorded:
+            self._arrived(payload, key)
 
     def _arrived(self, payload: bytes, key: str) -> None:
         """Zenoh's thread: stamp and queue, nothing else (a deque's append is atomic)."""
@@ -162,7 +185,8 @@ class Recording:
 
     async def stop(self) -> dict:
         """Unsubscribe, write what is still queued, close the file."""
-        self.sub.close()
+        for sub in self.subs:
+            sub.close()
         self._drainer.cancel()
         await asyncio.sleep(0.01)  # callbacks already running on Zenoh's threads queue their sample
         self.closed = True  # from here arrivals are counted as late

@@ -51,12 +51,14 @@ class FakeNode:
         self.stats = Stats()
         self.log = logging.getLogger("xm")
         self.handler = None
+        self.history: dict[str, bool] = {}
         self.failed: list = []
 
-    def subscribe(self, _pattern, handler, _policy, msgtype=None, inline=False, history=False):
+    def subscribe(self, pattern, handler, _policy, msgtype=None, inline=False, history=False):
         assert msgtype == "raw" and inline  # stamped on Zenoh's thread, no loop hop per message
-        assert history  # a recording starts with each state's latest message
-        self.handler = handler
+        self.history[pattern] = history  # only states: a recording starts with each one's latest message
+        if not history:
+            self.handler = handler
         return self
 
     def spawn(self, coro, name=None):
@@ -80,6 +82,7 @@ def test_a_recording_writes_in_arrival_order_with_receive_times_and_counts_what_
     monkeypatch.setattr(service, "MAX_PENDING", 5)
     node = FakeNode()
     rec = Recording(node, tmp_path / "q.mcap", "xm/**", {}, segment_s=0)
+    assert node.history == {"xm/**": False, "xm/world/*/session": True}, "history for the states only"
     key = "xm/glove/left/tactile"
     for i in range(4):
         node.handler(tactile(i), key)
