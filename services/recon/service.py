@@ -15,7 +15,6 @@ is ``degraded`` with the file and the problem, and ``bad_cellmap`` is counted.""
 
 from __future__ import annotations
 
-import asyncio
 import collections
 import importlib
 import time
@@ -134,7 +133,7 @@ class ReconService:
             self.ready: tuple[float, dict] | None = None  # the newest released frame set not yet detected
             self.frame_sets_behind = 0  # released sets a newer one replaced before recon got to them
             if self.learned is not None:
-                node.input("image", self.on_image)
+                self.images_key = node.input("image", self.on_image)[0].key_expr  # its failures are counted under it
                 node.set_status("ok")
         if self.layout_error and node.status != "error":
             node.set_status("degraded", f"{self.layout_error}: no tactile data")
@@ -241,18 +240,17 @@ class ReconService:
         scheduled = self.ready is not None
         self.frame_sets_behind += len(released) - 1 + scheduled
         self.ready = released[-1]
-        if not scheduled:
-            _after_queued(self._detect_ready)
+        if not scheduled:  # after the samples already queued on the loop are in
+            self.node.loop.call_soon(self._detect_ready)
 
     def _detect_ready(self) -> None:
-        """Detects the newest released frame set. Run after the samples already queued on the loop
-        were added: a recon slower than the cameras skips to the newest set instead of working
-        through a backlog (whose queues would then drop images and CameraInfos apart)."""
+        """Detects the newest released frame set: a recon slower than the cameras skips to it instead
+        of working through a backlog (whose queues would then drop images and CameraInfos apart)."""
         (stamp, items), self.ready = self.ready, None
         try:
             self._detect_images(stamp, items)
         except Exception as exc:  # as a handler's: counted and logged, the next frame set goes on
-            self.node.handler_failed("xm/camhub/main/image", exc)
+            self.node.handler_failed(self.images_key, exc)
 
     def _detect_images(self, stamp: float, items: dict[str, object]) -> None:
         t0 = time.perf_counter()
@@ -312,11 +310,3 @@ class ReconService:
             self.node.stats.count(f"tactile_mesh_{why}", hand)
         self.mesh_pub.put(msg)
 
-
-def _after_queued(fn) -> None:
-    """Calls ``fn`` on the running loop after the callbacks already due there (the subscriptions'
-    queued samples); at once where no loop runs (the service driven directly, as in unit tests)."""
-    try:
-        asyncio.get_running_loop().call_soon(fn)
-    except RuntimeError:
-        fn()

@@ -91,8 +91,7 @@ class Recording:
         # recording starts with each one's latest message; every other key through a plain one (Zenoh's
         # advanced subscriber, which history needs, lost a share of recon's messages under load).
         self._states = [spec.key for spec in keys.PATTERNS if spec.on_change and keys.key_matches(pattern, spec.key)]
-        self._is_state: dict[str, bool] = {}
-        self._recorded: dict[str, bool] = {}
+        self._is_state: dict[str, bool] = {}  # key -> whether a state subscription brings it
         try:
             self.subs: list[Subscription] = [node.subscribe(pattern, self._arrived_stream, fifo(), msgtype="raw",
                                                             inline=True)]
@@ -113,11 +112,8 @@ class Recording:
             self._arrived(payload, key)
 
     def _arrived_state(self, payload: bytes, key: str) -> None:
-        """Zenoh's thread: a state's message, recorded when the recording's pattern takes its key."""
-        recorded = self._recorded.get(key)
-        if recorded is None:
-            recorded = self._recorded[key] = keys.key_matches(self.pattern, key)
-        if recorded:
+        """Zenoh's thread: a state's message (about 1 Hz), recorded when the recording's pattern takes its key."""
+        if keys.key_matches(self.pattern, key):
             self._arrived(payload, key)
 
     def _arrived(self, payload: bytes, key: str) -> None:

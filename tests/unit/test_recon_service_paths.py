@@ -37,10 +37,11 @@ class FakeNode:
         self.status, self.message = "starting", ""
         self.health_extra = None
         self.publishers: dict[str, set[str]] = {}  # live publishers the info subscription knows of
+        self.loop = SimpleNamespace(call_soon=lambda fn: fn())  # deferred work runs at once, unless a test runs a loop
 
     def input(self, port: str, handler) -> list:
         self.handlers[port] = handler
-        return [SimpleNamespace(publishers=self.publishers)]
+        return [SimpleNamespace(publishers=self.publishers, key_expr=f"xm/camhub/*/{port}")]
 
     def output(self, port: str):
         return SimpleNamespace(put=self.outputs.setdefault(port, []).append)
@@ -255,6 +256,7 @@ def test_a_recon_behind_the_cameras_detects_the_newest_frame_set_and_counts_the_
     specs = camera_specs(64, 48)
 
     async def batch() -> None:
+        node.loop = asyncio.get_running_loop()
         for stamp in (1.0, 2.0, 3.0):
             for spec in specs:
                 node.handlers["image"](_jpeg(spec, stamp), f"xm/camhub/{spec.name}/image")
