@@ -97,9 +97,10 @@ class Chromium:
         self.call("Page.enable")
         self.call("Page.navigate", url=url)
 
-    def evaluate(self, expression: str, timeout: float = 90.0) -> Any:
+    def evaluate(self, expression: str, timeout: float = 90.0, await_promise: bool = False) -> Any:
         # generous: a software-WebGL page on a busy 2-core machine can starve its main thread for a while
-        result = self.call("Runtime.evaluate", timeout=timeout, expression=expression, returnByValue=True)
+        result = self.call("Runtime.evaluate", timeout=timeout, expression=expression, returnByValue=True,
+                           awaitPromise=await_promise)
         if "exceptionDetails" in result:
             raise CDPError(f"{expression!r} threw: {result['exceptionDetails'].get('text')}")
         return result["result"].get("value")

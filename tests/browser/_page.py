@@ -28,6 +28,20 @@ PRESS = """(el) => {{ if (!el) return false; el.scrollIntoView({{block: 'center'
   return true; }}"""
 
 
+# viser's page sends GUI changes through one sender that holds back what comes within 50 ms of its
+# last message and then sends only the newest, so a change made inside that window erases the one
+# held (services/panel/page.py covers a button press; nothing covers two fields). A page timer set
+# now fires after viser's pending one (timers run in order of expiry, however late), so once it has
+# fired the held change is on the wire. Each field change waits for that first, as a hand moving
+# from one field to the next does.
+SENT = "new Promise(done => setTimeout(() => done(true), 60))"
+
+
+def sent(browser: Chromium) -> None:
+    """Wait until the page has handed the GUI changes made so far to the websocket."""
+    browser.evaluate(SENT, PATIENCE_S, await_promise=True)
+
+
 def press(browser: Chromium, element_js: str) -> bool:
     """Press and release the mouse on the element ``element_js`` evaluates to; False if there is none."""
     return browser.evaluate(f"({PRESS.format()})({element_js})", PATIENCE_S)
@@ -47,6 +61,7 @@ def field(label: str) -> str:
 
 def type_into(browser: Chromium, label: str, text: str) -> None:
     """Replace the text of the field labelled ``label`` as typing does (React hears an input event)."""
+    sent(browser)
     wait_until(lambda: browser.evaluate(f"!!{field(label)}", PATIENCE_S), WAIT, f"a field labelled {label!r}")
     browser.evaluate(f"(() => {{ const e = {field(label)}; e.focus(); Object.getOwnPropertyDescriptor("
                      f"HTMLInputElement.prototype, 'value').set.call(e, {text!r}); "
@@ -55,6 +70,7 @@ def type_into(browser: Chromium, label: str, text: str) -> None:
 
 def choose(browser: Chromium, label: str, option: str) -> None:
     """Open the dropdown labelled ``label`` and click ``option`` in its list."""
+    sent(browser)
     wait_until(lambda: press(browser, field(label)), WAIT, f"a dropdown labelled {label!r}")
     wait_until(lambda: press(browser, f"[...document.querySelectorAll('[role=option]')].find(o => "
                                       f"o.textContent.trim() === {option!r})"), WAIT, f"option {option!r} of {label!r}")
@@ -64,6 +80,7 @@ def choose(browser: Chromium, label: str, option: str) -> None:
 
 def key(browser: Chromium, label: str, name: str) -> None:
     """A key pressed on the slider labelled ``label`` (Home, End, ArrowLeft, ...), as the keyboard does."""
+    sent(browser)
     thumb = f"({ROW})({label!r})?.querySelector('[role=slider]')"
     wait_until(lambda: browser.evaluate(f"(() => {{ const e = {thumb}; if (!e) return false; e.dispatchEvent("
                                         f"new KeyboardEvent('keydown', {{key: {name!r}, code: {name!r}, bubbles: true, "
