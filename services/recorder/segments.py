@@ -10,6 +10,8 @@ holds it, into a complete file in place; the recorder service runs it over its d
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
 import os
 import time
@@ -95,6 +97,7 @@ class SegmentedRecorder:
         self._done["chunks"] += done.chunks
         self._done["durable"] += done.durable
         self._open(self._index + 1, now)
+        trim_heap()
         return True
 
     def maybe_flush(self, now: float | None = None) -> bool:
@@ -125,6 +128,21 @@ class SegmentedRecorder:
                                     time.monotonic() - self.started, self._done["chunks"], self.rates(),
                                     self._done["durable"])
         return self._summary
+
+
+def trim_heap() -> bool:
+    """Hand the heap's free pages back to the OS (glibc's ``malloc_trim``); False where there is none.
+
+    A segment's chunk buffers and index are freed when it closes, but glibc keeps freed heap pages
+    mapped, so without this the recorder's RSS steps up to the largest backlog it ever wrote."""
+    name = ctypes.util.find_library("c")
+    if not name:
+        return False
+    try:
+        ctypes.CDLL(name).malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to trim
+        return False
+    return True
 
 
 def next_segment_index(path: str | Path) -> int:

@@ -10,6 +10,9 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
+TX_QUEUE_BATCHES = 16  # per link, for the data priority (Zenoh's maximum; its default is 2)
+DROP_AFTER_US = 10_000  # a sample waits this long for room in a full queue before it is dropped
+
 
 class EndpointError(RuntimeError):
     """The router endpoint is unusable (bad syntax or the port is taken)."""
@@ -27,6 +30,12 @@ def _config(mode: str, listen: list[str] | None = None, connect: list[str] | Non
     # mapped, also after its publisher restarted, so only large-payload publishers get a pool.
     conf.insert_json5("transport/shared_memory/enabled", "true")
     conf.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
+    # Room on each link for a CPU-starved reader: Zenoh's default (2 batches of 64 kB per priority,
+    # a full queue dropping after 1 ms) lost 5-10 % of recon's 62 kB tactile meshes on the router's
+    # link to the recorder at the soak's load, uncounted; 16 batches and 10 ms lost none
+    # (docs/architecture.md). A full queue still drops rather than stall a publisher for long.
+    conf.insert_json5("transport/link/tx/queue/size/data", str(TX_QUEUE_BATCHES))
+    conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_AFTER_US))
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))
     conf.insert_json5("connect/endpoints", json.dumps(connect or []))
     for path, value in (extra or {}).items():  # e.g. a host's TLS links and access control (deploy/hosts.py)

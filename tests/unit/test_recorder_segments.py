@@ -11,6 +11,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from services.recorder import segments
 from services.recorder.segments import SegmentedRecorder, next_segment_index, repair_cut_segments
 from services.recorder.writer import is_complete, read_messages
 from shared import msgs
@@ -58,6 +59,31 @@ def test_segments_rotate_and_each_closed_one_is_complete(tmp_path):
     assert summary.messages == {KEY: 30} and summary.durable == 30
     assert [msgs.deserialize(s.data, TACTILE).sequence for s in read_messages(tmp_path / "r.mcap")] == list(range(30))
     assert rosbags_sequences(recording_segments(tmp_path)) == list(range(30))
+
+
+def test_each_rotation_hands_the_closed_segments_memory_back(tmp_path, monkeypatch):
+    trims = []
+    monkeypatch.setattr(segments, "trim_heap", lambda: trims.append(1) or True)
+    rec = SegmentedRecorder(tmp_path / "r.mcap", {"deployment": "test"}, segment_s=10.0)
+    t0 = rec._opened
+    for i in range(25):
+        rec.maybe_rotate(t0 + i)
+        rec.write(KEY, TACTILE, tactile(i))
+    rec.close()
+    assert len(trims) == 2  # two segments closed by rotation
+
+
+def test_trimming_the_heap_gives_freed_pages_back_on_glibc():
+    def rss_mb() -> float:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 1e6
+
+    blocks = [bytearray(100_000) for _ in range(1000)]  # 100 MB in heap blocks under glibc's mmap threshold...
+    kept = blocks[::50]  # ...of which a few stay alive, so the heap cannot shrink from its top
+    del blocks
+    before = rss_mb()
+    assert segments.trim_heap()
+    assert rss_mb() < before - 50, (before, rss_mb())
+    assert len(kept) == 20
 
 
 def test_kill_9_leaves_closed_segments_readable_and_the_repair_completes_the_open_one(tmp_path):
