@@ -31,9 +31,9 @@ def _config(mode: str, listen: list[str] | None = None, connect: list[str] | Non
     conf.insert_json5("transport/shared_memory/enabled", "true")
     conf.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
     # Room on each link for a CPU-starved reader: Zenoh's default (2 batches of 64 kB per priority,
-    # a full queue dropping after 1 ms) lost 5-10 % of recon's 62 kB tactile meshes on the router's
-    # link to the recorder at the soak's load, uncounted; 16 batches and 10 ms lost none
-    # (docs/architecture.md). A full queue still drops rather than stall a publisher for long.
+    # a full queue dropping after 1 ms) lost 7 % of recon's 62 kB tactile meshes on the router's
+    # link to the recorder in the chaos soak, uncounted; 16 batches and 10 ms lost none in the next
+    # hour (docs/architecture.md). A full queue still drops rather than stall a publisher for long.
     conf.insert_json5("transport/link/tx/queue/size/data", str(TX_QUEUE_BATCHES))
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", str(DROP_AFTER_US))
     conf.insert_json5("listen/endpoints", json.dumps(listen or []))
