@@ -31,6 +31,7 @@ from pathlib import Path
 from learning.presets import PRESETS
 from services.panel import executions
 from services.panel.library import Entry
+from shared.realtime import shift_autogroup
 
 PARTIAL = ".partial"
 ROOT = Path(__file__).resolve().parents[2]  # the job runs this tree's `xm train`
@@ -88,15 +89,17 @@ class Job:
     message: str = ""
     offset: int = 0  # bytes of the progress file read
     first: bool = False  # the first network: written in place (`final`), ``partial`` only holds its log
+    cpu_share: int | None = None  # its session's autogroup nice value; None: the OS refused or has no autogroups
 
 
 class Trainer:
     """The one training job of a panel, and the models directory it writes into."""
 
-    def __init__(self, models: str | Path, extra_args: str = "", threads: int = 2) -> None:
+    def __init__(self, models: str | Path, extra_args: str = "", threads: int = 2, share_steps: int = 0) -> None:
         self.models = Path(models)
         self.extra_args = shlex.split(extra_args)
         self.threads = threads
+        self.share_steps = share_steps
         self.job: Job | None = None
         self._lock = threading.Lock()
         self.remove_partials()
@@ -168,7 +171,10 @@ class Trainer:
                                         start_new_session=True,  # its own group: cancel stops all of it
                                         preexec_fn=_die_with_parent)
             (partial / "job.pid").write_text(str(proc.pid))
-            self.job = Job(name, preset, time.time(), proc, partial, final, first=first)
+            # Linux schedules each session as one group, and every service is a session of its own: a
+            # job left at its group's default gets one service's share, a tenth of the host beside the cell.
+            share = shift_autogroup(proc.pid, -self.share_steps) if self.share_steps else None
+            self.job = Job(name, preset, time.time(), proc, partial, final, first=first, cpu_share=share)
             return self.job
         finally:
             self._lock.release()

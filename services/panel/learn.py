@@ -180,7 +180,8 @@ class Learn:
         job = self.trainer.job
         return {"models": len(self.models),
                 "training": None if job is None else {"name": job.name, "state": job.state, "step": job.progress.step,
-                                                      "steps": job.progress.steps, "message": job.message}}
+                                                      "steps": job.progress.steps, "message": job.message,
+                                                      "cpu_share": job.cpu_share}}
 
     def close(self) -> None:
         self._stop.set()

@@ -62,6 +62,7 @@ class PanelService:
         # torch threads of a training job: one, as the cell takes about a core of a 2-core host beside it and a
         # second thread stalls each step at torch's barrier whenever another process holds its core (docs/panel.md)
         train_threads: int = 1
+        train_share: int = 10  # a job's session this many nice values below the services': about a core (docs/panel.md)
         train_args: str = ""  # more `xm train` options for those jobs, e.g. "--set hidden=64,64"
         # A fresh install's first network: trained as the page's job when this checkpoint (the policy
         # service's) is missing, while the policy service runs the naive fallback ("": never).
@@ -112,7 +113,8 @@ class PanelService:
         self.execute = Execute(self.server, params.robot, self._query, node.stats.count,
                                recordings / executions.LOG_NAME, self.teaching.context,
                                lambda e: self.teaching.executed(e.success))
-        self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads),
+        self.learn = Learn(self.server, recordings, Trainer(params.models, params.train_args, params.train_threads,
+                                                                 params.train_share),
                            lambda: self.teaching.entries, lambda: self.execute.serving, node.stats.count)
         self.learn.on_models.append(self.execute.set_models)
         self.neural = NeuralSim(self.server, self._query, self._reviewed_scene, node.stats.count)

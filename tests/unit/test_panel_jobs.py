@@ -12,6 +12,7 @@ from services.panel.execute import rejections_text
 from services.panel.jobs import JobBusyError, JobError, Trainer, check_library, models, models_table
 from services.panel.learn import checkpoint_problem
 from services.panel.library import DemoMeta, Library, write_meta
+from shared.realtime import autogroup_nice
 from tests.conftest import wait_until
 from tests.unit.panel_recordings import write_demo
 
@@ -63,6 +64,18 @@ def test_cancel_stops_the_job_and_leaves_no_model(library, tmp_path):
     assert job.process.poll() is not None and not job.partial.exists() and not job.final.exists()
     assert list((tmp_path / "models").iterdir()) == []
     assert not trainer.cancel()  # nothing left to cancel
+
+
+def test_a_job_runs_in_a_session_whose_cpu_share_is_set_apart_from_the_services(library, tmp_path):
+    # a smaller share (nice up) is permitted without privileges; the panel's default asks for a larger one
+    trainer = Trainer(tmp_path / "models", TINY, threads=1, share_steps=-3)
+    job = trainer.start(library, "single_state", steps=1_000_000)
+    try:
+        if autogroup_nice(job.process.pid) is None:
+            pytest.skip("this kernel has no autogroups")
+        assert job.cpu_share == 3 == autogroup_nice(job.process.pid)  # a new session starts at nice 0
+    finally:
+        trainer.cancel()
 
 
 def test_a_failing_job_says_why_and_a_killed_panel_leaves_nothing_listed(library, tmp_path):
