@@ -134,7 +134,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(json.dumps(samples[-1]), flush=True)
                 last = (now, cell, job)
                 policy = [r for r in query_router(router, "xm/policy/main/@health") if r.get("instance") == "main"]
-                if policy and policy[0].get("checkpoint") == str(checkpoint) and policy[0].get("method") == "learned":
+                served = policy and policy[0].get("checkpoint") == str(checkpoint)
+                if served and str(policy[0].get("method")).startswith("learned"):  # "learned:PRESET"
                     served_at = now
                     break
             up_log = (tmp / "up.log").read_text(errors="replace")
