@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT))  # runnable as a script from anywhere
 
 from services.panel.service import PanelService  # noqa: E402
 from services.world.teacher import generate_demo  # noqa: E402
+from shared.realtime import shift_autogroup  # noqa: E402
 from shared.runtime import open_router  # noqa: E402
 from tests.browser._cdp import Chromium, find_chromium  # noqa: E402
 from tests.conftest import (  # noqa: E402
@@ -109,6 +110,7 @@ def start_training(out: Path, threads: int) -> tuple[subprocess.Popen, Path]:
                              "--threads", str(threads), "--steps", "2000", "--out", str(out), "--progress",
                              str(progress)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
+    shift_autogroup(proc.pid, -PanelService.Params().train_share)  # the share the page gives its jobs
     return proc, progress
 
 
