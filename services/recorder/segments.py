@@ -11,7 +11,6 @@ holds it, into a complete file in place; the recorder service runs it over its d
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 import os
 import time
@@ -130,18 +129,17 @@ class SegmentedRecorder:
         return self._summary
 
 
+_MALLOC_TRIM = getattr(ctypes.CDLL(None), "malloc_trim", None)  # glibc's; absent on musl and macOS
+
+
 def trim_heap() -> bool:
     """Hand the heap's free pages back to the OS (glibc's ``malloc_trim``); False where there is none.
 
     A segment's chunk buffers and index are freed when it closes, but glibc keeps freed heap pages
     mapped, so without this the recorder's RSS steps up to the largest backlog it ever wrote."""
-    name = ctypes.util.find_library("c")
-    if not name:
+    if _MALLOC_TRIM is None:
         return False
-    try:
-        ctypes.CDLL(name).malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc (musl, macOS): nothing to trim
-        return False
+    _MALLOC_TRIM(0)
     return True
 
 
