@@ -339,6 +339,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--each", action="store_true",
                         help="kill every service once, in the deployment's order, instead of at random "
                         "(a per-service recovery table: with --no-standby, cold restarts)")
+    parser.add_argument("--only", action="append", metavar="SERVICE",
+                        help="kill only this service (repeat for more; e.g. --only recorder)")
     parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
                         help="a service not publishing again this long after its kill is stuck")
     parser.add_argument("--autogroup-nice", type=int, metavar="N",
@@ -358,8 +360,8 @@ def main(argv: list[str] | None = None) -> int:
                           stdout=up_log, stderr=subprocess.STDOUT, start_new_session=True, env=env)
     procs = [up]
     report: dict = {"deployment": str(args.deployment), "minutes": args.minutes, "kill_every_s": args.kill_every,
-                    "hog": args.hog, "standby": args.standby, "cpus": os.cpu_count(), "commit": git_commit(),
-                    "loadavg_start": os.getloadavg(), "kills": []}
+                    "hog": args.hog, "standby": args.standby, "only": args.only, "cpus": os.cpu_count(),
+                    "commit": git_commit(), "loadavg_start": os.getloadavg(), "kills": []}
     monitor = None
     boost_stop = threading.Event()
     if args.autogroup_nice is not None:
@@ -402,7 +404,8 @@ def main(argv: list[str] | None = None) -> int:
                 sample_rss(monitor, rss, t0)
                 next_rss = now + 10.0
             if now >= next_kill and now + 15 < end:
-                children = [c for c in monitor.children() if c.get("pid")]
+                children = [c for c in monitor.children()
+                            if c.get("pid") and (not args.only or c["service"] in args.only)]
                 if args.each:
                     children = children[len(report["kills"]):len(report["kills"]) + 1]
                 if children:
