@@ -10,7 +10,12 @@ is written in segments of ``segment_s`` (services/recorder/segments.py); at star
 repairs the segments in its directory that a crash left cut. A recording in progress is noted in
 ``<directory>/.recording-<instance>.json`` until it is stopped: a recorder that finds the note at
 start (it was killed while recording) resumes that recording in its next segment at once, so a
-crash of the recorder costs the recording only the recorder's own restart.
+crash of the recorder costs the recording only the recorder's own restart. A standby spare
+(``--standby``) listens while it waits (services/recorder/spare.py): it keeps the last
+``spare_buffer_s`` of the ``keys`` pattern, and when it takes over a recording in progress the
+resumed segment starts with the buffered messages received after the cut one's last, then the
+live stream without the copies of those; a kill of the recorder then costs the recording nothing
+the buffer held (@health ``spare_buffer``).
 """
 
 from __future__ import annotations

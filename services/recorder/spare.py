@@ -183,7 +183,7 @@ class Handoff:
         self.listener.close_soon()
         self.held = len(entries)
         backlog = after_cut(entries, self.cut, takes) if self.cut is not None else []
-        self.overlap = Overlap(backlog, self.live_from_ns, self.cut, is_state)
+        self.overlap = Overlap(backlog, self.live_from_ns, is_state)
         self.written = len(backlog)
         self.done = True
         return backlog

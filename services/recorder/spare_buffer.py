@@ -117,20 +117,18 @@ def overlaps(buffered: Iterable[Entry], live: Iterable[Entry]) -> bool:
 class Overlap:
     """The live copies of messages written from the buffer: per key, the buffered payloads received
     from ``live_from_ns`` on (the live subscription may have them too), and for a key ``replays``
-    accepts (a state, whose subscription starts with its publisher's latest message) the last
-    payload the recording holds. ``is_copy`` consumes them in order."""
+    accepts (a state, whose subscription starts with its publisher's latest message) the last one
+    written. ``is_copy`` consumes them in order."""
 
-    def __init__(self, written: list[Entry], live_from_ns: int, cut: Cut | None,
-                 replays: Callable[[str], bool]) -> None:
+    def __init__(self, written: list[Entry], live_from_ns: int, replays: Callable[[str], bool]) -> None:
         self.expect: dict[str, collections.deque[bytes]] = {}
-        last: dict[str, Entry] = {}
-        for entry in written:
-            last[entry[0]] = entry
-            if entry[2] >= live_from_ns:
-                self.expect.setdefault(entry[0], collections.deque()).append(entry[1])
-        for key in {*last, *(cut.last if cut else ())}:
+        last: dict[str, bytes] = {}
+        for key, payload, t in written:
+            last[key] = payload
+            if t >= live_from_ns:
+                self.expect.setdefault(key, collections.deque()).append(payload)
+        for key, payload in last.items():
             if key not in self.expect and replays(key):
-                payload = last[key][1] if key in last else cut.last[key][0]
                 self.expect[key] = collections.deque([payload])
 
     def is_copy(self, key: str, payload: bytes) -> bool:
