@@ -10,7 +10,12 @@ is written in segments of ``segment_s`` (services/recorder/segments.py); at star
 repairs the segments in its directory that a crash left cut. A recording in progress is noted in
 ``<directory>/.recording-<instance>.json`` until it is stopped: a recorder that finds the note at
 start (it was killed while recording) resumes that recording in its next segment at once, so a
-crash of the recorder costs the recording only the recorder's own restart.
+crash of the recorder costs the recording only the recorder's own restart. A standby spare
+(``--standby``) listens while it waits (services/recorder/spare.py): it keeps the last
+``spare_buffer_s`` of the ``keys`` pattern, and when it takes over a recording in progress the
+resumed segment starts with the buffered messages received after the cut one's last, then the
+live stream without the copies of those; a kill of the recorder then costs the recording nothing
+the buffer held (@health ``spare_buffer``).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from typing import Any, ClassVar
 import zenoh
 
 from services.recorder.segments import SEGMENT_S, SegmentedRecorder, next_segment_index, repair_cut_segments
+from services.recorder.spare import Handoff, SpareListener, recording_cut
 from services.recorder.writer import RecordingError, warm_up
 from shared import keys, msgs
 from shared.config import load_deployment
@@ -74,8 +80,9 @@ class Recording:
     flushes on a timer."""
 
     def __init__(self, node: Node, path: Path, pattern: str, metadata: dict[str, Any],
-                 segment_s: float = SEGMENT_S, first_index: int = 0) -> None:
+                 segment_s: float = SEGMENT_S, first_index: int = 0, handoff: Handoff | None = None) -> None:
         self.node = node
+        self.handoff = handoff  # a listening spare's takeover: its buffer is written before the live stream
         self.pattern = check_pattern(pattern)
         warm_up(registered_types())  # cached: costs only the first time in a process
         self.writer = SegmentedRecorder(path, {**metadata, "keys": pattern}, segment_s, first_index=first_index)
@@ -92,6 +99,8 @@ class Recording:
         # advanced subscriber, which history needs, lost a share of recon's messages under load).
         self._states = [spec.key for spec in keys.PATTERNS if spec.on_change and keys.key_matches(pattern, spec.key)]
         self._is_state: dict[str, bool] = {}  # key -> whether a state subscription brings it
+        if handoff is not None:
+            handoff.live_from(time.time_ns())
         try:
             self.subs: list[Subscription] = [node.subscribe(pattern, self._arrived_stream, fifo(), msgtype="raw",
                                                             inline=True)]
@@ -103,12 +112,18 @@ class Recording:
             raise
         self._drainer = node.spawn(self._drain_loop(), name="recorder-write")
 
-    def _arrived_stream(self, payload: bytes, key: str) -> None:
-        """Zenoh's thread: a stream's message (a state's comes through its own subscription)."""
+    def _state_key(self, key: str) -> bool:
         state = self._is_state.get(key)
         if state is None:
             state = self._is_state[key] = any(keys.key_matches(s, key) for s in self._states)
-        if not state:
+        return state
+
+    def _takes(self, key: str) -> bool:
+        return not is_internal(key) and keys.key_matches(self.pattern, key)
+
+    def _arrived_stream(self, payload: bytes, key: str) -> None:
+        """Zenoh's thread: a stream's message (a state's comes through its own subscription)."""
+        if not self._state_key(key):
             self._arrived(payload, key)
 
     def _arrived_state(self, payload: bytes, key: str) -> None:
@@ -136,11 +151,35 @@ class Recording:
                 self.node.log.warning("key not in the registry: skipped", extra=fields(key=key))
         return self._types[key]
 
+    def take_over(self, force: bool = False) -> bool:
+        """A spare's takeover: once the live subscription is on, write the buffered messages the
+        recording lacks; False while the live stream waits for that."""
+        handoff = self.handoff
+        if handoff is None or handoff.done:
+            return True
+        backlog = handoff.take(self._pending, self._takes, self._state_key, force)
+        if backlog is None:
+            return False
+        handoff.written = self._write(collections.deque(backlog), copies=False)
+        self.node.stats.count("spare_buffer_written", n=handoff.written)
+        self.node.log.info("recording continued from the spare's buffer", extra=fields(**handoff.report()))
+        return True
+
     def write_pending(self) -> None:
         """Write what arrived so far, in order of arrival."""
-        pending, types, write = self._pending, self._types, self.writer.write
+        if self.take_over():
+            self._write(self._pending)
+
+    def _write(self, pending: collections.deque[tuple[str, bytes, int]], copies: bool = True) -> int:
+        """Write and take these messages; returns how many were written. ``copies``: skip the live
+        copies of what a takeover wrote from the spare's buffer."""
+        types, write, written = self._types, self.writer.write, 0
+        handoff = self.handoff if copies and self.handoff is not None and self.handoff.overlap else None
         for _ in range(len(pending)):
             key, payload, t = pending.popleft()
+            if handoff is not None and handoff.is_copy(key, payload):
+                self.node.stats.count("spare_buffer_duplicate")
+                continue
             msgtype = types[key] if key in types else self._type(key)
             if not msgtype:
                 if msgtype is None:
@@ -149,6 +188,7 @@ class Recording:
                 continue
             try:
                 write(key, msgtype, payload, t)
+                written += 1
             except msgs.MessageError as exc:
                 if not self.malformed[key]:
                     self.node.log.warning("malformed payload: skipped",
@@ -159,6 +199,7 @@ class Recording:
                 self._write_failed(exc)
             except Exception as exc:  # a writer bug must not end the recording
                 self.node.handler_failed(key, exc)
+        return written
 
     def _write_failed(self, exc: OSError) -> None:
         self.write_errors += 1
@@ -187,6 +228,7 @@ class Recording:
         await asyncio.sleep(0.01)  # callbacks already running on Zenoh's threads queue their sample
         self.closed = True  # from here arrivals are counted as late
         await asyncio.sleep(0.01)
+        self.take_over(force=True)
         self.write_pending()
         self.writer.close()
         return self.summary()
@@ -195,17 +237,25 @@ class Recording:
 class RecorderService:
     # Set by __main__ from --deployment: written into each recording's metadata.
     deployment: ClassVar[str] = ""
+    # A standby spare's listener (``prepare``), taken by the service it becomes.
+    _spare: ClassVar[SpareListener | None] = None
 
     @dataclass
     class Params:
         directory: str = "recordings"
         keys: str = "xm/**"  # default pattern of @cmd/start
         segment_s: float = SEGMENT_S  # length of a recording's MCAP segments (<= 0: one file)
+        spare_buffer_s: float = 3.0  # what a standby spare holds of `keys` to bridge its takeover (0: none)
+        spare_buffer_mb: float = 64.0  # and at most this much of it
 
     @classmethod
-    def prepare(cls, _params: Params) -> None:
-        """A standby spare generates the decoders before it takes over (~0.7 s off a restart)."""
+    def prepare(cls, params: Params, deployment: Any = None) -> None:
+        """A standby spare generates the decoders before it takes over (~0.7 s off a restart), and
+        listens to what a recording takes, to write what its takeover would miss."""
         warm_up(registered_types())
+        if deployment is not None and params.spare_buffer_s > 0 and cls._spare is None:
+            cls._spare = SpareListener(deployment.router, check_pattern(params.keys), params.spare_buffer_s,
+                                       int(params.spare_buffer_mb * (1 << 20)))
 
     def __init__(self, node: Node, params: Params) -> None:
         self.node = node
@@ -214,10 +264,17 @@ class RecorderService:
         self.last: dict | None = None
         self.repaired: list[dict] = []
         self.resumed: dict | None = None
+        self.handoff: Handoff | None = None
         self.deployment_name = _deployment_name(self.deployment)
         self.note = Path(params.directory) / f".recording-{node.instance}.json"
         warm_up(registered_types())  # now, not while the first messages of a recording queue up
-        self._resume()
+        spare, type(self)._spare = type(self)._spare, None
+        self.spare_buffer: dict | None = None
+        if spare is not None:
+            self.spare_buffer = {"messages_held": len(spare.buffer), "seconds_held": round(spare.buffer.span_s(), 3)}
+        self._resume(spare)
+        if spare is not None and self.handoff is None:  # nothing to go on with: the buffer is dropped
+            spare.close_soon()
         node.queryable("start", self.cmd_start)
         node.queryable("stop", self.cmd_stop)
         node.queryable("status", self.cmd_status)
@@ -251,8 +308,9 @@ class RecorderService:
         self.node.log.info("recording started", extra=fields(path=str(path), keys=pattern))
         return {"ok": True, "path": str(path)}
 
-    def _resume(self) -> None:
-        """Go on with the recording a killed recorder left noted, in its next segment."""
+    def _resume(self, spare: SpareListener | None = None) -> None:
+        """Go on with the recording a killed recorder left noted, in its next segment; a listening
+        ``spare`` first writes there what it received after the cut."""
         try:
             note = json.loads(self.note.read_text())
             path, pattern, meta = Path(note["path"]), str(note["keys"]), dict(note["metadata"])
@@ -265,15 +323,19 @@ class RecorderService:
             self.note.unlink(missing_ok=True)
             return
         index = next_segment_index(path)
+        handoff = Handoff(spare) if spare is not None else None
         try:
             self.recording = Recording(self.node, path, pattern, {**meta, "resumed": "true"}, self.p.segment_s,
-                                       first_index=index)
+                                       first_index=index, handoff=handoff)
         except (OSError, ValueError) as exc:  # RecordingError is a ValueError
             self.node.stats.count("recording_not_resumed")
             self.node.set_status("error", f"cannot resume the recording {path}: {exc}")
             self.note.unlink(missing_ok=True)
             return
         self.resumed = {"path": str(path), "segment": index, "at_ns": time.time_ns()}
+        if handoff is not None:  # read before run() repairs it: it ends where the repair ends
+            handoff.cut = recording_cut(path, index)
+            self.handoff = handoff
         self.node.stats.count("recording_resumed")
         self.node.set_status("ok", f"recording to {path} (resumed after a restart, segment {index})")
         self.node.log.warning("recording resumed after a restart", extra=fields(path=str(path), segment=index))
@@ -302,7 +364,13 @@ class RecorderService:
         return {"recording": rec is not None, "path": rec["path"] if rec else None,
                 "messages": rec["messages"] if rec else {}, "bytes": rec["bytes"] if rec else 0,
                 "dropped": dropped(self.node.stats.errors), "last": self.last, "repaired_at_start": self.repaired,
-                "resumed_at_start": self.resumed}
+                "resumed_at_start": self.resumed, "spare_buffer": self._spare_report()}
+
+    def _spare_report(self) -> dict | None:
+        """At a spare's takeover: what its buffer held, and what it gave a resumed recording."""
+        if self.handoff is None or not self.handoff.done:
+            return self.spare_buffer
+        return self.handoff.report()
 
     async def run(self) -> None:
         """Repair what a crash left cut in the directory (off the loop: commands are served meanwhile)."""
