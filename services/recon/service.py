@@ -33,6 +33,7 @@ from services.recon.scene import scene_message, tactile_matrix
 from services.recon.tactile_projection import TactileProjector
 from shared import msgs
 from shared.demo import KEYPOINTS_PER_HAND
+from shared.realtime import raise_cpu_share
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
@@ -75,6 +76,9 @@ class ReconService:
         gate_px: float = 6.0  # reprojection gate of the robust triangulation
         fit_hands: bool = True  # articulated hand model (else the triangulated keypoints)
         cellmap: str = ""  # the glove's cell map, as the glove service's; empty: models/skin/glove_cellmap.json
+        # On a busy host recon runs this many nice values ahead of the other services (as the world
+        # does): it needs the most CPU of the cell, and a starved recon leaves the scene over 1 s old.
+        cpu_share_boost: int = 5
 
     _prepared: ClassVar[dict[str, object]] = {}  # a standby spare's loaded network, by its params
 
@@ -135,6 +139,8 @@ class ReconService:
             if self.learned is not None:
                 self.images_key = node.input("image", self.on_image)[0].key_expr  # its failures are counted under it
                 node.set_status("ok")
+        if params.cpu_share_boost > 0:
+            raise_cpu_share("recon", node.log, params.cpu_share_boost)
         if self.layout_error and node.status != "error":
             node.set_status("degraded", f"{self.layout_error}: no tactile data")
 

@@ -31,14 +31,17 @@ class Publisher:
 
     def __init__(self, session) -> None:
         self.session, self.sent = session, 0
+        self.longest_pause = 0.0  # the publisher's own largest interval (s): a starved host stretches it
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        next_at = time.monotonic()
+        next_at = last = time.monotonic()
         while not self._stop.is_set():
             self.session.put("xm/clock", clock(self.sent))
+            now = time.monotonic()
+            self.longest_pause, last = max(self.longest_pause, now - last), now
             self.sent += 1
             next_at += 1 / RATE_HZ
             self._stop.wait(max(0.0, next_at - time.monotonic()))  # the publisher's pace
@@ -126,9 +129,10 @@ def test_a_listening_spare_takes_over_a_recording_without_a_gap_or_a_duplicate(r
     assert sorted(seqs) == list(range(final)), f"missing: {sorted(set(range(final)) - set(seqs))[:20]}"
     times = sorted(t for t, _ in got)
     gap, at = max((b - a, a) for a, b in itertools.pairwise(times))
-    # the handover took >= 0.5 s; the buffer bridges it, leaving the publisher's period and jitter
-    assert gap < 0.3e9, (f"largest gap between recorded messages: {gap * 1e-9:.3f} s, "
-                         f"{(at - report['cut_ns']) * 1e-9:+.3f} s from the cut; {report}")
+    # the handover took >= 0.5 s; the buffer bridges it, leaving the publisher's own pauses and jitter
+    assert gap < (publisher.longest_pause + 0.25) * 1e9, (
+        f"largest gap between recorded messages: {gap * 1e-9:.3f} s, {(at - report['cut_ns']) * 1e-9:+.3f} s "
+        f"from the cut (the publisher's longest pause {publisher.longest_pause:.3f} s); {report}")
 
 
 def _clock_messages(segments) -> list[tuple[int, int]]:
