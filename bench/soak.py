@@ -326,27 +326,24 @@ def brake_sampler(monitor: Monitor, robot: str, stop: threading.Event, result: d
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="bench/soak.py", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--minutes", type=float, default=60.0, help="soak length (default %(default)s)")
-    parser.add_argument("--kill-every", type=float, default=60.0, metavar="S",
-                        help="seconds between kills (default %(default)s)")
-    parser.add_argument("--hog", action=argparse.BooleanOptionalAction, default=True,
-                        help="run one CPU-bound process beside the cell (default: on)")
-    parser.add_argument("--standby", action=argparse.BooleanOptionalAction, default=True,
-                        help="an imported spare per service takes over, as in `xm up` (default: on; "
-                        "--no-standby: cold restarts)")
-    parser.add_argument("--deployment", default=str(ROOT / "deploy/sim.toml"))
-    parser.add_argument("--seed", type=int, default=0, help="which services are killed, in which order")
-    parser.add_argument("--each", action="store_true",
-                        help="kill every service once, in the deployment's order, instead of at random "
-                        "(a per-service recovery table: with --no-standby, cold restarts)")
-    parser.add_argument("--only", action="append", metavar="SERVICE",
-                        help="kill only this service (repeat for more; e.g. --only recorder)")
-    parser.add_argument("--stuck-after", type=float, default=30.0, metavar="S",
-                        help="a service not publishing again this long after its kill is stuck")
-    parser.add_argument("--autogroup-nice", type=int, metavar="N",
-                        help="move the autogroups of the soak, the cell and its hog by this many nice values "
-                        "(e.g. -10 on a host shared with other work; Linux, see above)")
-    parser.add_argument("--out", default=str(ROOT / ".bench/soak.json"))
+    add = parser.add_argument
+    add("--minutes", type=float, default=60.0, help="soak length (default %(default)s)")
+    add("--kill-every", type=float, default=60.0, metavar="S", help="seconds between kills (default %(default)s)")
+    add("--hog", action=argparse.BooleanOptionalAction, default=True,
+        help="run one CPU-bound process beside the cell (default: on)")
+    add("--standby", action=argparse.BooleanOptionalAction, default=True,
+        help="an imported spare per service takes over, as in `xm up` (default: on; --no-standby: cold restarts)")
+    add("--deployment", default=str(ROOT / "deploy/sim.toml"))
+    add("--seed", type=int, default=0, help="which services are killed, in which order")
+    add("--each", action="store_true", help="kill every service once, in the deployment's order, instead of at "
+        "random (a per-service recovery table: with --no-standby, cold restarts)")
+    add("--only", action="append", metavar="SERVICE", help="kill only this service (repeat for more; e.g. "
+        "--only recorder)")
+    add("--stuck-after", type=float, default=30.0, metavar="S",
+        help="a service not publishing again this long after its kill is stuck")
+    add("--autogroup-nice", type=int, metavar="N", help="move the autogroups of the soak, the cell and its hog by "
+        "this many nice values (e.g. -10 on a host shared with other work; Linux, see above)")
+    add("--out", default=str(ROOT / ".bench/soak.json"))
     args = parser.parse_args(argv)
 
     # SIGTERM (kill, a CI timeout) ends the soak as Ctrl-C does: the cell and the hog are stopped below.
