@@ -52,6 +52,11 @@ def robot_state_key(robot: str) -> str:
 
 
 @lru_cache(maxsize=4096)
+def is_internal(key: str) -> bool:
+    """Health, liveliness and command keys (a chunk starting with ``@``): never recorded or bridged."""
+    return any(chunk.startswith("@") for chunk in key.split("/"))
+
+
 def msgtype_of(key: str) -> str | None:
     """Message type of a concrete key, or None when no service declares it."""
     spec = BY_KEY.get(key)

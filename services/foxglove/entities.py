@@ -92,7 +92,3 @@ def check_patterns(patterns: list[str]) -> list[str]:
             raise ValueError(f"foxglove: keys entry {p!r}: workcell keys start with xm/")
     return patterns
 
-
-def is_internal(key: str) -> bool:
-    """Health, liveliness and command keys are never forwarded."""
-    return any(chunk.startswith("@") for chunk in key.split("/"))

@@ -15,9 +15,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from services.foxglove.driver import FoxgloveServer
-from services.foxglove.entities import check_patterns, is_internal, robot_frames, scene_entities
+from services.foxglove.entities import check_patterns, robot_frames, scene_entities
 from shared import keys, msgs
 from shared.config import DEFAULT_ROBOT
+from shared.keys import is_internal
 from shared.kinematics import URDFError, load_robot
 from shared.runtime import Node
 from shared.runtime.zsession import EndpointError

@@ -37,17 +37,13 @@ from services.recorder.spare import Handoff, SpareListener, recording_cut
 from services.recorder.writer import RecordingError, warm_up
 from shared import keys, msgs
 from shared.config import load_deployment
+from shared.keys import is_internal
 from shared.runtime import Node, Subscription, fifo
 from shared.runtime.logs import fields
 
 DRAIN_S = 0.02  # the writer's period: at rig rates ~70 messages a batch, a few ms of work
 MAX_PENDING = 100_000  # messages received and not yet written (~1.5 s of a rig's streams at most)
 DROP_KINDS = ("unregistered_key", "bad_payload", "write_error", "queue_overflow")
-
-
-def is_internal(key: str) -> bool:
-    """Health, liveliness and command keys: never part of a recording."""
-    return any(chunk.startswith("@") for chunk in key.split("/"))
 
 
 def default_path(directory: str | Path, now: float | None = None) -> Path:

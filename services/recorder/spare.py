@@ -28,6 +28,7 @@ from mcap.stream_reader import breakup_chunk, get_chunk_data_stream
 
 from services.recorder.spare_buffer import Cut, Entry, Overlap, SpareBuffer, after_cut, overlaps
 from services.recorder.writer import MAGIC, METADATA_NAME
+from shared.keys import is_internal
 from shared.recording_files import segment_path
 from shared.runtime.zsession import declare_subscriber, open_client
 
@@ -52,7 +53,7 @@ class SpareListener:
         key = str(sample.key_expr)
         internal = self._internal.get(key)
         if internal is None:
-            internal = self._internal[key] = any(chunk.startswith("@") for chunk in key.split("/"))
+            internal = self._internal[key] = is_internal(key)
         if not internal:
             payload = sample.payload.to_bytes()
             self.buffer.add(key, payload, time.time_ns())

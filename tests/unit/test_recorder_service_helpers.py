@@ -11,8 +11,9 @@ import pytest
 from mcap_ros2.reader import read_ros2_messages
 
 from services.recorder import service
-from services.recorder.service import Recording, check_pattern, default_path, dropped, is_internal
+from services.recorder.service import Recording, check_pattern, default_path, dropped
 from shared import msgs
+from shared.keys import is_internal
 from shared.runtime.stats import Stats
 
 
