@@ -15,8 +15,9 @@ POLICY_STEPS ?= 5000
 POLICY := runs/policy/policy.pt
 # The keypoint network recon runs ships in models/detector/ (ONNX graphs + their JSON): `make detector`
 # regenerates it: labels rendered from the simulated rig, then training of the first stage (whole
-# windows; about 20 min on 2 idle cores) and of the second (one hand per crop; minutes); the
-# labelled sets, the torch weights and the loss plots stay in runs/detector/.
+# windows; about 20 min on 2 idle cores) and of the second (one hand per crop; minutes), then their
+# int8 copies recon runs (calibrated on the labelled set, seconds); the labelled sets, the torch
+# weights and the loss plots stay in runs/detector/.
 # The glove's cell map (which readout crossing is which sensor's cell, and where each cell lies on
 # the hand) ships in models/skin/glove_cellmap.json: the layout the glove service and the tactile
 # projection read; `make cellmap` writes it again from the skin tools' glove design (skin/examples.py).
@@ -69,8 +70,10 @@ detector: $(STAMP)
 		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 1
 	$(BIN)/xm detector train-objects --labels runs/detector/labels/train --out runs/detector --init runs/detector \
 		--iters $(DETECTOR_OBJECT_ITERS) --minutes $(DETECTOR_OBJECT_MINUTES)
+	$(BIN)/xm detector quantize --weights runs/detector --labels runs/detector/labels/train
 	cp runs/detector/model.onnx runs/detector/meta.json runs/detector/hands.onnx runs/detector/hands.json \
-		runs/detector/objects.onnx runs/detector/objects.json models/detector/
+		runs/detector/objects.onnx runs/detector/objects.json runs/detector/model.int8.onnx \
+		runs/detector/hands.int8.onnx runs/detector/objects.int8.onnx models/detector/
 	$(BIN)/xm detector eval --weights models/detector --labels runs/detector/labels/eval
 
 cellmap: $(STAMP)

@@ -1,6 +1,7 @@
 """The learned keypoint detector's inference time per 7-camera frame set (thesis 5.6, P6 budget:
-detection + reconstruction <= 50 ms median on 2 cores), through four CPU runtimes: torch eager
-(the baseline), TorchScript (traced and frozen), torch.compile (inductor) and ONNX Runtime.
+detection + reconstruction <= 50 ms median on 2 cores), through five CPU runtimes: torch eager
+(the baseline), TorchScript (traced and frozen), torch.compile (inductor), ONNX Runtime and ONNX
+Runtime on the int8 graph (perception/quantize.py).
 
 A frame set is the first seven window images of the held-out labelled set (``xm detector label``),
 or, without one, seven 80x72 windows of noise; the timed call is the whole ``detect``: letterbox,
@@ -13,7 +14,9 @@ shared: figures are noisy. Writes ``speed`` into .bench/detector.json.
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -51,20 +54,20 @@ def time_detect(det: LearnedDetector, views: list[View], repeats: int) -> list[f
     return out
 
 
-def runtimes(folder: Path, threads: int, compile_too: bool) -> dict:
+def runtimes(folder: Path, threads: int, compile_too: bool, views: list[View]) -> dict:
     """name -> a function making a detector whose ``heatmaps`` runs through that runtime; each is
     made just before it is timed, so no runtime's threads or compile workers idle beside another's."""
     def scripted() -> LearnedDetector:
         det = LearnedDetector(folder, runtime="torch")
         example = torch.zeros(7, 3, det.size[1], det.size[0])
         with torch.inference_mode():
-            graph = torch.jit.freeze(torch.jit.trace(det.net, example).eval())
+            graph = torch.jit.freeze(torch.jit.trace(first_stage(folder, det), example).eval())
         det.heatmaps = lambda b: _run(graph, b)
         return det
 
     def compiled() -> LearnedDetector:
         det = LearnedDetector(folder, runtime="torch")
-        net = torch.compile(det.net, dynamic=False)
+        net = torch.compile(first_stage(folder, det), dynamic=False)
         det.heatmaps = lambda b: _run(net, b)
         return det
 
@@ -73,7 +76,32 @@ def runtimes(folder: Path, threads: int, compile_too: bool) -> dict:
         out["torch.compile"] = compiled
     if (folder / "model.onnx").exists():
         out["onnxruntime"] = lambda: LearnedDetector(folder, runtime="onnx", threads=threads)
+        out["onnxruntime int8"] = lambda: LearnedDetector(int8_copy(folder, views), runtime="onnx", threads=threads,
+                                                          precision="int8")
     return out
+
+
+def int8_copy(folder: Path, views: list[View]) -> Path:
+    """A temporary copy of ``folder`` whose first stage also has its int8 graph (perception/quantize.py),
+    calibrated on the timed windows: the int8 row's speed, not its accuracy (bench/recon.py has that)."""
+    from perception.quantize import quantize_graph
+    from services.recon.learned_detector import to_input
+
+    copy = Path(tempfile.mkdtemp(prefix="detector-int8-"))
+    atexit.register(shutil.rmtree, copy, True)
+    for f in folder.iterdir():
+        if f.suffix in (".json", ".onnx") and not f.name.endswith(".int8.onnx"):
+            shutil.copy(f, copy / f.name)
+    size = tuple(json.loads((folder / "meta.json").read_text())["input_size"])
+    batch, _ = to_input([v.image for v in views], size)
+    quantize_graph(copy / "model.onnx", [b[None] for b in batch])
+    return copy
+
+
+def first_stage(folder: Path, det: LearnedDetector) -> UNet:
+    net = UNet(len(det.names))
+    net.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
+    return net.eval()
 
 
 def _run(fn, batch: np.ndarray) -> np.ndarray:
@@ -101,7 +129,7 @@ def main() -> None:
         save(UNet(len(names)), "assembly", INPUT_SIZE, [], 0.0, folder, {})
     views = frame_set(Path(args.labels))
     rows = {}
-    for name, make in runtimes(folder, args.threads, not args.no_compile).items():
+    for name, make in runtimes(folder, args.threads, not args.no_compile, views).items():
         try:
             det = make()
             t = time_detect(det, views, args.repeats)

@@ -160,7 +160,7 @@ def run_images(args: argparse.Namespace) -> dict:
                           object_reuse=not args.no_object_reuse,
                           object_present_confidence=args.object_present_confidence,
                           object_verify_shift=args.object_verify_shift, object_busy_m=args.object_busy_m,
-                          threads=args.threads)
+                          threads=args.threads, precision=args.precision)
     stage_keys = ("decode", "detect", "triangulate", "fit_hands", "fit_objects", "cpu_detect", "cpu_reconstruct")
     times = {k: [] for k in stage_keys}
     load_before = images.load_average()
@@ -183,7 +183,7 @@ def run_images(args: argparse.Namespace) -> dict:
             rays += d
         return images.summary(err, reproj, rays)
 
-    out = {"weights": args.weights or "models/detector (shipped)", "runtime": det.runtime,
+    out = {"weights": args.weights or "models/detector (shipped)", "runtime": det.runtime, "precision": det.precision,
            "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images", "input_size")},
            "trained_hand_stage": {k: det.hand_meta.get(k) for k in ("iterations", "train_seconds", "input_size")}
            if det.hand_meta else None,
@@ -280,6 +280,8 @@ def main() -> None:
     parser.add_argument("--out", default=".bench/recon.json")
     parser.add_argument("--weights", default="", help="the learned detector's (default: the shipped models/detector)")
     parser.add_argument("--threads", type=int, default=2, help="the detector's intra-op threads (recon's)")
+    parser.add_argument("--precision", default="auto", choices=("auto", "int8", "float32"),
+                        help="the detector graphs' (auto: the int8 copies where `xm detector quantize` made them)")
     parser.add_argument("--object-views", type=int, default=3,
                         help="views the object stage crops per object, its best (0: every view)")
     parser.add_argument("--no-object-reuse", action="store_true",

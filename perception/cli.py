@@ -11,6 +11,8 @@ SUBCOMMANDS = {
     "train-hands": ("perception.hand_stage:main", "train the second stage on per-hand crops (beside `train`'s output)"),
     "train-objects": ("perception.object_stage:main",
                       "train the object stage on per-object crops (beside `train`'s output)"),
+    "quantize": ("perception.quantize:main",
+                 "int8 copies of the graphs for ONNX Runtime, calibrated on a labelled set"),
     "eval": ("perception.evaluate:main", "pixel error, PCK@5px, detection under occlusion on held-out images"),
 }
 
@@ -21,7 +23,7 @@ def main(argv: list[str]) -> int:
         out = sys.stdout if asked else sys.stderr
         if not asked:
             print(f"xm detector: unknown subcommand {argv[0]!r}", file=out)
-        print("usage: xm detector {label,train,train-hands,train-objects,eval} [options]\n", file=out)
+        print("usage: xm detector {label,train,train-hands,train-objects,quantize,eval} [options]\n", file=out)
         for name, (_, text) in SUBCOMMANDS.items():
             print(f"  {name:<13} {text}", file=out)
         return 0 if asked else 2

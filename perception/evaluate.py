@@ -90,8 +90,9 @@ def swap_hands(uv: np.ndarray, conf: np.ndarray, truth: np.ndarray, vis: np.ndar
     return np.where(better[:, None, None], swapped_uv, uv), np.where(better[:, None], swapped_conf, conf)
 
 
-def evaluate(weights: Path, labels: Path, runtime: str = "auto", png: Path | None = None) -> dict:
-    det = LearnedDetector(weights, runtime=runtime)
+def evaluate(weights: Path, labels: Path, runtime: str = "auto", png: Path | None = None,
+             precision: str = "auto") -> dict:
+    det = LearnedDetector(weights, runtime=runtime, precision=precision)
     task, frames, images = load_set(labels)
     if det.meta["task"] != task:
         raise ValueError(f"detector trained for task {det.meta['task']!r}, labels are of {task!r}")
@@ -109,7 +110,8 @@ def evaluate(weights: Path, labels: Path, runtime: str = "auto", png: Path | Non
         draw(frames, images, uv, conf, png)
     classes = keypoint_classes(task)
     any_side = metrics(*swap_hands(uv, conf, truth, vis), truth, vis, classes)["hand"]
-    return {"labels": str(labels), "images": len(frames), "runtime": det.runtime, "threshold": THRESHOLD,
+    return {"labels": str(labels), "images": len(frames), "runtime": det.runtime, "precision": det.precision,
+            "threshold": THRESHOLD,
             "pck_px": PCK_PX, "trained": {k: det.meta.get(k) for k in ("iterations", "train_seconds", "images",
                                                                         "input_size", "device")},
             "seconds_per_image": round(seconds / len(frames), 4),
@@ -121,11 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR), help="default: the shipped network")
     p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "eval"), help="held-out labelled set")
     p.add_argument("--runtime", default="auto", choices=("auto", "onnx", "torch"))
+    p.add_argument("--precision", default="auto", choices=("auto", "int8", "float32"),
+                   help="ONNX Runtime's graphs (auto: the int8 copies where `xm detector quantize` made them)")
     p.add_argument("--out", default=".bench/detector.json")
     p.add_argument("--png", help="also draw the first held-out windows with labels and detections to this PNG")
     a = p.parse_args(argv)
-    result = evaluate(Path(a.weights), Path(a.labels), a.runtime, Path(a.png) if a.png else None)
-    print(f"held-out set {a.labels}: {result['images']} window images, runtime {result['runtime']}, detector "
+    result = evaluate(Path(a.weights), Path(a.labels), a.runtime, Path(a.png) if a.png else None, a.precision)
+    print(f"held-out set {a.labels}: {result['images']} window images, runtime {result['runtime']} "
+          f"({', '.join(f'{k} {v}' for k, v in result['precision'].items())}), detector "
           f"trained {result['trained']['iterations']} iterations / {result['trained']['train_seconds']} s")
     print(f"{'class':>7} {'labelled':>8} {'mean px':>8} {'median':>7} {'PCK@5':>6} {'det vis':>8} {'det occ':>8} "
           f"{'false':>6}")

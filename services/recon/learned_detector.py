@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from torch import nn
 
 from services.recon import hand_crops, object_crops
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
+from services.recon.onnx_graphs import PRECISIONS, WeightsMissingError, has_onnxruntime, onnx_runner
 from services.recon.triangulation import triangulate_robust
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
@@ -140,10 +142,6 @@ class View:
     image: np.ndarray
 
 
-class WeightsMissingError(FileNotFoundError):
-    pass
-
-
 def load_meta(folder: Path) -> dict:
     path = Path(folder) / "meta.json"
     if not path.exists():
@@ -157,11 +155,14 @@ class LearnedDetector:
     full-image pixels, N = len(self.names)."""
 
     def __init__(self, folder: str | Path = DEFAULT_WEIGHTS_DIR, runtime: str = "auto", threads: int = 2,
-                 object_views: int = object_crops.VIEWS, object_reuse: bool = True,
+                 precision: str = "auto", object_views: int = object_crops.VIEWS, object_reuse: bool = True,
                  object_present_confidence: float | None = None,
                  object_verify_shift: float = object_crops.VERIFY_SHIFT,
                  object_busy_m: float = object_crops.BUSY_M) -> None:
-        """``object_views``: views the object stage crops per object (its best; 0: every view);
+        """``precision`` (ONNX Runtime only): "auto" runs each stage's int8 graph (``xm detector
+        quantize``) when it was made from that stage's float graph, else the float one; "int8"
+        requires it; "float32" never uses it. ``object_views``: views the object stage crops per
+        object (its best; 0: every view);
         ``object_reuse``: a resting object's detections stand in for its crops on every other frame
         set (object_crops.ObjectSchedule; False: every object is cropped on every frame set);
         ``object_present_confidence``: a crop whose peaks of its object have a lower mean
@@ -176,15 +177,23 @@ class LearnedDetector:
         self.sigma = float(self.meta.get("sigma", 1.5))
         self.hand_present_confidence = float(self.meta.get("hand_present_confidence", HAND_PRESENT_CONFIDENCE))
         if runtime == "auto":
-            runtime = "onnx" if (folder / "model.onnx").exists() and _has_onnxruntime() else "torch"
+            runtime = "onnx" if (folder / "model.onnx").exists() and has_onnxruntime() else "torch"
+        if precision not in PRECISIONS:
+            raise ValueError(f"detector precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
         self.runtime = runtime
-        self._run = _network(folder / "model.onnx", folder / "weights.pt", len(self.names), runtime, threads)
+        self.precision: dict[str, str] = {}  # per graph stem: the precision it runs at, and why when not int8
+
+        def network(stem: str, weights: str, keypoints: int):
+            run, self.precision[stem] = _network(folder / f"{stem}.onnx", folder / weights, keypoints, runtime,
+                                                 threads, precision)
+            return run
+
+        self._run = network("model", "weights.pt", len(self.names))
         # The second stage (one hand per crop), when trained: hands.json beside its graph or weights.
         self.hand_meta = json.loads((folder / "hands.json").read_text()) if (folder / "hands.json").exists() else None
         self._run_hand = None
         if self.hand_meta is not None:
-            self._run_hand = _network(folder / "hands.onnx", folder / "hands.pt", hand_crops.KEYPOINTS, runtime,
-                                      threads)
+            self._run_hand = network("hands", "hands.pt", hand_crops.KEYPOINTS)
             self.hand_size = int(self.hand_meta["input_size"])
         self.hand_slices = [slice(i, i + hand_crops.KEYPOINTS) for i in range(0, 2 * hand_crops.KEYPOINTS,
                                                                                  hand_crops.KEYPOINTS)]
@@ -198,8 +207,7 @@ class LearnedDetector:
             if list(self.object_meta["keypoints"]) != self.names[first:]:
                 raise ValueError(f"object stage in {folder}: keypoints {self.object_meta['keypoints']} are not the "
                                  f"first stage's {self.names[first:]}; {TRAIN_HINT}")
-            self._run_object = _network(folder / "objects.onnx", folder / "objects.pt", len(self.names) - first,
-                                        runtime, threads)
+            self._run_object = network("objects", "objects.pt", len(self.names) - first)
             self.object_size = int(self.object_meta["input_size"])
             self.object_half_m = float(self.object_meta.get("half_size_m", object_crops.HALF_SIZE_M))
         self.object_present_confidence = float(object_present_confidence if object_present_confidence is not None
@@ -431,19 +439,12 @@ def _geometry(views: list[View]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | 
     return P, calibrated, focal
 
 
-def _network(onnx_path: Path, weights: Path, keypoints: int, runtime: str, threads: int):
-    """A function batch (B,3,h,w) float32 -> heatmaps (B,K,h,w) through ONNX Runtime or torch."""
+def _network(onnx_path: Path, weights: Path, keypoints: int, runtime: str, threads: int,
+             precision: str = "auto") -> tuple[Callable[[np.ndarray], np.ndarray], str]:
+    """A function batch (B,3,h,w) float32 -> heatmaps (B,K,h,w) through ONNX Runtime or torch, and
+    the precision it runs at."""
     if runtime == "onnx":
-        import onnxruntime as ort  # optional fast runtime: only when the graph was exported
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
-        # Trained weights and activations hold denormal floats, which the CPU computes slowly.
-        opts.add_session_config_entry("session.set_denormal_as_zero", "1")
-        # Idle threads sleep rather than spin: recon shares two cores with the other services.
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        session = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
-        return lambda batch: session.run(None, {"image": batch})[0]
+        return onnx_runner(onnx_path, threads, precision)
     if not weights.exists():
         raise WeightsMissingError(f"no detector weights at {weights}; {TRAIN_HINT}")
     torch.set_flush_denormal(True)  # denormal weights and activations slow CPU convolutions many times
@@ -454,12 +455,4 @@ def _network(onnx_path: Path, weights: Path, keypoints: int, runtime: str, threa
     def run(batch: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
             return net(torch.from_numpy(batch)).numpy()
-    return run
-
-
-def _has_onnxruntime() -> bool:
-    try:
-        import onnxruntime  # noqa: F401  (optional dependency probe)
-    except ImportError:
-        return False
-    return True
+    return run, "float32 (torch)"

@@ -69,6 +69,7 @@ class ReconService:
         detector: str = "learned"  # the trained network on the images; "simulated": projected truth (experiments)
         task: str = "assembly"  # its object keypoints name the scene's objects (learned detector)
         weights: str = ""  # the learned detector's weights; empty: its own default path
+        precision: str = "auto"  # its graphs: the int8 copies where they match (auto), "int8" or "float32"
         pixel_noise: float = 1.0  # simulated detector
         dropout: float = 0.08
         outliers: float = 0.0
@@ -94,7 +95,7 @@ class ReconService:
         # Imported here: torch/onnx stay out of the simulated path and of builds without them.
         module = importlib.import_module("services.recon.learned_detector")
         cls = module.LearnedDetector
-        return cls(params.weights) if params.weights else cls()
+        return cls(params.weights, precision=params.precision) if params.weights else cls(precision=params.precision)
 
     def __init__(self, node: Node, params: Params) -> None:
         if params.detector not in DETECTORS:
@@ -182,6 +183,7 @@ class ReconService:
             out["objects_unconfirmed"] = self.recon.objects_unconfirmed
             out["hand_shape_estimated"] = {h: tr.shape is not None for h, tr in self.recon.trackers.items()}
         if self.params.detector == "learned" and self.learned is not None:
+            out["detector_precision"] = getattr(self.learned, "precision", {})  # per graph, why when not int8
             out["partial_frame_sets"] = self.buffer.released_partial
             out["frame_sets_behind"] = self.frame_sets_behind
             out["late_images"] = self.buffer.dropped_stale

@@ -145,6 +145,9 @@ def learned(monkeypatch):
         names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + names_
         object_crops, object_crops_missed, object_crops_unsteady = 4, 1, 2
 
+        def __init__(self, precision: str = "auto") -> None:
+            self.precision = precision
+
         def detect(self, views):
             seen_views.append([v.camera for v in views])
             assert all(v.image.shape == (v.model.roi[3], v.model.roi[2], 3) for v in views)
@@ -237,7 +240,7 @@ def test_a_spare_loads_the_network_before_it_takes_over(learned):
     """prepare() (a standby spare) builds the detector; the service started later uses that one."""
     cls = sys.modules["services.recon.learned_detector"].LearnedDetector
     built: list[object] = []
-    cls.__init__ = lambda self, *a: built.append(self)
+    cls.__init__ = lambda self, *a, **kw: built.append(self)
     params = ReconService.Params(detector="learned", fit_hands=False)
     ReconService.prepare(params)
     assert len(built) == 1

@@ -39,6 +39,7 @@ def test_the_shipped_graph_detects_every_keypoint_in_a_frame_set():
     pytest.importorskip("onnxruntime")
     det = LearnedDetector()
     assert det.runtime == "onnx" and det.hand_meta is not None and det.object_meta is not None
+    assert det.precision == {"model": "int8", "hands": "int8", "objects": "int8"}, "int8 graphs match the float"
     rng = np.random.default_rng(0)
     views = [View(f"cam{i}", CameraModel(np.zeros((3, 4)), 256, 192, (40, 30, 96, 72)),
                   rng.integers(0, 256, (72, 96, 3), np.uint8)) for i in range(7)]

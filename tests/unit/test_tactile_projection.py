@@ -227,6 +227,9 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
     class LearnedDetector:  # a stand-in: projects the two hands (and objects at the origin)
         names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + task_keypoint_names("assembly")
 
+        def __init__(self, precision: str = "auto") -> None:
+            self.precision = precision
+
         def detect(self, views):
             pts = np.concatenate([kp, objects])
             uv, _ = project(np.stack([v.model.P for v in views]), pts)
