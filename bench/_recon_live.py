@@ -58,7 +58,7 @@ def _counters(router: str) -> dict:
         "too_few_cameras": rec.get("errors", {}).get("too_few_cameras", 0),
         "hands_seen_twice": rec.get("hands_seen_twice", 0),
         "recon_status": rec.get("status"), "recon_detector": rec.get("detector"),
-        "stage_ms_median": rec.get("stage_ms_median", {}),
+        "detector_precision": rec.get("detector_precision"), "stage_ms_median": rec.get("stage_ms_median", {}),
     }
 
 
@@ -96,5 +96,5 @@ def live(seconds: float, startup_timeout: float = 240.0) -> dict:
     return {"seconds": round(end["t"] - start["t"], 1), "camhub_frame_sets": published, "recon_frame_sets": handled,
             "frame_sets_dropped": max(0, published - handled - 1),  # one may be in flight at the end
             "counters_delta": delta, "recon_status": end["recon_status"], "detector": end["recon_detector"],
-            "recon_stage_ms_median": end["stage_ms_median"],
+            "detector_precision": end["detector_precision"], "recon_stage_ms_median": end["stage_ms_median"],
             "load_average_start_end": [round(v, 2) for v in (*load0[:1], *load1[:1])]}
