@@ -8,7 +8,8 @@ or, without one, seven 80x72 windows of noise; the timed call is the whole ``det
 network, sub-pixel peaks, mapping to full-image pixels. Weights from runs/detector when trained,
 else random ones (inference time does not depend on their values). Medians of wall time with
 ``--threads`` intra-op threads, ratios against eager measured in the same run. The machine is
-shared: figures are noisy. Writes ``speed`` into .bench/detector.json.
+shared: figures are noisy. Writes ``speed`` into .bench/detector.json, and ``graphs``: each
+graph of the shipped detector alone, float and int8, on one frame set's batch.
 """
 
 from __future__ import annotations
@@ -31,7 +32,14 @@ import torch  # noqa: E402
 from perception.labels import keypoint_names  # noqa: E402
 from perception.train import load_set, save  # noqa: E402
 from services.recon.detector import CameraModel  # noqa: E402
-from services.recon.learned_detector import INPUT_SIZE, TRAINING_DIR, LearnedDetector, UNet, View  # noqa: E402
+from services.recon.learned_detector import (  # noqa: E402
+    DEFAULT_WEIGHTS_DIR,
+    INPUT_SIZE,
+    TRAINING_DIR,
+    LearnedDetector,
+    UNet,
+    View,
+)
 
 
 def frame_set(labels: Path) -> list[View]:
@@ -98,6 +106,39 @@ def int8_copy(folder: Path, views: list[View]) -> Path:
     return copy
 
 
+def time_graphs(folder: Path, threads: int, repeats: int) -> dict:
+    """Each shipped graph alone, float and int8, on one frame set's batch (7 windows, 14 hand crops,
+    8 object crops: what recon runs per frame set); medians of wall time in ms."""
+    from services.recon.onnx_graphs import onnx_runner
+
+    sizes = {"model": ("meta.json", 7), "hands": ("hands.json", 14), "objects": ("objects.json", 8)}
+    rows = {}
+    for stem, (meta, batch) in sizes.items():
+        if not (folder / f"{stem}.onnx").exists() or not (folder / meta).exists():
+            continue
+        size = json.loads((folder / meta).read_text())["input_size"]
+        w, h = (size, size) if isinstance(size, int) else size
+        x = np.random.default_rng(0).random((batch, 3, h, w), dtype=np.float32)
+        row = {"batch": batch}
+        for precision in ("float32", "int8"):
+            try:
+                run, _ = onnx_runner(folder / f"{stem}.onnx", threads, precision)
+            except FileNotFoundError as exc:
+                row[precision] = str(exc)
+                continue
+            run(x)
+            t = []
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                run(x)
+                t.append(time.perf_counter() - t0)
+            row[f"{precision}_ms"] = round(1e3 * float(np.median(t)), 2)
+        if "int8_ms" in row and "float32_ms" in row:
+            row["speedup"] = round(row["float32_ms"] / row["int8_ms"], 2)
+        rows[stem] = row
+    return rows
+
+
 def first_stage(folder: Path, det: LearnedDetector) -> UNet:
     net = UNet(len(det.names))
     net.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
@@ -116,6 +157,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--no-compile", action="store_true", help="skip torch.compile (its compile takes minutes)")
+    parser.add_argument("--graphs", default=str(DEFAULT_WEIGHTS_DIR),
+                        help="also time each graph of this folder alone, float and int8 ('' to skip)")
     parser.add_argument("--out", default=".bench/detector.json")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -150,8 +193,14 @@ def main() -> None:
     for name, r in rows.items():
         print(f"{name:>22} {r['median_ms']:>10} {r['p90_ms']:>8} {r['speedup_vs_eager']:>8}")
     print(f"fastest: {fastest}; LearnedDetector's default runtime here: {default}")
+    graphs = time_graphs(Path(args.graphs), args.threads, args.repeats) if args.graphs else {}
+    for stem, r in graphs.items():
+        print(f"graph {stem} (batch {r['batch']}): float {r.get('float32_ms')} ms, int8 {r.get('int8_ms')} ms, "
+              f"x{r.get('speedup')}")
     out = Path(args.out)
     doc = json.loads(out.read_text()) if out.exists() else {}
+    if graphs:
+        doc["graphs"] = {"folder": args.graphs, "threads": args.threads, "repeats": args.repeats, "stages": graphs}
     doc["speed"] = {"views": len(views), "input_size": list(INPUT_SIZE), "threads": args.threads,
                     "weights": "trained" if trained else "random", "repeats": args.repeats, "runtimes": rows,
                     "fastest": fastest, "default_runtime": default, "p6_budget_ms": 50.0}
