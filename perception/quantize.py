@@ -6,7 +6,7 @@ of the labelled set (the stage's own training sampler), in ONNX's QDQ format, wh
 runs with integer kernels (VNNI where the CPU has it). The heatmap head stays float: the sub-pixel
 peak reads the logarithm of three neighbouring heatmap values, which 8-bit steps would coarsen.
 Each int8 graph records the SHA-256 of the float graph it came from, so recon never pairs it with
-retrained weights (services/recon/learned_detector.py falls back to the float graph then).
+retrained weights (services/recon/onnx_graphs.py runs the float graph then).
 """
 
 from __future__ import annotations

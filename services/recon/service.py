@@ -157,6 +157,9 @@ class ReconService:
         else:
             expected = keypoint_names(self.recon)
             if list(detector.names) == expected:
+                for stem, said in getattr(detector, "precision", {}).items():
+                    if "(" in said:  # a float graph stands in for its int8 copy: slower, and why
+                        self.node.log.warning("detector graph %s runs as %s", stem, said)
                 return detector
             msg = (f"the learned detector's {len(detector.names)} keypoints are not task {self.params.task!r}'s "
                    f"{len(expected)} in recon's order (weights of another task?); {TRAIN_HINT}")

@@ -146,7 +146,7 @@ def learned(monkeypatch):
         object_crops, object_crops_missed, object_crops_unsteady = 4, 1, 2
 
         def __init__(self, precision: str = "auto") -> None:
-            self.precision = precision
+            self.requested_precision = precision
 
         def detect(self, views):
             seen_views.append([v.camera for v in views])
@@ -271,3 +271,16 @@ def test_a_recon_behind_the_cameras_detects_the_newest_frame_set_and_counts_the_
     assert len(node.published) == 1 and len(seen_views) == 1
     assert msgs.stamp_seconds(node.published[0].header.stamp) == 3.0
     assert service._health()["frame_sets_behind"] == 2
+
+
+def test_a_detector_graph_running_without_its_int8_copy_is_reported(learned, caplog):
+    """A stale or missing int8 graph leaves recon running on the float one: @health and the log say which and why."""
+    cls = sys.modules["services.recon.learned_detector"].LearnedDetector
+    why = "float32 (model.int8.onnx was made from other weights; run `xm detector quantize` again)"
+    cls.__init__ = lambda self, *a, **kw: setattr(self, "precision", {"model": why, "hands": "int8"})
+    node = FakeNode()
+    with caplog.at_level(logging.WARNING, logger="test-recon"):
+        service = ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
+    assert service._health()["detector_precision"] == {"model": why, "hands": "int8"}
+    warned = [r.getMessage() for r in caplog.records if "detector graph" in r.getMessage()]
+    assert warned == [f"detector graph model runs as {why}"]

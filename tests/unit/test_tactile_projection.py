@@ -228,7 +228,7 @@ def test_recon_publishes_the_gloved_hands_mesh(monkeypatch):
         names = [f"{h}/{k}" for h in ("left", "right") for k in range(21)] + task_keypoint_names("assembly")
 
         def __init__(self, precision: str = "auto") -> None:
-            self.precision = precision
+            self.requested_precision = precision
 
         def detect(self, views):
             pts = np.concatenate([kp, objects])
