@@ -23,8 +23,8 @@ POLICY := runs/policy/policy.pt
 # projection read; `make cellmap` writes it again from the skin tools' glove design (skin/examples.py).
 DETECTOR_ITERS ?= 6500
 DETECTOR_MINUTES ?= 90
-DETECTOR_HAND_ITERS ?= 1800
-DETECTOR_HAND_MINUTES ?= 10
+DETECTOR_HAND_ITERS ?= 5000
+DETECTOR_HAND_MINUTES ?= 20
 DETECTOR_OBJECT_ITERS ?= 2800
 DETECTOR_OBJECT_MINUTES ?= 20
 
@@ -67,7 +67,7 @@ detector: $(STAMP)
 		--iters $(DETECTOR_ITERS) --minutes $(DETECTOR_MINUTES)
 	mkdir -p models/detector
 	$(BIN)/xm detector train-hands --labels runs/detector/labels/train --out runs/detector \
-		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 1
+		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 2
 	$(BIN)/xm detector train-objects --labels runs/detector/labels/train --out runs/detector --init runs/detector \
 		--iters $(DETECTOR_OBJECT_ITERS) --minutes $(DETECTOR_OBJECT_MINUTES)
 	$(BIN)/xm detector quantize --weights runs/detector --labels runs/detector/labels/train
