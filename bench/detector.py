@@ -52,12 +52,13 @@ def frame_set(labels: Path) -> list[View]:
                  rng.integers(0, 256, (72, 80, 3), np.uint8)) for i in range(7)]
 
 
-def time_detect(det: LearnedDetector, views: list[View], repeats: int) -> list[float]:
-    det.detect(views)  # warm-up: allocations, first-call graph work
+def time_calls(call, repeats: int) -> list[float]:
+    """Seconds of each of ``repeats`` calls, after one warm-up call (allocations, first-call graph work)."""
+    call()
     out = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        det.detect(views)
+        call()
         out.append(time.perf_counter() - t0)
     return out
 
@@ -126,12 +127,7 @@ def time_graphs(folder: Path, threads: int, repeats: int) -> dict:
             except FileNotFoundError as exc:
                 row[precision] = str(exc)
                 continue
-            run(x)
-            t = []
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                run(x)
-                t.append(time.perf_counter() - t0)
+            t = time_calls(lambda run=run, x=x: run(x), repeats)
             row[f"{precision}_ms"] = round(1e3 * float(np.median(t)), 2)
         if "int8_ms" in row and "float32_ms" in row:
             row["speedup"] = round(row["float32_ms"] / row["int8_ms"], 2)
@@ -175,7 +171,7 @@ def main() -> None:
     for name, make in runtimes(folder, args.threads, not args.no_compile, views).items():
         try:
             det = make()
-            t = time_detect(det, views, args.repeats)
+            t = time_calls(lambda det=det: det.detect(views), args.repeats)
         except Exception as exc:  # torch.compile needs a C++ toolchain; a runtime that fails is reported, not fatal
             print(f"{name}: unavailable ({type(exc).__name__}: {str(exc)[:200]})")
             continue

@@ -40,6 +40,7 @@ import _recon_live  # noqa: E402
 
 from services.camhub.camera_info import encode_jpeg  # noqa: E402
 from services.recon.detector import CameraModel, SimulatedDetector  # noqa: E402
+from services.recon.onnx_graphs import PRECISIONS  # noqa: E402
 from services.recon.pipeline import Reconstructor  # noqa: E402
 from services.recon.service import decode_window  # noqa: E402
 from services.recon.triangulation import project, triangulate  # noqa: E402
@@ -280,7 +281,7 @@ def main() -> None:
     parser.add_argument("--out", default=".bench/recon.json")
     parser.add_argument("--weights", default="", help="the learned detector's (default: the shipped models/detector)")
     parser.add_argument("--threads", type=int, default=2, help="the detector's intra-op threads (recon's)")
-    parser.add_argument("--precision", default="auto", choices=("auto", "int8", "float32"),
+    parser.add_argument("--precision", default="auto", choices=PRECISIONS,
                         help="the detector graphs' (auto: the int8 copies where `xm detector quantize` made them)")
     parser.add_argument("--object-views", type=int, default=3,
                         help="views the object stage crops per object, its best (0: every view)")

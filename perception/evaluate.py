@@ -19,6 +19,7 @@ from perception.labels import Frame, keypoint_classes
 from perception.train import load_set
 from services.recon.detector import CameraModel
 from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, TRAINING_DIR, LearnedDetector, View
+from services.recon.onnx_graphs import PRECISIONS
 
 PCK_PX = 5.0
 THRESHOLD = 0.3
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--weights", default=str(DEFAULT_WEIGHTS_DIR), help="default: the shipped network")
     p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "eval"), help="held-out labelled set")
     p.add_argument("--runtime", default="auto", choices=("auto", "onnx", "torch"))
-    p.add_argument("--precision", default="auto", choices=("auto", "int8", "float32"),
+    p.add_argument("--precision", default="auto", choices=PRECISIONS,
                    help="ONNX Runtime's graphs (auto: the int8 copies where `xm detector quantize` made them)")
     p.add_argument("--out", default=".bench/detector.json")
     p.add_argument("--png", help="also draw the first held-out windows with labels and detections to this PNG")

@@ -31,7 +31,7 @@ from torch import nn
 
 from services.recon import hand_crops, object_crops
 from services.recon.detector import HAND_PRESENT_CONFIDENCE, CameraModel
-from services.recon.onnx_graphs import PRECISIONS, WeightsMissingError, has_onnxruntime, onnx_runner
+from services.recon.onnx_graphs import WeightsMissingError, check_precision, has_onnxruntime, onnx_runner
 from services.recon.triangulation import triangulate_robust
 
 # The shipped network (in git: model.onnx + meta.json, `make detector` regenerates it); training
@@ -179,8 +179,7 @@ class LearnedDetector:
         self.hand_present_confidence = float(self.meta.get("hand_present_confidence", HAND_PRESENT_CONFIDENCE))
         if runtime == "auto":
             runtime = "onnx" if (folder / "model.onnx").exists() and has_onnxruntime() else "torch"
-        if precision not in PRECISIONS:
-            raise ValueError(f"detector precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+        check_precision(precision)  # here too: the torch runtime never reaches onnx_runner
         self.runtime = runtime
         self.precision: dict[str, str] = {}  # per graph stem: the precision it runs at, and why when not int8
 

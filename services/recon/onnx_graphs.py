@@ -18,6 +18,11 @@ class WeightsMissingError(FileNotFoundError):
     pass
 
 
+def check_precision(precision: str) -> None:
+    if precision not in PRECISIONS:
+        raise ValueError(f"detector precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+
+
 def int8_path(float_graph: Path) -> Path:
     """Where the int8 copy of ``float_graph`` lives: model.onnx -> model.int8.onnx."""
     return Path(float_graph).with_suffix(".int8.onnx")
@@ -40,8 +45,7 @@ def onnx_runner(graph: Path, threads: int, precision: str = "auto") -> tuple[Cal
     int8 copy, and the precision it runs at in words (with the reason when not int8).
     ``precision``: "auto" takes the int8 copy when it was made from ``graph``; "int8" requires it
     (WeightsMissingError otherwise); "float32" never takes it."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"detector precision {precision!r}: choose one of {', '.join(PRECISIONS)}")
+    check_precision(precision)
     int8 = int8_path(graph)
     if precision == "float32":
         return _runner(_session(graph, threads)), "float32"

@@ -158,7 +158,7 @@ class ReconService:
             expected = keypoint_names(self.recon)
             if list(detector.names) == expected:
                 for stem, said in getattr(detector, "precision", {}).items():
-                    if "(" in said:  # a float graph stands in for its int8 copy: slower, and why
+                    if said not in ("int8", "float32"):  # a stand-in for the int8 graph, with why
                         self.node.log.warning("detector graph %s runs as %s", stem, said)
                 return detector
             msg = (f"the learned detector's {len(detector.names)} keypoints are not task {self.params.task!r}'s "
