@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 DEVICE_SERVICES = ("glove", "camhub", "robot", "world")  # their keys stopping is a device gap
 KEPT = 20  # alerts listed on the page
+SHOWN_KEYS = 3  # keys named in one device-gap alert
 
 
 @dataclass(frozen=True)
@@ -130,4 +131,9 @@ class Alerts:
         now = {k for k, hz in rates.items() if _number(hz) > 0}
         stopped = sorted((self.publishing.get(name, set()) - now) & set(rates))
         self.publishing[name] = now
-        return [Alert("warning", f"{name}: device gap", f"`{k}` no longer published") for k in stopped]
+        if not stopped:
+            return []
+        # one alert per service and round: a camera rig stalling stops 14 keys at once
+        shown = ", ".join(f"`{k}`" for k in stopped[:SHOWN_KEYS])
+        more = f" and {len(stopped) - SHOWN_KEYS} more" if len(stopped) > SHOWN_KEYS else ""
+        return [Alert("warning", f"{name}: device gap", f"{shown}{more} no longer published")]

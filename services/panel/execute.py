@@ -65,13 +65,14 @@ class Execute:
             self.model = gui.add_dropdown("model", (NO_MODEL,), initial_value=NO_MODEL)
             gui.add_button("Serve").on_click(lambda _e: self._serve())
             self.serve_md = gui.add_markdown("policy: asking...")
-            self.rejections_md = gui.add_markdown("")
             self.layout = gui.add_number("layout seed", initial_value=0, min=0, step=1,
                                          hint="the world resets to this seed's layout, then the robot acts")
             self.seconds = gui.add_number("run seconds", initial_value=9.0, min=1.0, max=executions.MAX_SECONDS,
                                           step=1.0)
             gui.add_button("Run execution", color="green").on_click(self._run)
             self.run_md = gui.add_markdown("no execution yet: the world's success test judges each one")
+            # live text below the controls: a line that changes height above them moves them under the cursor
+            self.rejections_md = gui.add_markdown("")
 
     # --- buttons (viser worker threads) ----------------------------------------------------------
     def _ask(self, key: str, request: dict) -> dict | None:
@@ -84,7 +85,7 @@ class Execute:
         return replies[0] if replies else None
 
     def _stop(self, _event: Any) -> None:
-        self.runner.stop.set()  # a running execution ends now (its outcome is still measured)
+        self.runner.request_stop()  # a running execution ends now (its outcome is still measured)
         reply = self._ask(f"{self.robot_key}/@cmd/hold", {"disarm": True})
         if reply is None or not reply.get("ok"):
             self.count("stop_failed")
@@ -97,7 +98,7 @@ class Execute:
 
     def _arm(self, armed: bool) -> None:
         if not armed:
-            self.runner.stop.set()  # disarming ends a running execution too
+            self.runner.request_stop()  # disarming ends a running execution too
         reply = self._ask(f"{self.robot_key}/@cmd/arm", {"armed": armed})
         if reply is None or not reply.get("ok"):
             self.count("arm_failed")
@@ -123,6 +124,7 @@ class Execute:
     def _run(self, event: Any) -> None:
         """Viser worker thread: checks and starts the execution's own thread; a refusal goes to the
         browser that pressed (two browsers at once: one runs, the other is told)."""
+        stops = self.runner.stops  # a STOP from here on ends this execution, even one before it starts
         try:
             if self.runner.running:
                 raise ExecutionError("an execution is running; wait for its outcome or press STOP")
@@ -134,7 +136,7 @@ class Execute:
             return
         started = threading.Event()
         refusal: list[str] = []
-        threading.Thread(target=self._execute, args=(seed, seconds, started, refusal), name="panel-execution",
+        threading.Thread(target=self._execute, args=(seed, seconds, started, refusal, stops), name="panel-execution",
                          daemon=True).start()
         started.wait(10.0)
         if refusal:
@@ -147,7 +149,8 @@ class Execute:
         else:
             self.run_md.content = f"**refused**: {why}"
 
-    def _execute(self, seed: int, seconds: float, started: threading.Event, refusal: list[str]) -> None:
+    def _execute(self, seed: int, seconds: float, started: threading.Event, refusal: list[str],
+                 stops: int | None = None) -> None:
         """Its own thread: the whole execution, then the outcome logged and shown."""
         serving, method = self.serving, self.method or "?"
 
@@ -157,7 +160,8 @@ class Execute:
             started.set()
 
         try:
-            done = self.runner.run(seed, seconds, self.armed, serving, method, self.context(), on_started=running)
+            done = self.runner.run(seed, seconds, self.armed, serving, method, self.context(), on_started=running,
+                                   stops_seen=stops)
         except ExecutionError as exc:
             if not started.is_set():  # refused before anything moved: the presser is told
                 refusal.append(str(exc))

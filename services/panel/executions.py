@@ -70,12 +70,17 @@ class Runner:
     def __init__(self, query: Callable[[str, dict], list[dict]]) -> None:
         self.query = query
         self.stop = threading.Event()  # set by STOP: the running execution ends now
+        self.stops = 0  # STOP presses so far: one pressed after Run but before its execution starts counts
         self._lock = threading.Lock()
         self.started: float | None = None  # wall time the running execution started
 
     @property
     def running(self) -> bool:
         return self._lock.locked()
+
+    def request_stop(self) -> None:
+        self.stops += 1
+        self.stop.set()
 
     def _ask(self, verb: str, request: dict) -> dict:
         replies = self.query(f"{WORLD}/{verb}", request)
@@ -86,9 +91,11 @@ class Runner:
         return replies[0]
 
     def run(self, seed: int, seconds: float, armed: bool | None, serving: str | None, method: str,
-            context: dict | None = None, on_started: Callable[[], None] | None = None) -> Execution:
+            context: dict | None = None, on_started: Callable[[], None] | None = None,
+            stops_seen: int | None = None) -> Execution:
         """Reset, robot mode, wait, outcome, teacher mode; ExecutionError when refused (robot not
-        armed, another execution running, a bad request) or when the world does not answer."""
+        armed, another execution running, a bad request) or when the world does not answer.
+        ``stops_seen``: ``stops`` when Run was pressed; a STOP since then ends this execution at once."""
         if not 0 < seconds <= MAX_SECONDS:
             raise ExecutionError(f"seconds must be in (0, {MAX_SECONDS:g}], got {seconds}")
         if armed is not True:
@@ -100,6 +107,8 @@ class Runner:
         try:
             self.started = time.time()
             self.stop.clear()
+            if stops_seen is not None and self.stops > stops_seen:
+                self.stop.set()  # STOP came after the press but before this thread got here
             self._ask("reset", {"seed": int(seed)})
             self._ask("mode", {"mode": "robot"})
             t0 = time.monotonic()

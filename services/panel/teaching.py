@@ -75,6 +75,7 @@ class Teaching:
         self.review: Review | None = None
         self._scan: Future | None = None
         self._select: str | None = None  # a recording to pick once a scan lists it (the one just recorded)
+        self._shown: tuple[str, str, str, str] | None = None  # the picked one's stored metadata, as put in the form
         self._last_scan = 0.0
         self._cameras: Future | None = None
         self._build()
@@ -259,6 +260,10 @@ class Teaching:
         elif self.pick.value not in names:
             self.pick.value = names[-1]
         selected = self.picked()
+        # The picked demonstration's metadata changed on disk (the outcome stored at Stop, a save from
+        # another browser): the form follows it, unless it holds edits not saved yet.
+        if selected is not None and self._form() in (self._shown, _stored(selected)):
+            self._show_picked()
         text = library.table(entries, selected.path if selected else None)
         if self.table_md.content != text:
             self.table_md.content = text
@@ -277,6 +282,10 @@ class Teaching:
         if e is not None:
             self.label.value, self.split.value, self.outcome.value = e.meta.label, e.meta.split, e.meta.outcome
             self.picked_layout.value = e.meta.layout
+            self._shown = _stored(e)
+
+    def _form(self) -> tuple[str, str, str, str]:
+        return self.label.value, self.split.value, self.outcome.value, self.picked_layout.value
 
     def _save(self) -> None:
         e = self.picked()
@@ -338,7 +347,7 @@ class Teaching:
                 (t, *series.values()),
                 (uplot.Series(label="s"), *(uplot.Series(label=name, stroke=colors[i % len(colors)], width=1.5)
                                             for i, name in enumerate(series))),
-                title="signals", aspect=1.6)
+                title="signals", scales={"x": {"time": False}}, aspect=1.6)  # x: seconds into the recording
 
     def _close_review(self) -> None:
         self.review = None
@@ -457,3 +466,8 @@ class Teaching:
 
     def close(self) -> None:
         self.worker.shutdown(wait=False, cancel_futures=True)
+
+
+def _stored(e: Entry) -> tuple[str, str, str, str]:
+    """A demonstration's editable metadata in the order of the form's fields."""
+    return e.meta.label, e.meta.split, e.meta.outcome, e.meta.layout

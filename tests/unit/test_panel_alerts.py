@@ -52,6 +52,17 @@ def test_device_gaps_and_a_dropped_recording_are_alerts():
     assert "`xm/glove/left/tactile` no longer published" in stopped.body
 
 
+def test_keys_a_device_stops_at_once_are_one_alert():
+    a = Alerts()
+    keys = [f"xm/camhub/cam{i}/{kind}" for i in range(7) for kind in ("image", "info")]
+    camhub = {"service": "camhub", "instance": "main", "status": "ok", "published_hz": dict.fromkeys(keys, 5.0)}
+    assert a.update([camhub], 0.0) == []
+    [gap] = a.update([dict(camhub, published_hz=dict.fromkeys(keys, 0.0))], 2.0)
+    assert gap.title == "camhub/main: device gap"
+    assert gap.body == "`xm/camhub/cam0/image`, `xm/camhub/cam0/info`, `xm/camhub/cam1/image` and 11 more no longer " \
+                       "published"
+
+
 def test_status_changes_to_error_or_degraded_and_the_list():
     a = Alerts()
     a.update([glove()], 0.0)

@@ -68,12 +68,24 @@ def test_stop_ends_an_execution_early_and_a_second_one_is_refused_meanwhile():
     assert started.wait(10)
     with pytest.raises(ExecutionError, match="an execution is running"):  # another browser's press
         runner.run(1, 1.0, True, None, "naive")
-    runner.stop.set()  # STOP
+    runner.request_stop()  # STOP
     thread.join(10)
     [done] = result
     assert done.stopped and not done.success and done.seconds < 30  # a stopped execution is no success
     assert [v for v, _ in world.calls] == ["reset", "mode", "outcome", "mode"]
     assert not runner.running
+
+
+def test_a_stop_pressed_after_run_but_before_its_execution_starts_still_ends_it():
+    """On a loaded host the page delivers Run and STOP together: STOP's handler may run first."""
+    world = World()
+    runner = Runner(world)
+    pressed = runner.stops  # Run pressed
+    runner.request_stop()  # STOP, handled before the execution's thread starts
+    done = runner.run(0, 60.0, True, None, "naive", stops_seen=pressed)
+    assert done.stopped and not done.success and done.seconds < 30
+    later = runner.run(0, 0.2, True, None, "naive", stops_seen=runner.stops)  # an older STOP ends no later run
+    assert not later.stopped
 
 
 def test_a_broken_outcome_is_an_error_and_the_world_still_returns_to_teacher_mode():
