@@ -161,7 +161,7 @@ class Execute:
 
         try:
             done = self.runner.run(seed, seconds, self.armed, serving, method, self.context(), on_started=running,
-                                   stops_seen=stops)
+                                   stops_seen=stops, armed_now=lambda: self.armed)
         except ExecutionError as exc:
             if not started.is_set():  # refused before anything moved: the presser is told
                 refusal.append(str(exc))

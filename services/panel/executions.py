@@ -24,6 +24,7 @@ from pathlib import Path
 WORLD = "xm/world/sim/@cmd"
 LOG_NAME = "executions.jsonl"
 MAX_SECONDS = 120.0
+ARMED_POLL_S = 0.1  # how often a running execution reads the arm state
 
 
 class ExecutionError(ValueError):
@@ -78,6 +79,14 @@ class Runner:
     def running(self) -> bool:
         return self._lock.locked()
 
+    def _wait(self, seconds: float, armed_now: Callable[[], bool | None] | None) -> bool:
+        """Wait ``seconds``; True when STOP or a disarm ended the wait early."""
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            if self.stop.wait(min(left, ARMED_POLL_S)) or (armed_now is not None and armed_now() is False):
+                return True
+        return False
+
     def request_stop(self) -> None:
         self.stops += 1
         self.stop.set()
@@ -92,10 +101,12 @@ class Runner:
 
     def run(self, seed: int, seconds: float, armed: bool | None, serving: str | None, method: str,
             context: dict | None = None, on_started: Callable[[], None] | None = None,
-            stops_seen: int | None = None) -> Execution:
+            stops_seen: int | None = None, armed_now: Callable[[], bool | None] | None = None) -> Execution:
         """Reset, robot mode, wait, outcome, teacher mode; ExecutionError when refused (robot not
         armed, another execution running, a bad request) or when the world does not answer.
-        ``stops_seen``: ``stops`` when Run was pressed; a STOP since then ends this execution at once."""
+        ``stops_seen``: ``stops`` when Run was pressed; a STOP since then ends this execution at once.
+        ``armed_now()``: the robot's arm state; the execution ends when it reads disarmed (a STOP or a
+        disarm from any browser, whatever order the page's handlers ran in)."""
         if not 0 < seconds <= MAX_SECONDS:
             raise ExecutionError(f"seconds must be in (0, {MAX_SECONDS:g}], got {seconds}")
         if armed is not True:
@@ -114,7 +125,7 @@ class Runner:
             t0 = time.monotonic()
             if on_started is not None:
                 on_started()
-            stopped = self.stop.wait(seconds)
+            stopped = self._wait(seconds, armed_now)
             ran = time.monotonic() - t0
             try:
                 reply = self.query(f"{WORLD}/outcome", {})

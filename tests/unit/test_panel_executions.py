@@ -88,6 +88,20 @@ def test_a_stop_pressed_after_run_but_before_its_execution_starts_still_ends_it(
     assert not later.stopped
 
 
+def test_an_execution_ends_when_the_robot_reads_disarmed_whatever_order_the_presses_were_handled_in():
+    """STOP's handler may count its press before Run's handler reads the count; its disarm still ends it."""
+    runner = Runner(World())
+    armed = [True]
+    done: list = []
+    thread = threading.Thread(target=lambda: done.append(
+        runner.run(0, 60.0, True, None, "naive", stops_seen=runner.stops, armed_now=lambda: armed[0])))
+    thread.start()
+    wait_until(lambda: runner.running and runner.started is not None, 10, "the execution running")
+    armed[0] = False  # the hold's reply: disarmed
+    thread.join(10)
+    assert done and done[0].stopped and done[0].seconds < 30
+
+
 def test_a_broken_outcome_is_an_error_and_the_world_still_returns_to_teacher_mode():
     world = World(outcome={"ok": False, "error": "no such command"})
     with pytest.raises(ExecutionError, match="no such command"):
