@@ -1,19 +1,24 @@
-"""Hand-pose prior for the regulariser of thesis 7.22 (pure).
+"""Hand-pose prior for the regulariser of thesis 7.22.
 
-The thesis takes joint means and deviations from a hand pose dataset; we take them from the
-teacher's demonstrations: the flexion angle at each finger joint (angle between consecutive bones
-of the 21-keypoint hand) over all demonstration frames, mapped to the robot's finger joints by its
-description's ``finger_flexion`` (shared/robots).
+The thesis takes joint means and deviations from a hand pose dataset; we take them from
+demonstrations: the flexion angle at each finger joint (angle between consecutive bones of the
+21-keypoint hand) over all demonstration frames, mapped to the robot's finger joints by its
+description's ``finger_flexion`` (shared/robots). The trajopt service reads the table shipped in
+``models/hand_prior.json`` (``load_prior``); ``python -m learning.hand_prior`` writes it from the
+scripted teacher's demonstrations, so no service runs the simulated teacher.
 """
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
-from services.world.teacher import generate_demo
-from shared.demo import Demo
+from shared.demo import HAND_NAMES, Demo
 from shared.robots.registry import REGISTRY
 
+DEFAULT_PRIOR = Path(__file__).resolve().parents[2] / "models" / "hand_prior.json"
 MIN_STD = 0.05  # rad: a joint the teacher never moved still gets a finite deviation
 # every described robot's finger joints (their names do not collide): the default of hand_pose_prior
 ALL_FLEXION = {j: chain for d in REGISTRY.values() for j, chain in d.finger_flexion.items()}
@@ -40,8 +45,27 @@ def hand_pose_prior(demos: list[Demo], hand: int = 1, chains: dict[str, tuple[in
     return mean, std
 
 
-def teacher_prior(chains: dict[str, tuple[int, int, int]], task: str = "assembly", demos: int = 2, hand: int = 1
-                  ) -> tuple[dict[str, float], dict[str, float]]:
-    """hand_pose_prior of the SIMULATED scripted teacher's demonstrations (seeds 1..demos), what the
-    trajopt service uses for a robot with fingers when no recorded demonstrations are given."""
-    return hand_pose_prior([generate_demo(task, seed) for seed in range(1, demos + 1)], hand, chains)
+def prior_table(demos: list[Demo], source: str) -> dict:
+    """The table ``load_prior`` reads: per hand, every described robot's finger joints."""
+    table: dict = {"source": source, "frames": int(sum(len(d.hands) for d in demos))}
+    for hand, name in enumerate(HAND_NAMES):
+        mean, std = hand_pose_prior(demos, hand)
+        table[name] = {"mean": mean, "std": std}
+    return table
+
+
+def load_prior(chains: dict[str, tuple[int, int, int]], hand: str, path: str | Path = DEFAULT_PRIOR
+               ) -> tuple[dict[str, float], dict[str, float]]:
+    """Mean and deviation of the joints ``chains`` names for ``hand`` ("left"/"right") from the table
+    at ``path``; ValueError naming what is missing and how to write the table."""
+    hint = "write it with `python -m learning.hand_prior`"
+    try:
+        table = json.loads(Path(path).read_text())
+        stats = table[hand]
+        mean = {j: float(stats["mean"][j]) for j in chains}
+        std = {j: float(stats["std"][j]) for j in chains}
+    except FileNotFoundError as exc:
+        raise ValueError(f"no hand-pose prior at {path}: {hint}") from exc
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"hand-pose prior {path} lacks {exc} for the {hand} hand: {hint}") from exc
+    return mean, std

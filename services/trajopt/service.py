@@ -9,11 +9,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from services.trajopt.hand_prior import teacher_prior
+from services.trajopt.hand_prior import DEFAULT_PRIOR, load_prior
 from services.trajopt.mapping import goals_for_horizon, plan_arrays
 from services.trajopt.optimizer import TrajectoryOptimizer, TrajoptConfig
 from shared import msgs
-from shared.demo import HAND_NAMES
 from shared.kinematics import load_robot
 from shared.robots.registry import DEFAULT_ROBOT, describe
 from shared.runtime import Node
@@ -28,11 +27,10 @@ class TrajoptService:
         horizon_s: float = 1.0
         fixed_knots: int = 2
         max_iterations: int = 2  # as deployed: the next cycle continues from this one (warm start)
-        # 7.22 hand-pose regulariser, for robots whose description maps finger joints: prior from the scripted
-        # teacher's finger flexion over `prior_demos` demonstrations of `prior_task`.
+        # 7.22 hand-pose regulariser, for robots whose description maps finger joints: the finger flexion
+        # table of demonstrations in `prior` (services/trajopt/hand_prior.py).
         pose_weight: float = 1e-6
-        prior_task: str = "assembly"
-        prior_demos: int = 2
+        prior: str = str(DEFAULT_PRIOR)
 
     _prepared: ClassVar[dict[str, tuple]] = {}  # a standby spare's optimizer, by its params
 
@@ -47,8 +45,7 @@ class TrajoptService:
         desc = describe(params.robot)
         mean, std = {}, {}
         if desc.finger_flexion and params.pose_weight > 0:
-            mean, std = teacher_prior(desc.finger_flexion, params.prior_task, params.prior_demos,
-                                      HAND_NAMES.index(desc.finger_hand))
+            mean, std = load_prior(desc.finger_flexion, desc.finger_hand, params.prior)
         opt = TrajectoryOptimizer(model, TrajoptConfig(
             knots=params.knots, fixed_knots=params.fixed_knots, max_iterations=params.max_iterations,
             pose_mean=mean, pose_std=std, pose_weight=params.pose_weight if mean else 0.0))
@@ -60,8 +57,8 @@ class TrajoptService:
         built = self._prepared.pop(repr(params), None) or self._build(params)
         self.model, mean, self.opt = built
         if mean:
-            node.log.info("hand-pose prior (7.22) over %d joints from %d %s demonstrations, weight %g", len(mean),
-                          params.prior_demos, params.prior_task, params.pose_weight)
+            node.log.info("hand-pose prior (7.22) over %d joints from %s, weight %g", len(mean), params.prior,
+                          params.pose_weight)
         self.pose_prior = bool(mean)
         self.dt = params.horizon_s / params.knots
         self.plan = None
