@@ -31,6 +31,9 @@ log = logging.getLogger("xm")
 POLICY = "xm/policy/main"
 NO_MODEL = "-"
 SILENT_S = 6.0  # the robot's state stays shown this long after its last @health answer (one may come late)
+# An arm, disarm or STOP answer stands this long over @health reports, which may have been taken before it
+# (a stale "disarmed" would end the execution a press right after arming started).
+ANSWER_STANDS_S = 3.0
 SHOWN_EXECUTIONS = 5  # the newest executions listed in the folder
 
 
@@ -52,6 +55,7 @@ class Execute:
         self.count = count
         self.armed: bool | None = None  # None: the robot service did not answer
         self._robot_seen = -float("inf")  # when its @health last answered (monotonic)
+        self._answered = -float("inf")  # when the robot last answered an arm, disarm or STOP (monotonic)
         self.serving: str | None = None  # the checkpoint the policy serves
         self.method = ""
         self.models: dict[str, Path] = {}
@@ -93,7 +97,7 @@ class Execute:
             self.state_md.content = ("**STOP NOT CONFIRMED**: the robot service did not answer; the board brakes "
                                      "on its own when the robot service is down")
             return
-        self.armed = bool(reply.get("armed"))
+        self.armed, self._answered = bool(reply.get("armed")), time.monotonic()
         self._state_line("stopped: holding")
 
     def _arm(self, armed: bool) -> None:
@@ -105,7 +109,7 @@ class Execute:
             why = "the robot service did not answer" if reply is None else reply.get("error", "refused")
             self.state_md.content = f"**{'arm' if armed else 'disarm'} failed**: {why}"
             return
-        self.armed = bool(reply.get("armed"))
+        self.armed, self._answered = bool(reply.get("armed")), time.monotonic()
         self._state_line()
 
     def _serve(self) -> None:
@@ -210,7 +214,9 @@ class Execute:
                       and r.get("service") == "robot"), None)
         now = time.monotonic()
         if robot is not None:
-            self.armed, self._robot_seen = bool(robot.get("armed")), now
+            self._robot_seen = now
+            if now - self._answered > ANSWER_STANDS_S:
+                self.armed = bool(robot.get("armed"))
         elif now - self._robot_seen > SILENT_S:
             self.armed = None
         self._state_line()
