@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 DEVICE_SERVICES = ("glove", "camhub", "robot", "world")  # their keys stopping is a device gap
 KEPT = 20  # alerts listed on the page
 SHOWN_KEYS = 3  # keys named in one device-gap alert
+REPEAT_S = 60.0  # a service turning degraded (or error) again within this is not raised again
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,7 @@ class Alerts:
         self.counts: dict[str, dict[str, float]] = {}
         self.publishing: dict[str, set[str]] = {}  # device service -> keys it published at a rate > 0
         self.recent: deque[Alert] = deque(maxlen=KEPT)
+        self.turned: dict[str, float] = {}  # "<service> <status>" -> when it was last raised (monotonic)
 
     def update(self, reports: Sequence[dict], now: float) -> list[Alert]:
         """One round of @health replies at monotonic time ``now`` -> the new alerts."""
@@ -98,17 +100,23 @@ class Alerts:
                 self.down.discard(name)
                 out.append(Alert("info", f"{name} back", f"answering again, status {answered[name].get('status')}"))
         for name, report in answered.items():
-            out += self._status(name, report)
+            out += self._status(name, report, now)
             out += self._counters(name, report)
             out += self._keys(name, report)
         self.recent.extend(out)
         return out
 
-    def _status(self, name: str, report: dict) -> list[Alert]:
+    def _status(self, name: str, report: dict, now: float) -> list[Alert]:
         status, before = str(report.get("status", "?")), self.status.get(name)
         self.status[name] = status
         if status == before or status not in ("error", "degraded"):
             return []
+        # a service that flips between ok and degraded (trajopt keeping its last safe trajectory while
+        # the teacher's hands leave the robot's reach) is raised once a minute, not at every flip
+        key = f"{name} {status}"
+        if now - self.turned.get(key, -float("inf")) < REPEAT_S:
+            return []
+        self.turned[key] = now
         return [Alert("error" if status == "error" else "warning", f"{name} {status}",
                       str(report.get("message") or "no message"))]
 

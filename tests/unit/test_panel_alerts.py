@@ -63,6 +63,16 @@ def test_keys_a_device_stops_at_once_are_one_alert():
                        "published"
 
 
+def test_a_service_flipping_between_ok_and_degraded_is_raised_once_a_minute():
+    a = Alerts()
+    a.update([glove()], 0.0)
+    flips = [a.update([glove(status="degraded" if i % 2 else "ok")], 2.0 * i) for i in range(1, 40)]
+    raised = [i for i, alerts in enumerate(flips, 1) if alerts]
+    assert raised == [1, 31]  # t = 2 s and t = 62 s, not every 4 s
+    [err] = a.update([glove(status="error")], 80.0)  # another status is news at once
+    assert err.title == "glove/left error"
+
+
 def test_status_changes_to_error_or_degraded_and_the_list():
     a = Alerts()
     a.update([glove()], 0.0)
