@@ -89,7 +89,7 @@ class Execute:
         return replies[0] if replies else None
 
     def _stop(self, _event: Any) -> None:
-        self.runner.request_stop()  # a running execution ends now (its outcome is still measured)
+        self.runner.stop.set()  # a running execution ends now (its outcome is still measured)
         reply = self._ask(f"{self.robot_key}/@cmd/hold", {"disarm": True})
         if reply is None or not reply.get("ok"):
             self.count("stop_failed")
@@ -102,7 +102,7 @@ class Execute:
 
     def _arm(self, armed: bool) -> None:
         if not armed:
-            self.runner.request_stop()  # disarming ends a running execution too
+            self.runner.stop.set()  # disarming ends a running execution too
         reply = self._ask(f"{self.robot_key}/@cmd/arm", {"armed": armed})
         if reply is None or not reply.get("ok"):
             self.count("arm_failed")
@@ -128,7 +128,6 @@ class Execute:
     def _run(self, event: Any) -> None:
         """Viser worker thread: checks and starts the execution's own thread; a refusal goes to the
         browser that pressed (two browsers at once: one runs, the other is told)."""
-        stops = self.runner.stops  # a STOP from here on ends this execution, even one before it starts
         try:
             if self.runner.running:
                 raise ExecutionError("an execution is running; wait for its outcome or press STOP")
@@ -140,7 +139,7 @@ class Execute:
             return
         started = threading.Event()
         refusal: list[str] = []
-        threading.Thread(target=self._execute, args=(seed, seconds, started, refusal, stops), name="panel-execution",
+        threading.Thread(target=self._execute, args=(seed, seconds, started, refusal), name="panel-execution",
                          daemon=True).start()
         started.wait(10.0)
         if refusal:
@@ -153,8 +152,7 @@ class Execute:
         else:
             self.run_md.content = f"**refused**: {why}"
 
-    def _execute(self, seed: int, seconds: float, started: threading.Event, refusal: list[str],
-                 stops: int | None = None) -> None:
+    def _execute(self, seed: int, seconds: float, started: threading.Event, refusal: list[str]) -> None:
         """Its own thread: the whole execution, then the outcome logged and shown."""
         serving, method = self.serving, self.method or "?"
 
@@ -165,7 +163,7 @@ class Execute:
 
         try:
             done = self.runner.run(seed, seconds, self.armed, serving, method, self.context(), on_started=running,
-                                   stops_seen=stops, armed_now=lambda: self.armed)
+                                   armed_now=lambda: self.armed)
         except ExecutionError as exc:
             if not started.is_set():  # refused before anything moved: the presser is told
                 refusal.append(str(exc))

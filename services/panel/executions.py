@@ -71,7 +71,6 @@ class Runner:
     def __init__(self, query: Callable[[str, dict], list[dict]]) -> None:
         self.query = query
         self.stop = threading.Event()  # set by STOP: the running execution ends now
-        self.stops = 0  # STOP presses so far: one pressed after Run but before its execution starts counts
         self._lock = threading.Lock()
         self.started: float | None = None  # wall time the running execution started
 
@@ -80,16 +79,12 @@ class Runner:
         return self._lock.locked()
 
     def _wait(self, seconds: float, armed_now: Callable[[], bool | None] | None) -> bool:
-        """Wait ``seconds``; True when STOP or a disarm ended the wait early."""
+        """Wait ``seconds``; True when STOP or the robot reading disarmed ended the wait early."""
         deadline = time.monotonic() + seconds
         while (left := deadline - time.monotonic()) > 0:
             if self.stop.wait(min(left, ARMED_POLL_S)) or (armed_now is not None and armed_now() is False):
                 return True
         return False
-
-    def request_stop(self) -> None:
-        self.stops += 1
-        self.stop.set()
 
     def _ask(self, verb: str, request: dict) -> dict:
         replies = self.query(f"{WORLD}/{verb}", request)
@@ -101,12 +96,12 @@ class Runner:
 
     def run(self, seed: int, seconds: float, armed: bool | None, serving: str | None, method: str,
             context: dict | None = None, on_started: Callable[[], None] | None = None,
-            stops_seen: int | None = None, armed_now: Callable[[], bool | None] | None = None) -> Execution:
+            armed_now: Callable[[], bool | None] | None = None) -> Execution:
         """Reset, robot mode, wait, outcome, teacher mode; ExecutionError when refused (robot not
         armed, another execution running, a bad request) or when the world does not answer.
-        ``stops_seen``: ``stops`` when Run was pressed; a STOP since then ends this execution at once.
-        ``armed_now()``: the robot's arm state; the execution ends when it reads disarmed (a STOP or a
-        disarm from any browser, whatever order the page's handlers ran in)."""
+        ``armed_now()``: the robot's arm state; the execution ends when it reads disarmed (every STOP and
+        disarm disarms it, so they end it whatever order viser's worker threads ran the presses in,
+        even one handled before this execution cleared ``stop``)."""
         if not 0 < seconds <= MAX_SECONDS:
             raise ExecutionError(f"seconds must be in (0, {MAX_SECONDS:g}], got {seconds}")
         if armed is not True:
@@ -118,8 +113,6 @@ class Runner:
         try:
             self.started = time.time()
             self.stop.clear()
-            if stops_seen is not None and self.stops > stops_seen:
-                self.stop.set()  # STOP came after the press but before this thread got here
             self._ask("reset", {"seed": int(seed)})
             self._ask("mode", {"mode": "robot"})
             t0 = time.monotonic()

@@ -68,7 +68,7 @@ def test_stop_ends_an_execution_early_and_a_second_one_is_refused_meanwhile():
     assert started.wait(10)
     with pytest.raises(ExecutionError, match="an execution is running"):  # another browser's press
         runner.run(1, 1.0, True, None, "naive")
-    runner.request_stop()  # STOP
+    runner.stop.set()  # STOP
     thread.join(10)
     [done] = result
     assert done.stopped and not done.success and done.seconds < 30  # a stopped execution is no success
@@ -76,25 +76,25 @@ def test_stop_ends_an_execution_early_and_a_second_one_is_refused_meanwhile():
     assert not runner.running
 
 
-def test_a_stop_pressed_after_run_but_before_its_execution_starts_still_ends_it():
-    """On a loaded host the page delivers Run and STOP together: STOP's handler may run first."""
+def test_a_stop_handled_before_its_execution_starts_still_ends_it():
+    """On a loaded host the page delivers Run and STOP together: STOP's handler may run first, and
+    the execution clears ``stop`` as it starts; the robot STOP disarmed ends it all the same."""
     world = World()
     runner = Runner(world)
-    pressed = runner.stops  # Run pressed
-    runner.request_stop()  # STOP, handled before the execution's thread starts
-    done = runner.run(0, 60.0, True, None, "naive", stops_seen=pressed)
+    runner.stop.set()  # STOP, handled before the execution's thread starts: the robot is disarmed
+    done = runner.run(0, 60.0, True, None, "naive", armed_now=lambda: False)
     assert done.stopped and not done.success and done.seconds < 30
-    later = runner.run(0, 0.2, True, None, "naive", stops_seen=runner.stops)  # an older STOP ends no later run
+    later = runner.run(0, 0.2, True, None, "naive", armed_now=lambda: True)  # an older STOP ends no later run
     assert not later.stopped
 
 
 def test_an_execution_ends_when_the_robot_reads_disarmed_whatever_order_the_presses_were_handled_in():
-    """STOP's handler may count its press before Run's handler reads the count; its disarm still ends it."""
+    """A disarm from any browser ends it, as does the disarm of a STOP handled in any order."""
     runner = Runner(World())
     armed = [True]
     done: list = []
     thread = threading.Thread(target=lambda: done.append(
-        runner.run(0, 60.0, True, None, "naive", stops_seen=runner.stops, armed_now=lambda: armed[0])))
+        runner.run(0, 60.0, True, None, "naive", armed_now=lambda: armed[0])))
     thread.start()
     wait_until(lambda: runner.running and runner.started is not None, 10, "the execution running")
     armed[0] = False  # the hold's reply: disarmed
