@@ -43,6 +43,7 @@ from tqdm import tqdm
 from evaluation.runs import sources_digest
 from services.camhub.camera_info import encode_jpeg
 from services.camhub.roi import CameraGeometry, Roi, RoiParams, full_frame, rig_windows
+from services.recon import smoothing
 from services.recon.detector import CameraModel, SimulatedDetector
 from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, LearnedDetector, View
 from services.recon.objects import task_keypoint_names
@@ -76,6 +77,7 @@ class ReconOptions:
     reacquire_every: int = 10  # camhub's full-frame reacquisition period (roi windows)
     jpeg_quality: int = 80  # camhub's
     lead_in: int = 10  # frame sets of the start pose recon sees before the demonstration's first sample
+    smooth: bool = True  # offline smoothing of every track (services/recon/smoothing.py), lead-in included
     pixel_noise: float = 1.0  # simulated detector
     dropout: float = 0.08
     threads: int = 1  # the learned detector's runtime threads
@@ -247,18 +249,32 @@ class DemoReconstructor:
             uv, conf = self.detect(snap, truth, visible, windows)
             r = recon.step(self.P, uv, conf, np.array([tuple(w) for w in windows], float))
             tracked = tracked_hands(r.hands, r.hand_mask)
-            if trigger >= self.options.lead_in:
-                hands.append(r.hands)
-                hmask.append(r.hand_mask)
-                objs.append(r.objects)
-                omask.append(r.object_mask)
-        hands_a, objs_a = np.nan_to_num(np.array(hands, np.float32)), np.nan_to_num(np.array(objs, np.float32))
-        hmask_a, omask_a = np.array(hmask, np.uint8), np.array(omask, np.uint8)
+            hands.append(r.hands)
+            hmask.append(r.hand_mask)
+            objs.append(r.objects)
+            omask.append(r.object_mask)
+        hands_a, hmask_a = np.array(hands, float), np.array(hmask, bool)
+        objs_a, omask_a = np.array(objs, float), np.array(omask, bool)
+        if self.options.smooth:  # over the lead-in too: a start state is smoothed from its past only
+            hands_a, hmask_a = smoothed(hands_a, hmask_a, demo.dt, smoothing.HANDS)
+            objs_a, omask_a = smoothed(objs_a, omask_a, demo.dt, smoothing.OBJECTS)
+        lead = self.options.lead_in
+        hands_a = np.nan_to_num(hands_a[lead:]).astype(np.float32)
+        objs_a = np.nan_to_num(objs_a[lead:]).astype(np.float32)
+        hmask_a, omask_a = hmask_a[lead:].astype(np.uint8), omask_a[lead:].astype(np.uint8)
         hands_a *= hmask_a[..., None]  # masked points are zero, never NaN (as in recon's scene)
         objs_a *= omask_a[..., None]
         return replace(demo, hands=hands_a, hand_mask=hmask_a, objects=objs_a, object_mask=omask_a,
                        tactile=demo.tactile[:steps], tactile_mask=demo.tactile_mask[:steps], phase=demo.phase[:steps],
                        meta={**meta, "observations": f"reconstructed:{self.options.detector}:{self.options.windows}"})
+
+
+def smoothed(points: np.ndarray, mask: np.ndarray, dt: float, params: smoothing.SmoothParams
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``smooth_tracks`` of points (T,...,3) with mask (T,...), in their own shapes."""
+    t = len(points)
+    out, seen = smoothing.smooth_tracks(points.reshape(t, -1, 3), mask.reshape(t, -1), dt, params)
+    return out.reshape(points.shape), seen.reshape(mask.shape)
 
 
 class CellObserver:

@@ -326,10 +326,11 @@ class LearnedDetector:
         P, calibrated, focal = geometry
         uv0, conf0 = first
         centres, found = object_crops.object_centres(P, uv0, conf0 * calibrated[:, None], self.object_slices)
-        busy = None
-        if hands is not None and self.object_busy_m > 0 and np.any(hands[1]):
-            gap = np.linalg.norm(centres[:, None] - np.asarray(hands[0])[None, np.asarray(hands[1], bool)], axis=-1)
-            busy = gap.min(axis=1) < self.object_busy_m
+        hand_centres = np.asarray(hands[0])[np.asarray(hands[1], bool)] if hands is not None else np.zeros((0, 3))
+        centres, found, busy = self.schedule.track(centres, found, hand_centres, self.object_busy_m)
+        if self.object_busy_m > 0 and len(hand_centres):
+            gap = np.linalg.norm(centres[:, None] - hand_centres[None], axis=-1)
+            busy |= gap.min(axis=1) < self.object_busy_m
         refresh, reuse = self.schedule.plan(centres, found, busy)
         cameras = [v.camera for v in views]
         for o in np.flatnonzero(reuse):

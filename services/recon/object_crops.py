@@ -59,6 +59,10 @@ PEAK_CONFIDENCE = 0.3  # a peak this confident places its keypoint
 # frame set rather than resting (a held board can move 2 cm between frame sets while its first-stage
 # centre, placed from 7 input pixels, moves less than REST_M).
 BUSY_M = 0.10
+# An object no hand is near stays where it was placed when the first stage misses it or puts it
+# farther than this away: in a full frame (camhub's reacquisition, every 10th frame set) the first
+# stage sees the camera module at about 1 input pixel and put it 13 cm off, so the crop there missed.
+JUMP_M = 0.05
 
 
 def object_slices(names: list[str], first: int) -> list[tuple[str, slice]]:
@@ -176,6 +180,7 @@ class ObjectSchedule:
     def __init__(self, objects: int, rest_m: float = REST_M, max_age: int = MAX_AGE,
                  resting_per_set: int = RESTING_PER_SET, reuse: bool = True) -> None:
         self.held: list[Held | None] = [None] * objects
+        self.kept_in_place = 0  # untouched objects the first stage missed or moved, kept where they were
         self.rest_m, self.max_age, self.resting_per_set = rest_m, max_age, resting_per_set
         self.reuse_resting = reuse  # False: every object found is cropped on every frame set
         self.refreshed = 0  # objects cropped, over all frame sets
@@ -183,6 +188,25 @@ class ObjectSchedule:
 
     def reset(self) -> None:
         self.held = [None] * len(self.held)
+
+    def track(self, centres: np.ndarray, found: np.ndarray, hands: np.ndarray, near_m: float = BUSY_M
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(centres, found, kept): every placed object (held with keypoints) that no hand (``hands``
+        (H,3) centres) is within ``near_m`` of is kept at its last centre where the first stage
+        missed it or put it over ``JUMP_M`` away (nothing moved it); a ``kept`` object must be
+        cropped there, so a crop that finds nothing (it was moved all the same) lets it go."""
+        centres, found = np.array(centres, float), np.array(found, bool)
+        kept = np.zeros(len(self.held), bool)
+        hands = np.asarray(hands, float).reshape(-1, 3)
+        for o, held in enumerate(self.held):
+            if held is None or held.keypoints is None:
+                continue
+            if len(hands) and np.linalg.norm(hands - held.centre, axis=1).min() < near_m:
+                continue
+            if not found[o] or np.linalg.norm(centres[o] - held.centre) > JUMP_M:
+                centres[o], found[o], kept[o] = held.centre, True, True
+                self.kept_in_place += 1
+        return centres, found, kept
 
     def plan(self, centres: np.ndarray, found: np.ndarray,
              busy: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -325,6 +325,31 @@ def test_schedule_crops_moving_objects_every_time_and_resting_ones_in_turn():
     assert every.plan(centres, found)[0].all()
 
 
+def test_an_untouched_object_stays_where_it_was_placed_until_a_crop_there_misses():
+    s = object_crops.ObjectSchedule(2)
+    placed = np.array([[0.0, 0, 0], [0.2, 0, 0]])
+    for o in range(2):
+        s.store(o, placed[o], {}, placed[o] + np.array([[0.02, 0, 0], [-0.02, 0, 0]]))
+    no_hands = np.zeros((0, 3))
+    # the first stage misses the camera module and puts the board 13 cm off (a full frame)
+    first = np.array([[0.13, 0, 0], [0.0, 0, 0]])
+    centres, found, kept = s.track(first, np.array([True, False]), no_hands)
+    np.testing.assert_array_equal(centres, placed)
+    assert found.all() and kept.all() and s.kept_in_place == 2
+    # a first-stage centre within JUMP_M stands, and so does anything a hand is near
+    near = placed + [[0.01, 0, 0], [0, 0, 0]]
+    centres, found, kept = s.track(near, np.ones(2, bool), no_hands)
+    np.testing.assert_array_equal(centres, near)
+    assert not kept.any()
+    centres, found, kept = s.track(first, np.array([True, False]), np.array([[-0.05, 0, 0]]))  # a hand at the board
+    np.testing.assert_array_equal(centres[0], first[0])
+    assert kept.tolist() == [False, True]
+    # a crop at the kept place that placed nothing (the object was moved all the same): let go
+    s.store(1, placed[1], {}, None)
+    centres, found, kept = s.track(first, np.array([True, False]), no_hands)
+    assert not found[1] and not kept[1]
+
+
 def test_the_object_stage_crops_the_best_views_and_reuses_a_resting_objects_detections(tmp_path):
     P = rig()
     truth, _ = project(P, objects_on_the_table())

@@ -85,6 +85,21 @@ def test_reconstructed_clip_is_close_to_truth(clip, reconstructed):
     assert err["hand_m"] > 1e-4
 
 
+def test_reconstructed_tracks_are_smoothed(clip, reconstructed):
+    worker = R.DemoReconstructor("assembly", 0, R.ReconOptions(detector="simulated", lead_in=4, smooth=False))
+    try:
+        raw = worker.demo(clip)
+    finally:
+        worker.close()
+
+    def step_error(r: Demo) -> float:  # frame-to-frame motion against the true motion
+        both = (r.hand_mask[1:] & r.hand_mask[:-1]).astype(bool)
+        return float(np.linalg.norm(np.diff(r.hands, axis=0) - np.diff(clip.hands, axis=0), axis=-1)[both].mean())
+
+    assert step_error(reconstructed) < 0.5 * step_error(raw)
+    assert R.reconstruction_error(reconstructed, clip)["hand_m"] < R.reconstruction_error(raw, clip)["hand_m"]
+
+
 def test_observed_steps_train_whole_validation_start():
     d = generate_demo("assembly", 3, index=1)
     assert R.observed_steps(replace(d, meta={**d.meta, "split": "train"})) == d.steps
