@@ -240,6 +240,8 @@ class DemoReconstructor:
         teacher = Teacher(self.task, int(meta["seed"]), meta.get("grasp_hand"), meta.get("tactile_hand"))
         glove = str(meta.get("tactile_hand", ""))
         recon = Reconstructor(self.task, hand_present_confidence=self.present_confidence)
+        if self.learned is not None:
+            self.learned.reset()  # another layout: no object's detections carry over
         hands, hmask, objs, omask = [], [], [], []
         tracked = None
         times = [0.0] * self.options.lead_in + [k * demo.dt for k in range(steps)]
