@@ -193,6 +193,7 @@ def run_images(args: argparse.Namespace) -> dict:
            "object_stage": {"views_per_object": args.object_views, "resting_reused": not args.no_object_reuse,
                             "crops_per_frame_set": round(det.object_crops / max(len(times["detect"]), 1), 2),
                             "objects_cropped": det.schedule.refreshed, "objects_reused": det.schedule.reused,
+                            "objects_kept_in_place": det.schedule.kept_in_place,
                             "present_confidence": det.object_present_confidence,
                             "crops_dropped_as_missed": det.object_crops_missed,
                             "verify_shift_half_sides": det.object_verify_shift,

@@ -194,6 +194,8 @@ class ReconService:
             out["object_crops"] = getattr(self.learned, "object_crops", 0)  # a detector without an object stage
             out["object_crops_missed"] = getattr(self.learned, "object_crops_missed", 0)  # too weak to show it
             out["object_crops_unsteady"] = getattr(self.learned, "object_crops_unsteady", 0)  # peaks followed the crop
+            schedule = getattr(self.learned, "schedule", None)  # untouched objects kept where their crops placed them
+            out["objects_kept_in_place"] = getattr(schedule, "kept_in_place", 0)
         return out
 
     def on_info(self, msg, key: str) -> None:
