@@ -327,7 +327,7 @@ class LearnedDetector:
         uv0, conf0 = first
         centres, found = object_crops.object_centres(P, uv0, conf0 * calibrated[:, None], self.object_slices)
         hand_centres = np.asarray(hands[0])[np.asarray(hands[1], bool)] if hands is not None else np.zeros((0, 3))
-        centres, found, busy = self.schedule.track(centres, found, hand_centres, self.object_busy_m)
+        centres, found, busy = self.schedule.track(centres, found, hand_centres)  # BUSY_M even when busy is off
         if self.object_busy_m > 0 and len(hand_centres):
             gap = np.linalg.norm(centres[:, None] - hand_centres[None], axis=-1)
             busy |= gap.min(axis=1) < self.object_busy_m
