@@ -258,8 +258,8 @@ class DemoReconstructor:
         hands_a, hmask_a = np.array(hands, float), np.array(hmask, bool)
         objs_a, omask_a = np.array(objs, float), np.array(omask, bool)
         if self.options.smooth:  # over the lead-in too: a start state is smoothed from its past only
-            hands_a, hmask_a = smoothed(hands_a, hmask_a, demo.dt, smoothing.HANDS)
-            objs_a, omask_a = smoothed(objs_a, omask_a, demo.dt, smoothing.OBJECTS)
+            hands_a, hmask_a = smoothing.smooth_tracks(hands_a, hmask_a, demo.dt, smoothing.HANDS)
+            objs_a, omask_a = smoothing.smooth_tracks(objs_a, omask_a, demo.dt, smoothing.OBJECTS)
         lead = self.options.lead_in
         hands_a = np.nan_to_num(hands_a[lead:]).astype(np.float32)
         objs_a = np.nan_to_num(objs_a[lead:]).astype(np.float32)
@@ -269,14 +269,6 @@ class DemoReconstructor:
         return replace(demo, hands=hands_a, hand_mask=hmask_a, objects=objs_a, object_mask=omask_a,
                        tactile=demo.tactile[:steps], tactile_mask=demo.tactile_mask[:steps], phase=demo.phase[:steps],
                        meta={**meta, "observations": f"reconstructed:{self.options.detector}:{self.options.windows}"})
-
-
-def smoothed(points: np.ndarray, mask: np.ndarray, dt: float, params: smoothing.SmoothParams
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """``smooth_tracks`` of points (T,...,3) with mask (T,...), in their own shapes."""
-    t = len(points)
-    out, seen = smoothing.smooth_tracks(points.reshape(t, -1, 3), mask.reshape(t, -1), dt, params)
-    return out.reshape(points.shape), seen.reshape(mask.shape)
 
 
 class CellObserver:

@@ -49,20 +49,19 @@ def _jerk_band(n: int) -> np.ndarray:
 def smooth_segment(y: np.ndarray, weight: np.ndarray, params: SmoothParams, dt: float) -> np.ndarray:
     """The smoothed track (n,D) of samples ``y`` (n,D) seen with ``weight`` (n,) in [0,1] (0:
     unseen, filled by the prior). Needs at least 3 seen samples (a quadratic has no jerk)."""
-    y = np.asarray(y, float)
+    base = np.asarray(weight, float)
+    y = np.where(base[:, None] > 0, np.asarray(y, float), 0.0)  # unseen samples (NaN or not) say nothing
     n = len(y)
     if n < 4:
-        return y.copy()
+        return y
     prior = _jerk_band(n) * (params.noise_m / (params.jerk_m_s3 * dt ** 3)) ** 2
-    w = np.asarray(weight, float).copy()
-    x = y.copy()
+    w, x = base, y
     for _ in range(params.iterations):
         a = prior.copy()
         a[3] += w
-        x = solveh_banded(a, w[:, None] * np.where(w[:, None] > 0, y, 0.0), lower=False, check_finite=False)
+        x = solveh_banded(a, w[:, None] * y, lower=False, check_finite=False)
         r = np.linalg.norm(x - y, axis=1) / params.noise_m
-        huber = np.where(r > params.huber, params.huber / np.maximum(r, 1e-12), 1.0)
-        w = np.asarray(weight, float) * huber
+        w = base * np.where(r > params.huber, params.huber / np.maximum(r, 1e-12), 1.0)
     return x
 
 
@@ -82,24 +81,24 @@ def segments(seen: np.ndarray, max_gap: int) -> list[tuple[int, int]]:
 
 def smooth_tracks(points: np.ndarray, mask: np.ndarray, dt: float, params: SmoothParams
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothed keypoints (T,K,3) and their mask (T,K): every span of a track without a gap over
+    """Smoothed keypoints (T,...,3) and their mask (T,...): every span of a track without a gap over
     ``params.max_gap_s`` is smoothed and its short gaps filled; samples outside a span (before the
     first sighting, in a long gap) keep their value and mask. Spans with fewer than 3 seen samples
     are left as they are."""
     if dt <= 0 or not np.isfinite(dt):
         raise ValueError(f"sample period {dt!r} s: must be a positive number")
-    pts = np.asarray(points, float)
-    seen = np.asarray(mask, bool) & np.isfinite(pts).all(axis=-1)
+    shape, t = np.shape(points), len(points)
+    pts = np.asarray(points, float).reshape(t, -1, 3)
+    seen = np.asarray(mask, bool).reshape(t, -1) & np.isfinite(pts).all(axis=-1)
     out, out_mask = pts.copy(), seen.copy()
     max_gap = int(round(params.max_gap_s / dt))
     for k in range(pts.shape[1]):
         for a, b in segments(seen[:, k], max_gap):
-            s = seen[a:b, k]
-            if s.sum() < 3:
+            if seen[a:b, k].sum() < 3:
                 continue
-            out[a:b, k] = smooth_segment(np.where(s[:, None], pts[a:b, k], 0.0), s.astype(float), params, dt)
+            out[a:b, k] = smooth_segment(pts[a:b, k], seen[a:b, k].astype(float), params, dt)
             out_mask[a:b, k] = True
-    return out, out_mask
+    return out.reshape(shape), out_mask.reshape(shape[:-1])
 
 
 # Settings for the simulated rig's reconstruction at 50 Hz, chosen on the assembly protocol's seed-1
