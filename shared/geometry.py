@@ -7,6 +7,17 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross for 3-vectors along the last axis, broadcast; bit-identical to it and about twice as
+    fast on the small arrays of recon's inner loops (np.cross pays for moving axes each call)."""
+    a, b = np.broadcast_arrays(np.asarray(a), np.asarray(b))
+    out = np.empty(a.shape, np.result_type(a, b))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def projection(K: np.ndarray, world_T_cam: np.ndarray) -> np.ndarray:
     """P = K [R | t] mapping world points to pixels (CameraInfo.p carries the pose this way)."""
     return K @ np.linalg.inv(world_T_cam)[:3, :]

@@ -27,7 +27,7 @@ from services.recon.detector import CameraModel, SimulatedDetector, View, readou
 from services.recon.frameset import FrameSetBuffer
 from services.recon.hand_fit import FitConfig
 from services.recon.hand_model import N_PARAMS, forward
-from services.recon.offline import OfflineConfig, refine_hand, segments
+from services.recon.offline import OfflineConfig, fuse, refine_hand, segments
 from services.recon.pipeline import Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
 from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window, info_key
@@ -219,8 +219,13 @@ def refine_hands(frames: Frames, task: str, config: OfflineConfig, refine: bool 
             out, info = refine_hand(tracker.shape, name, P, uv_all[span][:, :, sl], kept[span][:, :, sl],
                                     params[h, span], have[h, span], config)
             for i, t in enumerate(span):
-                hands[t, h] = forward(tracker.shape, out[i], name)
-                hand_mask[t, h] = 1
+                r = live[t]
+                seen = r.inliers[:, sl].sum(axis=0) >= 2
+                hands[t, h] = fuse(forward(tracker.shape, out[i], name), r.triangulated[sl], seen, config.blend)
+                # A frame the live fit did not hold (a gap, a refused fit) reports what was seen there:
+                # the model's fill-ins of its unseen keypoints are 20-34 mm off on held-out sessions.
+                hand_mask[t, h] = 1 if have[h, t] else seen
+                hands[t, h] *= hand_mask[t, h][:, None]
             refined[span, h] = True
             infos.append(info)
         summary[name] = {"refined": True, "segments": len(parts),

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shared.geometry import cross
+
 GATE_M = 0.08  # a detection whose ray passes farther than this from every keypoint of its hand is not that hand's
 
 
@@ -34,7 +36,7 @@ def ray_distances(P: np.ndarray, uv: np.ndarray, points: np.ndarray) -> np.ndarr
     d = np.linalg.solve(M[:, None], homog[..., None])[..., 0]
     d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
     rel = points[None, None, :, :] - centre[:, None, None, :]  # (C, 1, M, 3)
-    return np.linalg.norm(np.cross(rel, d[:, :, None, :]), axis=-1)
+    return np.linalg.norm(cross(rel, d[:, :, None, :]), axis=-1)
 
 
 def absent_hands(confidence: np.ndarray, hands: int, keypoints: int, min_median: float) -> np.ndarray:

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shared.geometry import cross
+
 CHAINS = np.array([[1, 2, 3, 4], [5, 6, 7, 8], [9, 10, 11, 12], [13, 14, 15, 16], [17, 18, 19, 20]])
 PALM = np.array([0, 1, 5, 9, 13, 17])  # rigid with the wrist: Kabsch initialises the wrist from these
 # Rotation vector, translation, (abduction, 3 flexions) per chain, then the thumb's stretch: the
@@ -143,10 +145,10 @@ def forward_jacobian(shape: HandShape, params: np.ndarray, side: str,
     Jl = np.zeros((21, 3, N_PARAMS - 6))  # local derivatives, right-hand frame
     rel0 = P[:, 1:] - P[:, :1]  # downstream points about the base
     cols = 4 * np.arange(5)
-    Jl[CHAINS[:, 1:], :, cols[:, None]] = np.cross(z_axis[:, None], rel0)
-    Jl[CHAINS[:, 1:], :, cols[:, None] + 1] = np.cross(y_axis[:, None], rel0)
-    Jl[CHAINS[:, 2:], :, cols[:, None] + 2] = np.cross(y_axis[:, None], P[:, 2:] - P[:, 1:2])
-    Jl[CHAINS[:, 3], :, cols + 3] = np.cross(y_axis, P[:, 3] - P[:, 2])
+    Jl[CHAINS[:, 1:], :, cols[:, None]] = cross(z_axis[:, None], rel0)
+    Jl[CHAINS[:, 1:], :, cols[:, None] + 1] = cross(y_axis[:, None], rel0)
+    Jl[CHAINS[:, 2:], :, cols[:, None] + 2] = cross(y_axis[:, None], P[:, 2:] - P[:, 1:2])
+    Jl[CHAINS[:, 3], :, cols + 3] = cross(y_axis, P[:, 3] - P[:, 2])
     for j in range(3):  # a thumb bone's stretch moves every point beyond it along the bone
         Jl[CHAINS[0, j + 1:], :, N_JOINTS + j] = shape.bones[0, j] * dirs[0, j]
     RM = rodrigues(params[:3]) @ (np.eye(3) if base is None else base) @ mirror(side)
@@ -169,10 +171,10 @@ def palm_frame(points: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]:
     x = points[9] - o
     x /= max(np.linalg.norm(x), 1e-12)
     a, b = points[17] - o, points[5] - o
-    z = np.cross(a, b) if side != "left" else np.cross(b, a)
+    z = cross(a, b) if side != "left" else cross(b, a)
     z -= (z @ x) * x
     z /= max(np.linalg.norm(z), 1e-12)
-    return np.stack([x, np.cross(z, x), z], axis=1), o
+    return np.stack([x, cross(z, x), z], axis=1), o
 
 
 FRAME_POINTS = np.array([0, 5, 9, 17])  # what palm_frame needs
@@ -204,7 +206,7 @@ def estimate_shape(frames: list[np.ndarray], side: str) -> HandShape:
     x /= max(np.linalg.norm(x), 1e-12)
     z = np.array([0.0, 0.0, 1.0]) - x[2] * x
     z /= max(np.linalg.norm(z), 1e-12)
-    frames_out[0] = np.stack([x, np.cross(z, x), z], axis=1)
+    frames_out[0] = np.stack([x, cross(z, x), z], axis=1)
     return HandShape(palm=med[PALM], bones=bones, frames=frames_out)
 
 

@@ -43,6 +43,13 @@ class OfflineConfig:
     stretch_px: float = 5.0  # per unit of thumb stretch (10 % costs half a pixel)
     max_nfev: int = 30
     max_gap_speed_m_s: float = MAX_GAP_SPEED_M_S  # see segments()
+    blend: float = 0.5  # a refined keypoint's share of its triangulated position, as live (hand_fit.FitConfig)
+
+
+def fuse(model: np.ndarray, triangulated: np.ndarray, seen: np.ndarray, blend: float) -> np.ndarray:
+    """Model keypoints (...,3) moved ``blend`` of the way to the triangulated ones where ``seen``
+    (...): the same fusion as the live fit's (services/recon/hand_fit.py)."""
+    return np.where(np.asarray(seen, bool)[..., None], model + blend * (triangulated - model), model)
 
 
 def fill_gaps(params: np.ndarray, have: np.ndarray) -> np.ndarray:

@@ -13,6 +13,8 @@ from itertools import combinations
 
 import numpy as np
 
+from shared.geometry import cross
+
 
 def _dlt_rows(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(C,N,2,4) DLT rows (u*P3 - P1, v*P3 - P2), each normalised so every view counts by its weight
@@ -29,8 +31,8 @@ def _solve_normal(A: np.ndarray, w: np.ndarray) -> np.ndarray:
     Aw = A * w[..., None]
     M = np.einsum("...ri,...rj->...ij", Aw[..., :3], A[..., :3])
     b = -np.einsum("...ri,...r->...i", Aw[..., :3], A[..., 3])
-    adj = np.stack([np.cross(M[..., 1, :], M[..., 2, :]), np.cross(M[..., 2, :], M[..., 0, :]),
-                    np.cross(M[..., 0, :], M[..., 1, :])], axis=-1)  # adjugate of a symmetric M
+    adj = np.stack([cross(M[..., 1, :], M[..., 2, :]), cross(M[..., 2, :], M[..., 0, :]),
+                    cross(M[..., 0, :], M[..., 1, :])], axis=-1)  # adjugate of a symmetric M
     det = np.einsum("...i,...i->...", M[..., 0, :], adj[..., :, 0])
     scale = np.einsum("...ii->...", M) ** 3
     ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)

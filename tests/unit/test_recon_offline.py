@@ -262,3 +262,16 @@ def test_the_offline_shape_comes_from_every_confident_frame():
     result = cli.refine_hands(frames, "assembly", OfflineConfig(), refine=False)
     true_bones = np.linalg.norm(np.diff(truth[:, sl][:, CHAINS], axis=2), axis=-1).mean(axis=0)
     np.testing.assert_allclose(result.shapes["right"].bones[1:], true_bones[1:], rtol=0.05)
+
+
+def test_a_frame_without_a_live_fit_reports_only_what_was_seen_there():
+    frames, truth = _teacher_frames(14, swap_from=14)
+    sl = slice(KEYPOINTS_PER_HAND, 2 * KEYPOINTS_PER_HAND)
+    frames.confidence[8][:, KEYPOINTS_PER_HAND:KEYPOINTS_PER_HAND + 16] = 0.0  # 5 keypoints left: no fit
+    result = cli.refine_hands(frames, "assembly", OfflineConfig(max_nfev=5))
+    assert result.refined[8, 1] and result.summary["right"]["segments"] == 1, "the gap is refined, not split"
+    np.testing.assert_array_equal(result.hand_mask[8, 1], np.r_[np.zeros(16), np.ones(5)])
+    np.testing.assert_array_equal(result.hands[8, 1, :16], 0.0)
+    err = np.linalg.norm(result.hands[8, 1, 16:] - truth[8, sl][16:], axis=-1)
+    assert err.max() < 0.01
+    assert result.hand_mask[[7, 9], 1].all(), "frames the live fit held report every keypoint"

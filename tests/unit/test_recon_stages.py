@@ -161,6 +161,39 @@ def test_hand_leaving_the_rig_resets_the_fit_which_restarts_where_it_returns():
     assert fitted and err.max() < 0.005
 
 
+def test_a_fitted_keypoint_is_the_mean_of_the_model_and_its_triangulation():
+    rng = np.random.default_rng(2)
+    shape, tracker = _shape(), HandTracker("right", FitConfig(init_frames=8))
+    _track(tracker, shape, np.arange(10) * 0.1, "right", 0.001, rng)
+    obs = forward(shape, _pose(1.05, "right"), "right")
+    obs[8] += [0.004, 0.0, 0.0]  # a fingertip 4 mm off: too little to override the model
+    mask = np.ones(21, bool)
+    mask[12] = False  # not triangulated: the model alone
+    out, out_mask, fitted = tracker.update(obs, mask, np.full(21, 2.0))
+    model = forward(tracker.shape, tracker.last_params, "right")
+    assert fitted and out_mask.all() and tracker.overridden == 0
+    np.testing.assert_allclose(out[mask], 0.5 * (model[mask] + obs[mask]), atol=1e-12)
+    np.testing.assert_allclose(out[12], model[12], atol=1e-12)
+    assert abs(out[8, 0] - model[8, 0]) > 1e-4, "the observation pulls the fingertip off the model"
+
+
+def test_an_unfitted_hand_reports_only_what_most_views_agree_on():
+    tracker = HandTracker("right", FitConfig(init_frames=8))
+    pts = np.random.default_rng(3).normal(0.0, 0.05, (21, 3))
+    views = np.full(21, 7.0)
+    views[[3, 4]] = 4.0  # 4 of 7 views: under the 70 % share
+    views[5] = 5.0
+    out, mask, fitted = tracker.update(pts, np.ones(21, bool), views, cameras=7)
+    assert not fitted and tracker.shape is None
+    assert not mask[[3, 4]].any() and mask[np.r_[0:3, 5:21]].all() and tracker.unfitted_dropped == 2
+    np.testing.assert_array_equal(out[[3, 4]], 0.0)
+    np.testing.assert_array_equal(out[5], pts[5])
+    _, mask3, _ = HandTracker("right").update(pts, np.ones(21, bool), np.full(21, 3.0), cameras=4)
+    assert mask3.all(), "a four-camera rig needs three views"
+    _, mask_all, _ = HandTracker("right").update(pts, np.ones(21, bool), views)
+    assert mask_all.all(), "without the frame set's view count nothing is masked"
+
+
 def test_rotvec_inverts_rotation_near_half_turn():
     for r in ([0.1, -0.2, 0.3], [0.0, 0.0, np.pi - 1e-4], [2.0, 1.0, -1.5]):
         R = rodrigues(np.array(r))
