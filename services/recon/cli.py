@@ -294,7 +294,13 @@ def main(argv: list[str] | None = None) -> int:
                              "(default: %(default)s)")
     parser.add_argument("--max-evaluations", type=int, default=OfflineConfig.max_nfev,
                         help="of the trajectory refinement per hand (default: %(default)s)")
+    parser.add_argument("--blend", type=float, default=OfflineConfig.blend,
+                        help="a refined keypoint's share of its triangulated position, 0 (the hand model alone) to 1 "
+                             "(default: %(default)s)")
     args = parser.parse_args(argv)
+    if not 0.0 <= args.blend <= 1.0:
+        print(f"xm recon: --blend {args.blend} must lie between 0 and 1", file=sys.stderr)
+        return 2
     if args.out.resolve() == args.recording.resolve():
         print("xm recon: OUT must differ from the recording", file=sys.stderr)
         return 2
@@ -302,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
         frames = read_detections(args.recording, args, Reconstructor(args.task).n_points)
         if not frames.stamps:
             raise RecordingError(f"{args.recording}: no frame sets (no camhub images)")
-        config = OfflineConfig(jerk_px_per_m=args.jerk, max_nfev=args.max_evaluations)
+        config = OfflineConfig(jerk_px_per_m=args.jerk, max_nfev=args.max_evaluations, blend=args.blend)
         scenes, summary = reconstruct(frames, args.task, config, refine=not args.no_refine)
         meshes, mesh_skipped = tactile_meshes(frames, scenes)
     except (RecordingError, ValueError) as exc:

@@ -107,6 +107,13 @@ def test_offline_recon_refuses_a_recording_without_cameras(tmp_path, capsys):
     assert "CameraInfo" in capsys.readouterr().err
 
 
+def test_offline_recon_refuses_a_blend_outside_zero_to_one(tmp_path, capsys):
+    src = tmp_path / "empty.mcap"
+    McapRecorder(src).close()
+    assert main([str(src), "-o", str(tmp_path / "out.mcap"), "--blend", "1.5"]) == 2
+    assert "--blend 1.5 must lie between 0 and 1" in capsys.readouterr().err
+
+
 def _image_recording(path, frames: int = 3) -> None:
     """Every camera's JPEG per frame set (cam2's corrupt in the first), no truth."""
     rec = McapRecorder(path)
