@@ -25,9 +25,9 @@ import numpy as np
 from services.glove.layout import region_means
 from services.recon.detector import CameraModel, SimulatedDetector, View, readout_window
 from services.recon.frameset import FrameSetBuffer
-from services.recon.hand_fit import FitConfig
+from services.recon.hand_fit import FitConfig, fuse
 from services.recon.hand_model import N_PARAMS, forward
-from services.recon.offline import OfflineConfig, fuse, refine_hand, segments
+from services.recon.offline import OfflineConfig, refine_hand, segments
 from services.recon.pipeline import Reconstructor
 from services.recon.scene import scene_message, tactile_matrix
 from services.recon.service import TACTILE_MAX_AGE_S, TRAIN_HINT, decode_window, info_key

@@ -47,6 +47,12 @@ REST_JOINTS = np.concatenate([np.tile([0.0, 0.3, 0.3, 0.2], 5), np.zeros(3)])  #
 STRETCH_PRIOR = 0.02  # metres of residual per unit of thumb stretch (10 % costs as much as 2 mm)
 
 
+def fuse(model: np.ndarray, triangulated: np.ndarray, seen: np.ndarray, blend: float) -> np.ndarray:
+    """Model keypoints (...,3) moved ``blend`` of the way to the triangulated ones where ``seen``
+    (...): what a fitted hand reports, live and offline."""
+    return np.where(np.asarray(seen, bool)[..., None], model + blend * (triangulated - model), model)
+
+
 @dataclass
 class FitConfig:
     init_frames: int = 8  # confident frames that estimate the person's shape
@@ -120,7 +126,7 @@ class HandTracker:
         resid = np.linalg.norm(model - points, axis=1)
         keep = mask & (w >= 3) & (resid > self.config.override * self.last_rms)
         self.overridden = int(keep.sum())
-        fused = np.where(mask[:, None], model + self.config.blend * (points - model), model)
+        fused = fuse(model, points, mask, self.config.blend)
         return np.where(keep[:, None], points, fused), np.ones(21, np.uint8), True
 
     def _unfitted(self, points: np.ndarray, mask: np.ndarray, weight: np.ndarray | None,

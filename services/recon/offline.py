@@ -46,12 +46,6 @@ class OfflineConfig:
     blend: float = 0.5  # a refined keypoint's share of its triangulated position, as live (hand_fit.FitConfig)
 
 
-def fuse(model: np.ndarray, triangulated: np.ndarray, seen: np.ndarray, blend: float) -> np.ndarray:
-    """Model keypoints (...,3) moved ``blend`` of the way to the triangulated ones where ``seen``
-    (...): the same fusion as the live fit's (services/recon/hand_fit.py)."""
-    return np.where(np.asarray(seen, bool)[..., None], model + blend * (triangulated - model), model)
-
-
 def fill_gaps(params: np.ndarray, have: np.ndarray) -> np.ndarray:
     """(T,P) per-frame parameters with rows ``have`` known: the others interpolated between the
     nearest known frames (rotation vectors by slerp, the rest linearly), held at the ends."""
