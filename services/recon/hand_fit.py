@@ -13,9 +13,7 @@ What a fitted hand reports is the model fused with the observation: a keypoint t
 triangulated is the mean of the model's and the triangulated position (``FitConfig.blend``), one
 that was not is the model's. The model's own error (a shape estimated from a few frames, a hand
 it does not quite describe) and the triangulation's (2-D peaks) are of the same size and largely
-independent, so their mean beats either (docs/perception.md). A hand without a fit (the shape is
-not yet estimated, or the fit was refused) reports only the keypoints most views agree on
-(``FitConfig.unfitted_min_view_share``).
+independent, so their mean beats either (docs/perception.md).
 """
 
 from __future__ import annotations
@@ -65,9 +63,6 @@ class FitConfig:
     prior: float = 0.004  # metres of residual per radian away from the warm start (keeps unseen joints put)
     max_nfev: int = 30
     blend: float = 0.5  # a fitted keypoint's share of its triangulated position (0: the model alone)
-    # An unfitted hand's keypoint triangulated from fewer than this share of the frame set's views
-    # is not reported: such a consensus is mostly a peak on a neighbouring finger or the other hand.
-    unfitted_min_view_share: float = 0.7
 
 
 @dataclass
@@ -82,7 +77,6 @@ class HandTracker:
     last_rms: float = float("nan")
     nfev: int = 0
     overridden: int = 0
-    unfitted_dropped: int = 0  # keypoints of an unfitted hand masked as too weakly agreed on
     last_params: np.ndarray | None = None  # this frame's fit (what the offline refinement starts from)
 
     def __post_init__(self) -> None:
@@ -92,12 +86,11 @@ class HandTracker:
     def tracking(self) -> bool:
         return bool(self._window)
 
-    def update(self, points: np.ndarray, mask: np.ndarray, weight: np.ndarray | None = None,
-               cameras: int | None = None) -> tuple[np.ndarray, np.ndarray, bool]:
+    def update(self, points: np.ndarray, mask: np.ndarray, weight: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, bool]:
         """points (21,3) triangulated, mask (21,) of those that exist, weight (21,) optional (views
-        that agreed), ``cameras`` the views of the frame set (optional: with ``weight`` it masks an
-        unfitted hand's weakly agreed keypoints). Returns keypoints (21,3), their mask (21,) and
-        whether the model produced them (then every keypoint is filled in, occluded ones included)."""
+        that agreed). Returns keypoints (21,3), their mask (21,) and whether the model produced them
+        (then every keypoint is filled in, occluded ones included)."""
         self.last_params = None
         mask = np.asarray(mask, bool)
         points = np.where(mask[:, None], np.nan_to_num(points), 0.0)
@@ -111,11 +104,11 @@ class HandTracker:
                 if len(self._init) >= self.config.init_frames:
                     self.shape = estimate_shape(self._init, self.side)
                     self._init = []
-            return self._unfitted(points, mask, weight, cameras)
+            return points, mask.astype(np.uint8), False
         w = np.ones(21) if weight is None else np.asarray(weight, float)
         params = self._fit(points, mask, w)
         if params is None:
-            return self._unfitted(points, mask, weight, cameras)
+            return points, mask.astype(np.uint8), False
         self._window.append(params)
         self.last_params = params
         while len(self._window) > self.config.window:
@@ -128,17 +121,6 @@ class HandTracker:
         self.overridden = int(keep.sum())
         fused = fuse(model, points, mask, self.config.blend)
         return np.where(keep[:, None], points, fused), np.ones(21, np.uint8), True
-
-    def _unfitted(self, points: np.ndarray, mask: np.ndarray, weight: np.ndarray | None,
-                  cameras: int | None) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The triangulated keypoints as they are, less those too few views agreed on."""
-        if weight is not None and cameras is not None:
-            need = max(2, int(np.ceil(self.config.unfitted_min_view_share * cameras - 1e-9)))
-            weak = mask & (np.asarray(weight, float) < need)
-            self.unfitted_dropped += int(weak.sum())
-            mask = mask & ~weak
-            points = np.where(mask[:, None], points, 0.0)
-        return points, mask.astype(np.uint8), False
 
     def finish_initialisation(self, min_frames: int) -> bool:
         """Estimate the shape now from the confident frames collected so far (an offline pass

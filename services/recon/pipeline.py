@@ -190,7 +190,7 @@ class Reconstructor:
             if not self.fit_hands:
                 break
             sl = slice(i * KEYPOINTS_PER_HAND, (i + 1) * KEYPOINTS_PER_HAND)
-            hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl], len(P))
+            hands[i], hand_mask[i], fitted[i] = self.trackers[name].update(pts[sl], mask[sl], views[sl])
         self._tracked = [h[m.astype(bool)] if m.sum() >= TRACKED_MIN_POINTS else None
                          for h, m in zip(hands, hand_mask, strict=True)]
         t2 = time.perf_counter()

@@ -176,7 +176,6 @@ class ReconService:
                "layout": self.layout.summary() if self.layout is not None else {"error": self.layout_error}}
         if self.recon is not None:
             out["hand_resets"] = {h: tr.resets for h, tr in self.recon.trackers.items()}
-            out["hand_keypoints_weakly_agreed"] = {h: tr.unfitted_dropped for h, tr in self.recon.trackers.items()}
             out["hands_seen_twice"] = self.recon.hands_seen_twice
             out["hand_keypoints_beyond_the_hand"] = self.recon.beyond_hand
             out["hand_detections_swapped"] = self.recon.hand_swaps

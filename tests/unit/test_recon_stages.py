@@ -177,23 +177,6 @@ def test_a_fitted_keypoint_is_the_mean_of_the_model_and_its_triangulation():
     assert abs(out[8, 0] - model[8, 0]) > 1e-4, "the observation pulls the fingertip off the model"
 
 
-def test_an_unfitted_hand_reports_only_what_most_views_agree_on():
-    tracker = HandTracker("right", FitConfig(init_frames=8))
-    pts = np.random.default_rng(3).normal(0.0, 0.05, (21, 3))
-    views = np.full(21, 7.0)
-    views[[3, 4]] = 4.0  # 4 of 7 views: under the 70 % share
-    views[5] = 5.0
-    out, mask, fitted = tracker.update(pts, np.ones(21, bool), views, cameras=7)
-    assert not fitted and tracker.shape is None
-    assert not mask[[3, 4]].any() and mask[np.r_[0:3, 5:21]].all() and tracker.unfitted_dropped == 2
-    np.testing.assert_array_equal(out[[3, 4]], 0.0)
-    np.testing.assert_array_equal(out[5], pts[5])
-    _, mask3, _ = HandTracker("right").update(pts, np.ones(21, bool), np.full(21, 3.0), cameras=4)
-    assert mask3.all(), "a four-camera rig needs three views"
-    _, mask_all, _ = HandTracker("right").update(pts, np.ones(21, bool), views)
-    assert mask_all.all(), "without the frame set's view count nothing is masked"
-
-
 def test_rotvec_inverts_rotation_near_half_turn():
     for r in ([0.1, -0.2, 0.3], [0.0, 0.0, np.pi - 1e-4], [2.0, 1.0, -1.5]):
         R = rodrigues(np.array(r))
