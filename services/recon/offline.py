@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation, Slerp
 
+from services.recon.hand_fit import FitConfig
 from services.recon.hand_model import N_JOINTS, N_PARAMS, HandShape, forward, joint_bounds
 from services.recon.triangulation import project
 
@@ -43,7 +44,7 @@ class OfflineConfig:
     stretch_px: float = 5.0  # per unit of thumb stretch (10 % costs half a pixel)
     max_nfev: int = 30
     max_gap_speed_m_s: float = MAX_GAP_SPEED_M_S  # see segments()
-    blend: float = 0.5  # a refined keypoint's share of its triangulated position, as live (hand_fit.FitConfig)
+    blend: float = FitConfig.blend  # a refined keypoint's share of its triangulated position, as live
 
 
 def fill_gaps(params: np.ndarray, have: np.ndarray) -> np.ndarray:
