@@ -37,6 +37,9 @@ from shared.realtime import raise_cpu_share
 from shared.runtime import Node
 
 TACTILE_MAX_AGE_S = 0.5
+# Released frame sets waiting for detection: one beside the newest absorbs a single slow detection
+# (a busy host) without skipping a set; a recon slower than the cameras for longer skips the oldest.
+WAITING_SETS = 2
 INFO_SUFFIX = "/info"
 
 
@@ -135,8 +138,8 @@ class ReconService:
             # Images and CameraInfos come through separate subscriptions, whose handlers may run a
             # frame set apart under load: a set is released incomplete only once two newer ones began.
             self.buffer = FrameSetBuffer(late_after=2)
-            self.ready: tuple[float, dict] | None = None  # the newest released frame set not yet detected
-            self.frame_sets_behind = 0  # released sets a newer one replaced before recon got to them
+            self.ready: collections.deque[tuple[float, dict]] = collections.deque()  # released, not yet detected
+            self.frame_sets_behind = 0  # released sets skipped: newer ones filled the waiting line first
             if self.learned is not None:
                 self.images_key = node.input("image", self.on_image)[0].key_expr  # its failures are counted under it
                 node.set_status("ok")
@@ -250,20 +253,25 @@ class ReconService:
         released = self.buffer.add(stamp, item, payload, expected)
         if not released:
             return
-        scheduled = self.ready is not None
-        self.frame_sets_behind += len(released) - 1 + scheduled
-        self.ready = released[-1]
+        scheduled = bool(self.ready)
+        self.ready.extend(released)
+        while len(self.ready) > WAITING_SETS:
+            self.ready.popleft()
+            self.frame_sets_behind += 1
         if not scheduled:  # after the samples already queued on the loop are in
             self.node.loop.call_soon(self._detect_ready)
 
     def _detect_ready(self) -> None:
-        """Detects the newest released frame set: a recon slower than the cameras skips to it instead
-        of working through a backlog (whose queues would then drop images and CameraInfos apart)."""
-        (stamp, items), self.ready = self.ready, None
+        """Detects the oldest released frame set still waiting (at most ``WAITING_SETS`` wait: they
+        are whole sets, so no queue drops an image apart from its CameraInfo), then the next one
+        after the samples queued meanwhile."""
+        stamp, items = self.ready.popleft()
         try:
             self._detect_images(stamp, items)
         except Exception as exc:  # as a handler's: counted and logged, the next frame set goes on
             self.node.handler_failed(self.images_key, exc)
+        if self.ready:
+            self.node.loop.call_soon(self._detect_ready)
 
     def _detect_images(self, stamp: float, items: dict[str, object]) -> None:
         t0 = time.perf_counter()

@@ -16,7 +16,7 @@ import pytest
 
 from services.recon.frameset import FrameSetBuffer
 from services.recon.objects import task_keypoint_names
-from services.recon.service import ReconService, decode_window
+from services.recon.service import WAITING_SETS, ReconService, decode_window
 from services.recon.triangulation import project
 from services.world.model import camera_specs
 from shared import msgs
@@ -250,9 +250,10 @@ def test_a_spare_loads_the_network_before_it_takes_over(learned):
     assert len(built) == 2, "a prepared network serves one start only"
 
 
-def test_a_recon_behind_the_cameras_detects_the_newest_frame_set_and_counts_the_ones_it_skipped(learned):
-    """On the loop, detection waits for the samples already queued: three complete sets handed in
-    one batch (recon was busy while they came) give one detection, of the newest set."""
+def test_a_recon_behind_the_cameras_detects_the_newest_waiting_sets_in_order_and_counts_the_ones_it_skipped(learned):
+    """On the loop, detection waits for the samples already queued: of three complete sets handed
+    in one batch (recon was busy while they came) the two newest are detected, oldest first, and
+    the third is counted as skipped."""
     _, seen_views = learned
     node = FakeNode()
     service = ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
@@ -265,12 +266,13 @@ def test_a_recon_behind_the_cameras_detects_the_newest_frame_set_and_counts_the_
                 node.handlers["image"](_jpeg(spec, stamp), f"xm/camhub/{spec.name}/image")
                 node.handlers["info"](_info(spec, stamp), f"xm/camhub/{spec.name}/info")
         assert node.published == [], "detection waits until the queued samples are in"
-        await asyncio.sleep(0)
+        for _ in range(4):
+            await asyncio.sleep(0)
 
     asyncio.run(batch())
-    assert len(node.published) == 1 and len(seen_views) == 1
-    assert msgs.stamp_seconds(node.published[0].header.stamp) == 3.0
-    assert service._health()["frame_sets_behind"] == 2
+    assert len(seen_views) == WAITING_SETS
+    assert [msgs.stamp_seconds(m.header.stamp) for m in node.published] == [2.0, 3.0]
+    assert service._health()["frame_sets_behind"] == 1
 
 
 def test_a_detector_graph_running_without_its_int8_copy_is_reported(learned, caplog):
