@@ -126,7 +126,13 @@ def residuals3d(s: Step3D, task: Task3D, sc: Scene, scales: Scales) -> list[torc
             friction / scales.friction_force, slippage / (scales.force * scales.speed), inter / scales.length]
 
 
-SCALES = Scales()
+# The thesis gives no loss weights. At weight 1 Gauss-Newton turns the hand tasks' objects at the
+# goal with forces acting 8 mm from where the fingertips touch (force-distance loss about 1.6, the
+# success criterion wants it below 1); weighting Eq. 2.10 ten times closes that gap to about 4 mm on
+# hand_turn (docs/contactopt.md). The criterion itself is judged unweighted (``loss_breakdown3d``).
+DISTANCE_WEIGHT = 10.0
+SCALES = Scales(weights=tuple(DISTANCE_WEIGHT if name == "distance" else 1.0 for name in LOSSES))
+UNWEIGHTED = Scales()
 
 
 def residual_parts3d(ro: Rollout3D, task: Task3D, scales: Scales = SCALES) -> list[torch.Tensor]:
@@ -178,10 +184,11 @@ def residual_fn3d(policy: Policy, task: Task3D, xy: torch.Tensor,
 
 
 def loss_breakdown3d(policy: Policy, task: Task3D, xy: torch.Tensor) -> tuple[dict[str, float], Rollout3D]:
-    """Batch-mean task loss and each consistency loss, and the rollout."""
+    """Batch-mean task loss and each consistency loss at weight 1 (what the success criterion
+    judges, whatever weights training used), and the rollout."""
     with torch.no_grad():
         ro = rollout3d(policy_fn(tuple(policy.parameters()), task, scene(task.robot)), task, xy)
-        parts = residual_parts3d(ro, task)
+        parts = residual_parts3d(ro, task, UNWEIGHTED)
     out = {"task": float((parts[0] ** 2).sum(1).mean())}
     for name, p in zip(LOSSES, parts[1:], strict=True):
         out[name] = float((p ** 2).sum(1).mean())

@@ -124,6 +124,22 @@ def test_gradient_reaches_the_policy_through_the_predicted_forces() -> None:
     assert max(float(g.abs().max()) for g in grads) > 1e-6
 
 
+def test_training_weights_the_force_distance_loss_and_the_criterion_does_not() -> None:
+    """The objective weights Eq. 2.10 by DISTANCE_WEIGHT; the breakdown the success criterion
+    reads reports every consistency loss at weight 1."""
+    torch.manual_seed(0)
+    policy = losses3d.make_policy(TURN)
+    xy = torch.zeros(2, 2, dtype=F64)
+    with torch.no_grad():
+        ro = rollout3d(policy_fn(tuple(policy.parameters()), TURN, scene(TURN.robot)), TURN, xy)
+        trained = [float((p ** 2).sum(1).mean()) for p in losses3d.residual_parts3d(ro, TURN)]
+    report, _ = losses3d.loss_breakdown3d(policy, TURN, xy)
+    at = 1 + list(losses3d.LOSSES).index("distance")
+    assert report["distance"] > 0
+    assert trained[at] == pytest.approx(losses3d.DISTANCE_WEIGHT * report["distance"])
+    assert trained[at + 1] == pytest.approx(report["friction"])
+
+
 @pytest.mark.parametrize("push", [0.0, 2.0])
 def test_mujoco_replay_of_a_vertical_force(push: float) -> None:
     """No force: the cube stays on the table; twice its weight upward at the center: it rises
