@@ -209,7 +209,7 @@ def query_router(router: str, selector: str, timeout: float = 3.0) -> list[dict]
 
 
 @contextlib.contextmanager
-def sim_workcell(tmp: Path, timeout: float = 90.0) -> Iterator[dict]:
+def sim_workcell(tmp: Path, timeout: float = 180.0) -> Iterator[dict]:
     """The whole simulated workcell (deploy/sim.toml) through ``xm up`` on a free router port, with its
     run directory, recordings and panel port private to ``tmp``; up once every registered key is being
     published. Yields ``{"router", "deployment", "tmp", "proc"}``; SIGINT (then SIGKILL) on exit."""

@@ -51,7 +51,7 @@ def test_a_killed_service_is_taken_over_by_its_spare(tmp_path):
             assert first, (tmp_path / "up.log").read_text()
             assert first["spare_pid"] != first["pid"]
             os.kill(first["pid"], signal.SIGKILL)
-            after = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c["state"] == "ok" and c, 30)
+            after = wait_for(lambda: (c := child()) and c["restarts"] == 1 and c["state"] == "ok" and c, 60)
             assert after and after["pid"] == first["spare_pid"], ((tmp_path / "up.log").read_text(), after)
             if can_lower_nice():
                 assert autogroup_nice(after["pid"]) == 0  # a new session's autogroup starts at 0

@@ -18,7 +18,8 @@ def test_the_shipped_table_is_the_scripted_teachers_current_prior():
     assert shipped["source"] == fresh["source"] and shipped["frames"] == fresh["frames"]
     for hand in ("left", "right"):
         for stat in ("mean", "std"):
-            assert shipped[hand][stat] == pytest.approx(fresh[hand][stat], abs=1e-9), \
+            # 1e-6 rad: float32 sums in the simulation differ by ~6e-8 between CPUs (AMD / Intel)
+            assert shipped[hand][stat] == pytest.approx(fresh[hand][stat], abs=1e-6), \
                 f"{hand} {stat}: run `python -m learning.hand_prior`"
 
 
