@@ -126,10 +126,10 @@ def residuals3d(s: Step3D, task: Task3D, sc: Scene, scales: Scales) -> list[torc
             friction / scales.friction_force, slippage / (scales.force * scales.speed), inter / scales.length]
 
 
-# The thesis gives no loss weights. At weight 1 Gauss-Newton turns the hand tasks' objects at the
-# goal with forces acting 8 mm from where the fingertips touch (force-distance loss about 1.6, the
-# success criterion wants it below 1); weighting Eq. 2.10 ten times closes that gap to about 4 mm on
-# hand_turn (docs/contactopt.md). The criterion itself is judged unweighted (``loss_breakdown3d``).
+# The thesis gives no loss weights. At weight 1 Gauss-Newton turns hand_turn's cube at the goal
+# with its fingertips 8 mm off the cube where their forces act (force-distance loss about 1.6; the
+# success criterion wants it below 1); weighting Eq. 2.10 ten times brings them to about 4 mm
+# (docs/contactopt.md). The criterion itself is judged unweighted (``loss_breakdown3d``).
 DISTANCE_WEIGHT = 10.0
 SCALES = Scales(weights=tuple(DISTANCE_WEIGHT if name == "distance" else 1.0 for name in LOSSES))
 UNWEIGHTED = Scales()
