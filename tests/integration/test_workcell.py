@@ -82,7 +82,9 @@ def test_killed_service_is_restarted_and_publishes_again(workcell):
         health = query_router(router, "xm/recon/main/@health")
         return bool(health) and health[0]["published_hz"].get("xm/recon/main/scene", 0) > 0
 
-    wait_until(restarted_and_publishing, 30, lambda: f"recon restarted and publishing: {recon()}", period=1.0)
+    # A cold start (the spare may still be importing) loads the detector's graphs beside the running
+    # cell: over 30 s on a slow 2-core host. The recovery target is measured by bench/soak.py.
+    wait_until(restarted_and_publishing, 90, lambda: f"recon restarted and publishing: {recon()}", period=1.0)
 
 
 def test_status_lists_every_service(workcell):
