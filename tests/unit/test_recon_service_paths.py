@@ -253,7 +253,7 @@ def test_a_spare_loads_the_network_before_it_takes_over(learned):
 def test_a_recon_behind_the_cameras_detects_the_newest_waiting_sets_in_order_and_counts_the_ones_it_skipped(learned):
     """On the loop, detection waits for the samples already queued: of three complete sets handed
     in one batch (recon was busy while they came) the two newest are detected, oldest first, and
-    the third is counted as skipped."""
+    the first is counted as skipped."""
     _, seen_views = learned
     node = FakeNode()
     service = ReconService(node, ReconService.Params(detector="learned", fit_hands=False))
