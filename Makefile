@@ -15,9 +15,10 @@ POLICY_STEPS ?= 5000
 POLICY := runs/policy/policy.pt
 # The keypoint network recon runs ships in models/detector/ (ONNX graphs + their JSON): `make detector`
 # regenerates it: labels rendered from the simulated rig, then training of the first stage (whole
-# windows; about 20 min on 2 idle cores) and of the second (one hand per crop; minutes), then their
-# int8 copies recon runs (calibrated on the labelled set, seconds); the labelled sets, the torch
-# weights and the loss plots stay in runs/detector/.
+# windows; about 20 min on 2 idle cores), of the second (one hand per crop; minutes) and of the
+# object stage, then a second learning-rate cycle of the first and second stages from those weights
+# (about 15 min), then their int8 copies recon runs (calibrated on the labelled set,
+# seconds); the labelled sets, the torch weights and the loss plots stay in runs/detector/.
 # The glove's cell map (which readout crossing is which sensor's cell, and where each cell lies on
 # the hand) ships in models/skin/glove_cellmap.json: the layout the glove service and the tactile
 # projection read; `make cellmap` writes it again from the skin tools' glove design (skin/examples.py).
@@ -27,6 +28,8 @@ DETECTOR_HAND_ITERS ?= 5000
 DETECTOR_HAND_MINUTES ?= 20
 DETECTOR_OBJECT_ITERS ?= 2800
 DETECTOR_OBJECT_MINUTES ?= 20
+DETECTOR_TUNE_ITERS ?= 1500
+DETECTOR_HAND_TUNE_ITERS ?= 2000
 
 .PHONY: run test test-fast bench soak lint clean help policy detector cellmap
 
@@ -70,6 +73,10 @@ detector: $(STAMP)
 		--iters $(DETECTOR_HAND_ITERS) --minutes $(DETECTOR_HAND_MINUTES) --threads 2
 	$(BIN)/xm detector train-objects --labels runs/detector/labels/train --out runs/detector --init runs/detector \
 		--iters $(DETECTOR_OBJECT_ITERS) --minutes $(DETECTOR_OBJECT_MINUTES)
+	$(BIN)/xm detector train --labels runs/detector/labels/train --out runs/detector --init runs/detector \
+		--iters $(DETECTOR_TUNE_ITERS) --minutes 30 --lr 5e-4
+	$(BIN)/xm detector train-hands --labels runs/detector/labels/train --out runs/detector --init runs/detector \
+		--iters $(DETECTOR_HAND_TUNE_ITERS) --minutes 15 --lr 5e-4 --threads 2
 	$(BIN)/xm detector quantize --weights runs/detector --labels runs/detector/labels/train
 	cp runs/detector/model.onnx runs/detector/meta.json runs/detector/hands.onnx runs/detector/hands.json \
 		runs/detector/objects.onnx runs/detector/objects.json runs/detector/model.int8.onnx \

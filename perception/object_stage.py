@@ -23,7 +23,7 @@ import torch
 
 from perception.augment import AugmentParams, augmented_crop
 from perception.labels import Frame
-from perception.train import SIGMA, Sampler, export_onnx, plot_losses, stage_parser, stage_set, train
+from perception.train import SIGMA, Sampler, export_onnx, graph_weights, plot_losses, stage_parser, stage_set, train
 from services.recon.learned_detector import OBJECT_INPUT
 from services.recon.object_crops import HALF_SIZE_M, object_slices
 from services.recon.objects import object_models, task_keypoint_names
@@ -96,13 +96,9 @@ def first_stage_init(folder: Path, n_obj: int) -> dict[str, torch.Tensor] | None
     """The first stage's weights (its ONNX graph's initializers, named as the U-Net's parameters)
     as a start for the object stage: the same layers, the head cut to the object channels (the
     last ``n_obj``). None when the folder has no graph."""
-    path = Path(folder) / "model.onnx"
-    if not path.exists():
+    state = graph_weights(Path(folder) / "model.onnx")
+    if state is None:
         return None
-    import onnx  # the exported graph's format: only to read a start from it
-    from onnx import numpy_helper
-
-    state = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
     state["head.weight"], state["head.bias"] = state["head.weight"][-n_obj:], state["head.bias"][-n_obj:]
     return state
 

@@ -22,11 +22,17 @@ import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from perception.augment import AugmentParams, sample  # noqa: E402
-from perception.labels import Frame, keypoint_names, read_coco  # noqa: E402
+from perception.labels import Frame, keypoint_classes, keypoint_names, read_coco  # noqa: E402
 from services.recon.learned_detector import INPUT_SIZE, TRAINING_DIR, UNet  # noqa: E402
 
 SIGMA = 1.5  # heatmap Gaussian, network pixels
 FOREGROUND_WEIGHT = 30.0  # heatmap pixels near a keypoint weigh this much more: most of a map is empty
+# Share of first-stage samples cut from a full frame at a labelled window's size where no hand is
+# (off by default: it teaches the network to report no hand there, docs/perception.md, but did not
+# lower the closed-loop error).
+EMPTY_WINDOWS = 0.0
+MIN_HAND_KEYPOINTS = 4  # a cut with fewer labelled hand keypoints than this counts as showing no hand
+CUT_TRIES = 8
 
 
 def load_set(folder: Path) -> tuple[str, list[Frame], list[np.ndarray]]:
@@ -73,10 +79,42 @@ def heatmap_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 Sampler = Callable[[np.random.Generator], tuple[np.ndarray, np.ndarray]]  # one (input, targets) pair
 
 
+def is_full(frame: Frame) -> bool:
+    return tuple(frame.roi[2:]) == tuple(frame.full_size)
+
+
+def cut_window(frame: Frame, image: np.ndarray, side: tuple[int, int], hand_channels: int,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A window of ``side`` (w, h) cut from a full frame where it shows no hand, if one of
+    CUT_TRIES random places does (else the last tried): its image, keypoints (window pixels) and
+    visibility (0 outside the cut)."""
+    H, W = image.shape[:2]
+    w, h = min(side[0], W), min(side[1], H)
+    for _ in range(CUT_TRIES):
+        x0, y0 = int(rng.integers(0, W - w + 1)), int(rng.integers(0, H - h + 1))
+        uv = frame.uv - (x0, y0)
+        inside = np.all((uv >= -0.5) & (uv <= np.array([w, h]) - 0.5), axis=1)
+        vis = np.where(inside, frame.visibility, 0)
+        if (vis[:hand_channels] > 0).sum() < MIN_HAND_KEYPOINTS:
+            break
+    return image[y0:y0 + h, x0:x0 + w], uv, vis
+
+
 def window_sampler(frames: list[Frame], images: list[np.ndarray], size: tuple[int, int],
-                   aug: AugmentParams) -> Sampler:
-    """Whole labelled window images, letterboxed and augmented (the first stage's input)."""
+                   aug: AugmentParams, empty: float = EMPTY_WINDOWS, hand_channels: int = 0) -> Sampler:
+    """Whole labelled window images, letterboxed and augmented (the first stage's input); a share
+    ``empty`` of them cut from the full frames where no hand is (the first ``hand_channels``
+    keypoints are the hands')."""
+    full = [i for i, fr in enumerate(frames) if is_full(fr)]
+    sides = [tuple(fr.roi[2:]) for fr in frames if not is_full(fr)]
+    if not (full and sides and hand_channels):
+        empty = 0.0
+
     def one(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        if rng.random() < empty:
+            i = full[rng.integers(0, len(full))]
+            img, uv, vis = cut_window(frames[i], images[i], sides[rng.integers(0, len(sides))], hand_channels, rng)
+            return sample(img, uv, vis, size, SIGMA, aug, rng)
         i = rng.integers(0, len(frames))
         return sample(images[i], frames[i].uv, frames[i].visibility, size, SIGMA, aug, rng)
     return one
@@ -126,6 +164,17 @@ def train(frames: list[Frame], images: list[np.ndarray], n_keypoints: int, size:
     bar.close()
     net.eval()
     return net.cpu(), losses, time.monotonic() - start
+
+
+def graph_weights(path: Path) -> dict[str, torch.Tensor] | None:
+    """A U-Net's state dict read back from its exported ONNX graph (the initializers carry the
+    parameters' names); None when there is no graph. The shipped networks are graphs only."""
+    if not path.exists():
+        return None
+    import onnx  # the exported graph's format: only to read a start from it
+    from onnx import numpy_helper
+
+    return {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
 
 
 def plot_losses(losses: list[float], path: Path) -> None:
@@ -182,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--size", default=f"{INPUT_SIZE[0]}x{INPUT_SIZE[1]}", help="network input WxH (multiples of 8)")
     p.add_argument("--device", default="cpu", help="torch device (cpu; cuda where one exists)")
+    p.add_argument("--empty-windows", type=float, default=EMPTY_WINDOWS,
+                   help="share of samples cut from full frames where no hand is")
+    p.add_argument("--init", default="", help="start from the weights of this folder's model.onnx (default: random)")
     a = p.parse_args(argv)
     size = tuple(int(v) for v in a.size.split("x"))
     if len(size) != 2 or any(v % 8 for v in size):
@@ -194,11 +246,17 @@ def main(argv: list[str] | None = None) -> int:
     task, frames, images = load_set(folder)
     names = keypoint_names(task)
     print(f"{len(frames)} labelled images of task {task!r}, {len(names)} keypoints, input {size}")
+    init = graph_weights(Path(a.init) / "model.onnx") if a.init else None
+    if a.init and init is None:
+        print(f"--init {a.init}: no model.onnx there to start from")
+        return 2
+    hands = int((keypoint_classes(task) == "hand").sum())
+    sampler = window_sampler(frames, images, size, AugmentParams(), a.empty_windows, hands)
     net, losses, seconds = train(frames, images, len(names), size, a.iters, a.minutes, a.batch, a.lr, a.seed,
-                                 device=a.device)
+                                 device=a.device, sampler=sampler, init=init)
     save(net, task, size, losses, seconds, Path(a.out),
          {"labels": str(folder), "images": len(frames), "batch": a.batch, "lr": a.lr, "threads": a.threads,
-          "device": a.device})
+          "device": a.device, "empty_windows": a.empty_windows, "init": a.init or "random"})
     print(f"{len(losses)} iterations in {seconds:.0f} s, loss {losses[0]:.4f} -> {np.mean(losses[-20:]):.4f}; "
           f"wrote {a.out}/weights.pt, meta.json, loss.png, model.onnx")
     return 0
