@@ -4,7 +4,9 @@ from every hand (the second stage), as a window left behind by a jump shows them
 folder: the median over windows of the median hand-channel confidence, and the share of windows
 at or above recon's hand-present threshold. Writes ``empty`` into .bench/detector.json.
 
-    python bench/detector_empty.py models/detector runs/detector
+    python bench/detector_empty.py [models/detector runs/detector ...]
+
+Without a held-out labelled set it renders one first, as `xm detector label` does (seconds).
 """
 
 from __future__ import annotations
@@ -15,11 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from perception import sim_labels
 from perception.augment import NO_AUGMENT
 from perception.hand_stage import empty_sample, hand_half
 from perception.train import cut_window, is_full, load_set
 from services.recon.detector import HAND_PRESENT_CONFIDENCE
-from services.recon.learned_detector import TRAINING_DIR, LearnedDetector, peaks, to_input
+from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, TRAINING_DIR, LearnedDetector, peaks, to_input
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
 HANDS = len(HAND_NAMES) * KEYPOINTS_PER_HAND
@@ -70,12 +73,18 @@ def measure(weights: str, windows: list[np.ndarray], crops: np.ndarray) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("weights", nargs="+", help="network folders (models/detector, a training run's folder)")
+    p.add_argument("weights", nargs="*", default=[str(DEFAULT_WEIGHTS_DIR)],
+                   help="network folders (default: the shipped one; a training run's folder)")
     p.add_argument("--labels", default=str(TRAINING_DIR / "labels" / "eval"), help="held-out labelled set")
     p.add_argument("--tries", type=int, default=120)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=".bench/detector.json")
     a = p.parse_args()
+    labels = Path(a.labels)
+    if not (labels / "labels.json").exists():
+        if labels.name != "eval":
+            raise SystemExit(f"no labelled set at {labels}; make one with `xm detector label`")
+        sim_labels.main(["--out", str(labels.parent), "--frames", "0"])
     windows, crops = empty_inputs(Path(a.labels), a.tries, a.seed)
     rows = {w: measure(w, windows, crops) for w in a.weights}
     for w, r in rows.items():
