@@ -144,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
           "not asked)")
     out = Path(a.out)
     doc = json.loads(out.read_text()) if out.exists() else {}
-    doc["accuracy_float32" if a.precision == "float32" else "accuracy"] = result  # the float graphs beside
+    # The float graphs' figures stand beside the int8 ones recon runs.
+    doc["accuracy_float32" if a.precision == "float32" else "accuracy"] = result
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=1))
     print(f"wrote {out}")
