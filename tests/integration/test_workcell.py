@@ -58,7 +58,9 @@ def test_recording_decodes_with_stock_readers_every_key_in_order(workcell):
         ts = stamps.get(spec.key, [])
         if rosbags_counts.get(spec.key, 0) != len(ts):
             problems.append(f"{spec.key}: rosbags read {rosbags_counts.get(spec.key, 0)}, mcap_ros2 {len(ts)}")
-        if len(ts) < 3:
+        # Two stamps show the order. The session label comes at 1 Hz of simulated time, and on a busy
+        # 2-core host the simulation runs at 0.1-0.2x real time: two or three in the 10 s.
+        if len(ts) < 2:
             problems.append(f"{spec.key}: only {len(ts)} messages")
         elif ts != sorted(ts) or ts[-1] <= ts[0]:
             problems.append(f"{spec.key}: stamps out of order or not advancing: {ts[:5]} ... {ts[-5:]}")
