@@ -2,7 +2,7 @@
 full frames where no hand keypoint is labelled (the first stage) and hand-sized crops placed away
 from every hand (the second stage), as a window left behind by a jump shows them. Per network
 folder: the median over windows of the median hand-channel confidence, and the share of windows
-at or above recon's hand-present threshold. Writes ``empty`` into .bench/detector.json.
+at or above the network's hand-present threshold (recon's). Writes ``empty`` into .bench/detector.json.
 
     python bench/detector_empty.py [models/detector runs/detector ...]
 
@@ -19,10 +19,16 @@ import numpy as np
 
 from perception import sim_labels
 from perception.augment import NO_AUGMENT
-from perception.hand_stage import empty_sample, hand_half
+from perception.hand_stage import MIN_LABELLED, empty_sample, hand_half
 from perception.train import cut_window, is_full, load_set
-from services.recon.detector import HAND_PRESENT_CONFIDENCE
-from services.recon.learned_detector import DEFAULT_WEIGHTS_DIR, TRAINING_DIR, LearnedDetector, peaks, to_input
+from services.recon.learned_detector import (
+    DEFAULT_WEIGHTS_DIR,
+    HAND_INPUT,
+    TRAINING_DIR,
+    LearnedDetector,
+    peaks,
+    to_input,
+)
 from shared.demo import HAND_NAMES, KEYPOINTS_PER_HAND
 
 HANDS = len(HAND_NAMES) * KEYPOINTS_PER_HAND
@@ -45,10 +51,10 @@ def empty_inputs(folder: Path, tries: int, seed: int) -> tuple[list[np.ndarray],
         fr = frames[i]
         h = int(rng.integers(len(HAND_NAMES)))
         sl = slice(h * KEYPOINTS_PER_HAND, (h + 1) * KEYPOINTS_PER_HAND)
-        if (fr.visibility[sl] > 0).sum() >= 4:
+        if (fr.visibility[sl] > 0).sum() >= MIN_LABELLED:
             half = hand_half(fr.uv[sl], fr.visibility[sl] > 0, rng)
-            crops.append(empty_sample(images[i], fr.uv[:HANDS], fr.visibility[:HANDS] > 0, half, 32, NO_AUGMENT,
-                                      rng)[0])
+            crops.append(empty_sample(images[i], fr.uv[:HANDS], fr.visibility[:HANDS] > 0, half, HAND_INPUT,
+                                      NO_AUGMENT, rng)[0])
     return windows, np.ascontiguousarray(np.stack(crops), dtype=np.float32)
 
 
@@ -59,15 +65,17 @@ def measure(weights: str, windows: list[np.ndarray], crops: np.ndarray) -> dict:
         batch, _ = to_input([img], d.size)
         _, conf = peaks(d.heatmaps(batch))
         first += [float(np.median(conf[0, sl])) for sl in d.hand_slices]
-    out = {"precision": d.precision, "first_stage_windows": len(windows),
+    present = d.hand_present_confidence
+    out = {"precision": d.precision, "threshold": present, "first_stage_windows": len(windows),
            "first_stage_median_confidence": round(float(np.median(first)), 3),
-           "first_stage_share_present": round(float(np.mean(np.array(first) >= HAND_PRESENT_CONFIDENCE)), 3)}
-    if d._run_hand is not None:
-        _, conf = peaks(d._run_hand(crops))
+           "first_stage_share_present": round(float(np.mean(np.array(first) >= present)), 3)}
+    hand_maps = d.hand_heatmaps(crops)
+    if hand_maps is not None:
+        _, conf = peaks(hand_maps)
         per_crop = np.median(conf, axis=1)
         out.update({"hand_stage_crops": len(crops),
                     "hand_stage_median_confidence": round(float(np.median(per_crop)), 3),
-                    "hand_stage_share_present": round(float(np.mean(per_crop >= HAND_PRESENT_CONFIDENCE)), 3)})
+                    "hand_stage_share_present": round(float(np.mean(per_crop >= present)), 3)})
     return out
 
 
@@ -91,7 +99,7 @@ def main() -> None:
         print(w, r)
     out = Path(a.out)
     kept = json.loads(out.read_text()) if out.exists() else {}
-    kept["empty"] = {"threshold": HAND_PRESENT_CONFIDENCE, "labels": a.labels, "networks": rows}
+    kept["empty"] = {"labels": a.labels, "networks": rows}
     out.write_text(json.dumps(kept, indent=1))
     print(f"wrote {out}")
 

@@ -228,6 +228,10 @@ class LearnedDetector:
     def heatmaps(self, batch: np.ndarray) -> np.ndarray:
         return self._run(batch)
 
+    def hand_heatmaps(self, crops: np.ndarray) -> np.ndarray | None:
+        """The hand stage's heatmaps of hand crops (B,3,s,s); None without a hand stage."""
+        return None if self._run_hand is None else self._run_hand(crops)
+
     def detect(self, views: list[View]) -> tuple[np.ndarray, np.ndarray]:
         images = []
         for v in views:
